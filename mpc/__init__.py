@@ -1,0 +1,1 @@
+"""Model predictive control of the quadrotor from ONNX dynamics models (no torch)."""

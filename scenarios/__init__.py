@@ -1,0 +1,1 @@
+"""Closed-loop scenarios and the ``pinnmpc`` command line."""

@@ -1,0 +1,34 @@
+"""Reference quadrotor simulator, excitation data and Fisher information.
+
+Public names (DESIGN section 13)::
+
+    from sim import QuadParams, dynamics, Simulator
+    p = QuadParams()                  # reference values; QuadParams(m=0.08) overrides
+    xdot = dynamics(x, u, p)          # numpy, nominal; x (..., 12), u (..., 4) -> (..., 12)
+    s = Simulator(p)                  # nominal fidelity, dt = 0.01 s, RK4 with 1 ms substeps
+    x1 = s.step(x, u)                 # one control period; batched over leading axes
+"""
+
+__version__ = "0.1.0"
+
+from .dynamics import dynamics, rk4_step  # noqa: E402
+from .errors import DatasetError, SimInputError  # noqa: E402
+from .params import (  # noqa: E402
+    DT, HIGH_FIDELITY, INPUT_NAMES, NOMINAL, STATE_NAMES, SUBSTEPS, THETA_NAMES,
+    Fidelity, NoiseModel, QuadParams,
+)
+from .simulator import Simulator, StepResult  # noqa: E402
+
+__all__ = [
+    "DT", "HIGH_FIDELITY", "INPUT_NAMES", "NOMINAL", "STATE_NAMES", "SUBSTEPS", "THETA_NAMES",
+    "DatasetError", "Fidelity", "NoiseModel", "QuadParams", "SimInputError", "Simulator", "StepResult",
+    "dynamics", "rk4_step", "make_dataset", "load_dataset", "Dataset",
+]
+
+
+def __getattr__(name):
+    # The data generator pulls in python-control; import it on first use only.
+    if name in ("make_dataset", "load_dataset", "Dataset"):
+        from . import excitation
+        return getattr(excitation, name)
+    raise AttributeError(f"module 'sim' has no attribute {name!r}")

@@ -1,0 +1,126 @@
+"""Rigid-body quadrotor dynamics, CasADi backend (DESIGN section 4).
+
+The same nominal model as :func:`sim.dynamics.dynamics`, written with CasADi
+operations so that it can be differentiated (Fisher information, MPC).
+Parameters may be numbers or CasADi symbols.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import casadi as ca
+
+from .params import DT, NU, NX, SUBSTEPS, THETA_NAMES, QuadParams
+from .rotors import mixer
+
+
+def _get(p, name):
+    return p[name] if isinstance(p, Mapping) else getattr(p, name)
+
+
+def dynamics_casadi(x, u, p=None):
+    """Symbolic ``dx/dt`` of the nominal model.
+
+    Parameters
+    ----------
+    x : casadi.SX or casadi.MX, shape (12, 1)
+        State in the order of :data:`sim.params.STATE_NAMES`.
+    u : casadi.SX or casadi.MX, shape (4, 1)
+        Wrench ``[T, tau_x, tau_y, tau_z]`` in N, N m.
+    p : QuadParams or mapping, optional
+        Parameters; a mapping may hold CasADi symbols for any of ``m, Jxx,
+        Jyy, Jzz, kt, kq, g, c_d, d``. Reference values when omitted.
+
+    Returns
+    -------
+    casadi expression, shape (12, 1)
+    """
+    p = QuadParams() if p is None else p
+    phi, th, psi = x[3], x[4], x[5]
+    wp, wq, wr = x[6], x[7], x[8]
+    vx, vy, vz = x[9], x[10], x[11]
+    thrust, tx, ty, tz = u[0], u[1], u[2], u[3]
+    m, Jxx, Jyy, Jzz = _get(p, "m"), _get(p, "Jxx"), _get(p, "Jyy"), _get(p, "Jzz")
+    g, c_d = _get(p, "g"), _get(p, "c_d")
+
+    sphi, cphi = ca.sin(phi), ca.cos(phi)
+    sth, cth = ca.sin(th), ca.cos(th)
+    spsi, cpsi = ca.sin(psi), ca.cos(psi)
+
+    qs_rc = wq * sphi + wr * cphi
+    phid = wp + qs_rc * (sth / cth)
+    thd = wq * cphi - wr * sphi
+    psid = qs_rc / cth
+
+    pd = ((Jyy - Jzz) * wq * wr + tx) / Jxx
+    qd = ((Jzz - Jxx) * wp * wr + ty) / Jyy
+    rd = ((Jxx - Jyy) * wp * wq + tz) / Jzz
+
+    tm = thrust / m
+    ax = -tm * (cpsi * sth * cphi + spsi * sphi) - c_d * vx * ca.fabs(vx)
+    ay = -tm * (spsi * sth * cphi - cpsi * sphi) - c_d * vy * ca.fabs(vy)
+    az = g - tm * (cth * cphi) - c_d * vz * ca.fabs(vz)
+    return ca.vertcat(vx, vy, vz, phid, thd, psid, pd, qd, rd, ax, ay, az)
+
+
+def wrench_from_rotor_sq_casadi(n_sq, p=None):
+    """Symbolic wrench (4, 1) from rotor speeds squared (4, 1), with ``kt, kq`` from ``p``."""
+    p = QuadParams() if p is None else p
+    lever = _get(p, "d") / 2.0 ** 0.5
+    rows = mixer(_get(p, "kt"), _get(p, "kq"), lever)
+    return ca.vertcat(*[sum(r[i] * n_sq[i] for i in range(4)) for r in rows])
+
+
+def rk4_casadi(f, x, h, n):
+    """``n`` classical RK4 steps of size ``h`` of ``x' = f(x)`` (symbolic)."""
+    for _ in range(n):
+        k1 = f(x)
+        k2 = f(x + 0.5 * h * k1)
+        k3 = f(x + 0.5 * h * k2)
+        k4 = f(x + h * k3)
+        x = x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+    return x
+
+
+def step_function(p: QuadParams | None = None, *, symbolic_theta: bool = False,
+                  inputs: str = "wrench", dt: float = DT, substeps: int = SUBSTEPS) -> ca.Function:
+    """CasADi function for one control period of the nominal model.
+
+    Parameters
+    ----------
+    p : QuadParams, optional
+        Fixed parameters (reference values when omitted).
+    symbolic_theta : bool
+        If True the function takes a third argument ``theta`` (6,) with
+        ``(m, Jxx, Jyy, Jzz, kt, kq)``; otherwise ``theta`` comes from ``p``.
+    inputs : {"wrench", "motor"}
+        ``"wrench"``: ``u`` is the wrench (4,). ``"motor"``: ``u`` is the
+        rotor speeds squared (4,), RU^2, turned into a wrench with ``kt, kq``.
+    dt : float
+        Control period, s (input held constant over it).
+    substeps : int
+        RK4 substeps per period.
+
+    Returns
+    -------
+    casadi.Function
+        ``F(x, u[, theta]) -> x_next``.
+    """
+    p = QuadParams() if p is None else p
+    x = ca.SX.sym("x", NX)
+    u = ca.SX.sym("u", NU)
+    args = [x, u]
+    vals = {n: getattr(p, n) for n in ("m", "Jxx", "Jyy", "Jzz", "kt", "kq", "g", "c_d", "d")}
+    if symbolic_theta:
+        theta = ca.SX.sym("theta", 6)
+        vals.update({n: theta[i] for i, n in enumerate(THETA_NAMES)})
+        args.append(theta)
+    if inputs == "motor":
+        w = wrench_from_rotor_sq_casadi(u, vals)
+    elif inputs == "wrench":
+        w = u
+    else:
+        raise ValueError(f"inputs must be 'wrench' or 'motor'; found {inputs!r}")
+    x_next = rk4_casadi(lambda s: dynamics_casadi(s, w, vals), x, dt / substeps, substeps)
+    return ca.Function("step", args, [x_next], [a.name() for a in args], ["x_next"])

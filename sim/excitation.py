@@ -1,0 +1,449 @@
+"""Excitation data: a stabilizing controller flies seeded random references.
+
+DESIGN section 5. Each trajectory has its own random generator spawned from
+the dataset seed, so trajectory ``i`` is the same whatever ``n_traj`` is.
+The closed loop runs on the true state; the logged states and rotor speeds
+then get measurement noise from an independent stream, so a noise-free
+dataset of the same seed holds the true trajectories of a noisy one.
+
+Controller (vectorized over trajectories):
+
+* outer loop: position LQR on each axis (double integrator, gains from
+  ``control.dlqr``) giving a desired acceleration, turned into thrust and a
+  desired roll and pitch (clipped to the regime's outer limit);
+* excitation: smooth random attitude excursions (filtered random steps)
+  added to the outer loop's attitude, the sum clipped to the regime's
+  command limit; a random smooth yaw reference;
+* inner loop: feedback linearization of the Euler-angle dynamics with LQR
+  gains (``control.dlqr``) on each angle;
+* input dither: white Gaussian noise on thrust and torques.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import control
+import numpy as np
+from scipy.linalg import expm
+
+from . import __version__
+from ._validate import choice, positive_finite, positive_int
+from .errors import DatasetError, SimInputError
+from .params import DT, NOMINAL, Fidelity, NoiseModel, QuadParams
+from .simulator import Simulator
+
+FORMAT_VERSION = 1
+SPLIT_NAMES = ("train", "val", "test")
+SPLIT_FRACTIONS = (0.70, 0.15, 0.15)
+
+
+@dataclass(frozen=True)
+class Regime:
+    """Excitation settings of one regime (angles in degrees)."""
+
+    name: str
+    envelope_deg: tuple[float, float]  # the max |roll|, |pitch| a dataset must reach: (at least, at most)
+    command_limit_deg: float           # clip of the total roll / pitch command
+    outer_limit_deg: float             # clip of the position loop's roll / pitch
+    excitation_deg: float              # amplitude of the attitude excursions
+    position_amplitude_m: float        # horizontal reference amplitude
+    altitude_amplitude_m: float        # vertical reference amplitude around 1 m height
+    yaw_amplitude_deg: float           # amplitude of the yaw reference steps
+
+
+REGIMES = {
+    "small": Regime("small", (15.0, 20.0), 17.5, 10.0, 17.0, 1.0, 0.3, 60.0),
+    "aggressive": Regime("aggressive", (45.0, 60.0), 53.0, 30.0, 52.0, 1.5, 0.3, 60.0),
+}
+
+# Input dither standard deviations (white, held over each control period).
+DITHER_THRUST_FRAC = 0.03      # fraction of m g
+DITHER_TORQUE_XY = 1.0e-4      # N m
+DITHER_TORQUE_Z = 1.0e-4       # N m
+
+# Closed-loop design: LQR weights on (error, error rate) per axis, R = 1.
+INNER_Q = (2.0e4, 180.0)       # about 12 rad/s, damping 0.9
+OUTER_Q = (5.0, 3.0)           # about 1.5 rad/s, damping 0.9
+EXCITATION_FILTER_RAD_S = 8.0  # critically damped filter on the attitude steps
+YAW_FILTER_RAD_S = 3.0
+STEP_HOLD_S = (0.5, 1.5)       # hold time of each random step
+
+
+def double_integrator_gain(q: tuple[float, float], dt: float = DT) -> np.ndarray:
+    """LQR gain (2,) of a zero-order-hold double integrator (python-control ``dlqr``)."""
+    A = np.array([[1.0, dt], [0.0, 1.0]])
+    B = np.array([[0.5 * dt * dt], [dt]])
+    K, _, _ = control.dlqr(A, B, np.diag(q), np.array([[1.0]]))
+    return np.asarray(K).reshape(2)
+
+
+# ---------------------------------------------------------------- references
+def _random_steps(rng, n_steps: int, dt: float, amplitude: float, min_frac: float) -> np.ndarray:
+    """Piecewise-constant random levels (n_steps,), each held 0.5-1.5 s.
+
+    Level magnitudes lie in ``[min_frac, 1] * amplitude`` with random sign.
+    """
+    levels = np.empty(n_steps)
+    i = 0
+    while i < n_steps:
+        hold = int(round(rng.uniform(*STEP_HOLD_S) / dt))
+        levels[i:i + hold] = amplitude * rng.uniform(min_frac, 1.0) * rng.choice((-1.0, 1.0))
+        i += hold
+    return levels
+
+
+def _multisine(rng, t: np.ndarray, amplitude: float, n: int = 3, f_range=(0.05, 0.3)):
+    """Sum of ``n`` sines with total amplitude ``amplitude``; position, velocity, acceleration."""
+    amps = rng.uniform(0.3, 1.0, n)
+    amps *= amplitude / amps.sum()
+    w = 2 * np.pi * rng.uniform(*f_range, n)
+    ph = rng.uniform(0, 2 * np.pi, n)
+    arg = np.outer(t, w) + ph
+    return (np.sin(arg) @ amps, np.cos(arg) @ (amps * w), -np.sin(arg) @ (amps * w * w))
+
+
+@dataclass
+class _References:
+    pos: np.ndarray       # (B, K, 3) m, NED
+    vel: np.ndarray       # (B, K, 3)
+    acc: np.ndarray       # (B, K, 3)
+    att: np.ndarray       # (B, K, 3) roll / pitch excursion and yaw reference levels, rad
+    dither: np.ndarray    # (B, K, 4) N, N m
+
+
+def _references(rngs, n_steps: int, regime: Regime, p: QuadParams) -> _References:
+    B = len(rngs)
+    t = np.arange(n_steps) * DT
+    out = _References(*(np.zeros((B, n_steps, 3)) for _ in range(4)), np.zeros((B, n_steps, 4)))
+    exc = math.radians(regime.excitation_deg)
+    for i, rng in enumerate(rngs):
+        for ax, amp in enumerate((regime.position_amplitude_m, regime.position_amplitude_m,
+                                  regime.altitude_amplitude_m)):
+            out.pos[i, :, ax], out.vel[i, :, ax], out.acc[i, :, ax] = _multisine(rng, t, amp)
+        out.pos[i, :, 2] -= 1.0  # 1 m height, NED
+        out.att[i, :, 0] = _random_steps(rng, n_steps, DT, exc, 0.3)
+        out.att[i, :, 1] = _random_steps(rng, n_steps, DT, exc, 0.3)
+        out.att[i, :, 2] = _random_steps(rng, n_steps, DT, math.radians(regime.yaw_amplitude_deg), 0.0)
+        out.dither[i] = rng.standard_normal((n_steps, 4)) * np.array(
+            [DITHER_THRUST_FRAC * p.m * p.g, DITHER_TORQUE_XY, DITHER_TORQUE_XY, DITHER_TORQUE_Z])
+    return out
+
+
+# ---------------------------------------------------------------- controller
+class ExcitationController:
+    """Cascaded position / attitude controller used to fly the excitation.
+
+    The attitude command (position loop's roll and pitch plus the random
+    excursion, clipped to the regime's limit; the yaw level) passes through
+    a critically damped second-order reference model, whose output never
+    leaves the range of its input, so the commanded attitude stays inside
+    the limit and the inner loop gets smooth rate and acceleration
+    feed-forward.
+
+    Parameters
+    ----------
+    p : QuadParams
+        Parameters the controller assumes (the true ones for data).
+    regime : Regime
+        Attitude limits.
+    x0 : numpy.ndarray, shape (B, 12)
+        Initial states; the reference model starts at their attitude, at rest.
+    """
+
+    def __init__(self, p: QuadParams, regime: Regime, x0: np.ndarray):
+        self.p = p
+        self.regime = regime
+        self.k_in = double_integrator_gain(INNER_Q)
+        self.k_out = double_integrator_gain(OUTER_Q)
+        self.J = np.array([p.Jxx, p.Jyy, p.Jzz])
+        self.omega_f = np.array([EXCITATION_FILTER_RAD_S, EXCITATION_FILTER_RAD_S, YAW_FILTER_RAD_S])
+        self._Ad, self._Bd = zip(*(_critically_damped(w, DT) for w in self.omega_f))
+        # Reference-model state per axis: value (B, 3) and rate (B, 3).
+        self.eta_f = np.array(x0[:, 3:6], dtype=float, copy=True)
+        self.eta_f_dot = np.zeros_like(self.eta_f)
+
+    def __call__(self, x: np.ndarray, pos_ref, vel_ref, acc_ref, att_level) -> np.ndarray:
+        """Wrench command (B, 4) for states ``x`` (B, 12) and the references of one step.
+
+        Advances the reference model by one control period.
+        """
+        p, reg = self.p, self.regime
+        phi, th = x[:, 3], x[:, 4]
+        psi = x[:, 5]
+        omega = x[:, 6:9]
+        v = x[:, 9:12]
+        drag = p.c_d * v * np.abs(v)
+
+        # Outer loop: desired acceleration -> thrust direction t = (T/m) b.
+        a_d = acc_ref + self.k_out[0] * (pos_ref - x[:, 0:3]) + self.k_out[1] * (vel_ref - v)
+        t = -a_d - drag
+        t[:, 2] += p.g
+        c, s = np.cos(psi), np.sin(psi)
+        th_x = c * t[:, 0] + s * t[:, 1]
+        th_y = -s * t[:, 0] + c * t[:, 1]
+        norm = np.linalg.norm(t, axis=1)
+        lim_o = math.radians(reg.outer_limit_deg)
+        phi_o = np.clip(np.arcsin(np.clip(-th_y / norm, -1, 1)), -lim_o, lim_o)
+        th_o = np.clip(np.arctan2(th_x, t[:, 2]), -lim_o, lim_o)
+
+        lim = math.radians(reg.command_limit_deg)
+        target = np.column_stack([np.clip(phi_o + att_level[:, 0], -lim, lim),
+                                  np.clip(th_o + att_level[:, 1], -lim, lim), att_level[:, 2]])
+        eta_c, eta_c_dot = self.eta_f, self.eta_f_dot
+        eta_c_dd = self.omega_f ** 2 * (target - eta_c) - 2.0 * self.omega_f * eta_c_dot
+        self._advance(target)
+
+        # Euler rates from body rates.
+        sphi, cphi, sth, cth = np.sin(phi), np.cos(phi), np.sin(th), np.cos(th)
+        qs_rc = omega[:, 1] * sphi + omega[:, 2] * cphi
+        eta_dot = np.stack([omega[:, 0] + qs_rc * sth / cth,
+                            omega[:, 1] * cphi - omega[:, 2] * sphi, qs_rc / cth], axis=1)
+        eta = x[:, 3:6]
+        eta_dd = eta_c_dd - self.k_in[0] * (eta - eta_c) - self.k_in[1] * (eta_dot - eta_c_dot)
+
+        # Body angular acceleration for that Euler acceleration: w' = W eta'' + W' eta'.
+        dphi, dth, dpsi = eta_dot[:, 0], eta_dot[:, 1], eta_dot[:, 2]
+        ddphi, ddth, ddpsi = eta_dd[:, 0], eta_dd[:, 1], eta_dd[:, 2]
+        wd = np.stack([
+            ddphi - sth * ddpsi - cth * dth * dpsi,
+            cphi * ddth + sphi * cth * ddpsi - sphi * dphi * dth + cphi * cth * dphi * dpsi
+            - sphi * sth * dth * dpsi,
+            -sphi * ddth + cphi * cth * ddpsi - cphi * dphi * dth - sphi * cth * dphi * dpsi
+            - cphi * sth * dth * dpsi,
+        ], axis=1)
+        torque = self.J * wd + np.cross(omega, self.J * omega)
+
+        thrust = p.m * (p.g - a_d[:, 2] - drag[:, 2]) / np.maximum(cphi * cth, 0.3)
+        thrust = np.clip(thrust, 0.05 * p.m * p.g, 2.0 * p.m * p.g)
+        return np.column_stack([thrust, torque])
+
+    def _advance(self, target: np.ndarray) -> None:
+        new_val = np.empty_like(self.eta_f)
+        new_rate = np.empty_like(self.eta_f)
+        for ax in range(3):
+            A, B = self._Ad[ax], self._Bd[ax]
+            y, yd, r = self.eta_f[:, ax], self.eta_f_dot[:, ax], target[:, ax]
+            new_val[:, ax] = A[0, 0] * y + A[0, 1] * yd + B[0] * r
+            new_rate[:, ax] = A[1, 0] * y + A[1, 1] * yd + B[1] * r
+        self.eta_f, self.eta_f_dot = new_val, new_rate
+
+
+def _critically_damped(omega: float, dt: float):
+    """Exact discretization (A (2, 2), B (2,)) of y'' = w^2 (r - y) - 2 w y', r held over dt."""
+    Ac = np.array([[0.0, 1.0], [-omega ** 2, -2.0 * omega]])
+    Bc = np.array([[0.0], [omega ** 2]])
+    M = expm(np.block([[Ac, Bc], [np.zeros((1, 3))]]) * dt)
+    return M[:2, :2], M[:2, 2]
+
+
+# ------------------------------------------------------------------ dataset
+@dataclass(frozen=True)
+class Dataset:
+    """Excitation dataset; arrays are (n_traj, n_steps, width).
+
+    Sample ``[i, k]`` holds the measured state ``x`` at ``t_k``, the wrench
+    command ``u`` applied during ``[t_k, t_k + dt)``, the measured rotor
+    speeds during that period and the measured state ``x_next`` at
+    ``t_k + dt`` (so ``x_next[i, k] == x[i, k + 1]``).
+    """
+
+    x: np.ndarray            # measured state at t_k, (n_traj, n_steps, 12)
+    u: np.ndarray            # commanded wrench, N and N m, (n_traj, n_steps, 4)
+    rotor_speed: np.ndarray  # measured rotor speeds, RU, (n_traj, n_steps, 4)
+    x_next: np.ndarray       # measured state at t_k + dt, (n_traj, n_steps, 12)
+    wrench: np.ndarray       # realized wrench (noise-free), (n_traj, n_steps, 4)
+    saturated: np.ndarray    # rotor clipped (bool), (n_traj, n_steps, 4)
+    split: np.ndarray        # 0 train, 1 validation, 2 test, (n_traj,)
+    meta: dict               # regime, seed, noise, fidelity, params, versions
+
+    ARRAYS = ("x", "u", "rotor_speed", "x_next", "wrench", "saturated", "split")
+
+    @property
+    def n_traj(self) -> int:
+        """Number of trajectories."""
+        return self.x.shape[0]
+
+    def pairs(self, split: str = "train") -> dict[str, np.ndarray]:
+        """Flattened samples of one split: ``x, u, rotor_speed, x_next`` as (n, width)."""
+        idx = SPLIT_NAMES.index(choice(split, "split", SPLIT_NAMES))
+        sel = self.split == idx
+        return {k: getattr(self, k)[sel].reshape(-1, getattr(self, k).shape[-1])
+                for k in ("x", "u", "rotor_speed", "x_next")}
+
+    def summary(self) -> dict:
+        """Samples, envelope reached and saturation, as plain numbers."""
+        ang = np.degrees(np.abs(self.x[..., 3:5]))
+        lo, hi = self.meta["envelope_deg"]
+        max_roll, max_pitch = float(ang[..., 0].max()), float(ang[..., 1].max())
+        psi = np.degrees(self.x[..., 5])
+        return {
+            "regime": self.meta["regime"],
+            "samples": int(self.x.shape[0] * self.x.shape[1]),
+            "trajectories": {n: int(np.sum(self.split == i)) for i, n in enumerate(SPLIT_NAMES)},
+            "max_abs_roll_deg": max_roll,
+            "max_abs_pitch_deg": max_pitch,
+            "yaw_range_deg": [float(psi.min()), float(psi.max())],
+            "max_abs_body_rate_rad_s": float(np.abs(self.x[..., 6:9]).max()),
+            "max_speed_m_s": float(np.linalg.norm(self.x[..., 9:12], axis=-1).max()),
+            "saturation_fraction": float(np.mean(np.any(self.saturated, axis=-1))),
+            "envelope_deg": [lo, hi],
+            "envelope_reached": bool(min(max_roll, max_pitch) >= lo and max(max_roll, max_pitch) <= hi),
+        }
+
+    def save(self, path) -> Path:
+        """Write a ``.npz`` file; the same dataset always gives the same bytes."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            raise SimInputError(f"out must end in .npz; found {str(path)!r}")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        items = {k: getattr(self, k) for k in self.ARRAYS}
+        items["meta"] = np.array(json.dumps(self.meta, sort_keys=True))
+        with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as zf:
+            for name, arr in items.items():
+                info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+                with zf.open(info, "w", force_zip64=True) as fh:
+                    np.lib.format.write_array(fh, np.ascontiguousarray(arr), allow_pickle=False)
+        return path
+
+
+def load_dataset(path) -> Dataset:
+    """Read a dataset written by :meth:`Dataset.save`.
+
+    Raises
+    ------
+    DatasetError
+        If a field is missing or the format version is unknown.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"dataset file {str(path)!r} does not exist")
+    with np.load(path, allow_pickle=False) as z:
+        missing = [k for k in (*Dataset.ARRAYS, "meta") if k not in z.files]
+        if missing:
+            raise DatasetError(f"{path} is not a pinn-mpc dataset: missing {missing}")
+        meta = json.loads(str(z["meta"]))
+        if meta.get("format_version") != FORMAT_VERSION:
+            raise DatasetError(f"{path} has format_version {meta.get('format_version')}, "
+                               f"this code reads {FORMAT_VERSION}")
+        return Dataset(**{k: z[k] for k in Dataset.ARRAYS}, meta=meta)
+
+
+def _split(n: int, rng: np.random.Generator) -> np.ndarray:
+    """Trajectory split 70/15/15 (at least one val and test trajectory when n >= 3)."""
+    n_val = n_test = max(1, round(SPLIT_FRACTIONS[1] * n)) if n >= 3 else 0
+    labels = np.zeros(n, dtype=np.int8)
+    perm = rng.permutation(n)
+    labels[perm[:n_val]] = 1
+    labels[perm[n_val:n_val + n_test]] = 2
+    return labels
+
+
+def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.0, seed: int = 0, *,
+                 noise: NoiseModel | None = None, fidelity: Fidelity = NOMINAL,
+                 params: QuadParams | None = None, progress: bool = False) -> Dataset:
+    """Fly seeded excitation trajectories and log them.
+
+    Parameters
+    ----------
+    regime : {"small", "aggressive"}
+        Attitude envelope: |roll|, |pitch| up to 20 deg, or 45-60 deg.
+    n_traj : int
+        Number of trajectories (>= 1).
+    duration : float
+        Length of each trajectory, s (> 0); rounded to whole 10 ms steps.
+    seed : int
+        Seed (>= 0). The same arguments always give the same dataset.
+    noise : NoiseModel, optional
+        Measurement noise on logged states and rotor speeds; ``NoiseModel()``
+        (the stated default) when omitted, ``NoiseModel.none()`` for none.
+    fidelity : Fidelity
+        Simulator fidelity (nominal by default).
+    params : QuadParams, optional
+        True parameters; reference values when omitted.
+    progress : bool
+        Show a progress bar on stderr.
+
+    Returns
+    -------
+    Dataset
+    """
+    reg = REGIMES[choice(regime, "regime", REGIMES)]
+    n_traj = positive_int(n_traj, "n_traj")
+    duration = positive_finite(duration, "duration")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise SimInputError(f"seed must be an integer >= 0; found {seed!r}")
+    noise = NoiseModel() if noise is None else noise
+    if not isinstance(noise, NoiseModel):
+        raise SimInputError(f"noise must be a NoiseModel; found {type(noise).__name__}")
+    p = QuadParams() if params is None else params
+    n_steps = int(round(duration / DT))
+    if n_steps < 1:
+        raise SimInputError(f"duration must be at least one control period ({DT} s); found {duration}")
+
+    # Independent streams per trajectory (flight and noise), so trajectory i
+    # is the same whatever n_traj is.
+    flight_root, noise_root, split_root = np.random.SeedSequence(int(seed)).spawn(3)
+    rngs = [np.random.default_rng(s) for s in flight_root.spawn(n_traj)]
+    noise_rngs = [np.random.default_rng(s) for s in noise_root.spawn(n_traj)]
+    split_rng = np.random.default_rng(split_root)
+
+    refs = _references(rngs, n_steps, reg, p)
+    sim = Simulator(p, fidelity)
+
+    x_true = np.zeros((n_traj, n_steps + 1, 12))
+    x0 = np.zeros((n_traj, 12))
+    x0[:, 0:3] = refs.pos[:, 0]
+    x_true[:, 0] = x0
+    ctrl = ExcitationController(p, reg, x0)
+    u = np.zeros((n_traj, n_steps, 4))
+    n_log = np.zeros((n_traj, n_steps, 4))
+    wrench = np.zeros((n_traj, n_steps, 4))
+    sat = np.zeros((n_traj, n_steps, 4), dtype=bool)
+    rotor = None
+    steps = range(n_steps)
+    if progress:
+        from tqdm import tqdm
+        steps = tqdm(steps, desc=f"data {reg.name}", unit="step", leave=False)
+    x = x0
+    for k in steps:
+        uk = ctrl(x, refs.pos[:, k], refs.vel[:, k], refs.acc[:, k], refs.att[:, k])
+        uk = uk + refs.dither[:, k]
+        res = sim._step(x, uk, rotor, k * DT)
+        rotor = res.rotor_speed
+        u[:, k], n_log[:, k], wrench[:, k], sat[:, k] = uk, res.rotor_speed, res.wrench, res.saturated
+        x = res.x
+        x_true[:, k + 1] = x
+    if not np.all(np.isfinite(x_true)):
+        raise RuntimeError("excitation flight diverged (non-finite state); this is a bug in sim.excitation")
+
+    if noise.is_zero:
+        meas, n_meas = x_true, n_log
+    else:
+        meas = np.empty_like(x_true)
+        n_meas = np.empty_like(n_log)
+        for i, rng in enumerate(noise_rngs):
+            meas[i] = x_true[i] + noise.state_std * rng.standard_normal(x_true.shape[1:])
+            n_meas[i] = n_log[i] + noise.rotor_speed * rng.standard_normal(n_log.shape[1:])
+
+    meta = {
+        "format_version": FORMAT_VERSION,
+        "code_version": __version__,
+        "regime": reg.name,
+        "envelope_deg": list(reg.envelope_deg),
+        "n_traj": n_traj,
+        "duration_s": n_steps * DT,
+        "dt_s": DT,
+        "seed": int(seed),
+        "noise": dataclasses.asdict(noise),
+        "fidelity": dataclasses.asdict(fidelity),
+        "params": dataclasses.asdict(p),
+        "split_fractions": list(SPLIT_FRACTIONS),
+    }
+    return Dataset(x=meas[:, :-1].copy(), u=u, rotor_speed=n_meas, x_next=meas[:, 1:].copy(),
+                   wrench=wrench, saturated=sat, split=_split(n_traj, split_rng), meta=meta)
