@@ -123,4 +123,5 @@ def step_function(p: QuadParams | None = None, *, symbolic_theta: bool = False,
     else:
         raise ValueError(f"inputs must be 'wrench' or 'motor'; found {inputs!r}")
     x_next = rk4_casadi(lambda s: dynamics_casadi(s, w, vals), x, dt / substeps, substeps)
-    return ca.Function("step", args, [x_next], [a.name() for a in args], ["x_next"])
+    names = ["x", "u", "theta"][:len(args)]
+    return ca.Function("step", args, [x_next], names, ["x_next"])

@@ -308,7 +308,7 @@ class Dataset:
             for name, arr in items.items():
                 info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
                 with zf.open(info, "w", force_zip64=True) as fh:
-                    np.lib.format.write_array(fh, np.ascontiguousarray(arr), allow_pickle=False)
+                    np.lib.format.write_array(fh, np.asarray(arr), allow_pickle=False)
         return path
 
 
@@ -327,7 +327,7 @@ def load_dataset(path) -> Dataset:
         missing = [k for k in (*Dataset.ARRAYS, "meta") if k not in z.files]
         if missing:
             raise DatasetError(f"{path} is not a pinn-mpc dataset: missing {missing}")
-        meta = json.loads(str(z["meta"]))
+        meta = json.loads(str(z["meta"][()]))
         if meta.get("format_version") != FORMAT_VERSION:
             raise DatasetError(f"{path} has format_version {meta.get('format_version')}, "
                                f"this code reads {FORMAT_VERSION}")

@@ -1,0 +1,111 @@
+"""``pinnmpc data`` and ``pinnmpc fisher``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from .params import THETA_NAMES
+
+
+def register(sub) -> None:
+    """Add this package's subcommands to the ``pinnmpc`` parser."""
+    p = sub.add_parser("data", help="generate a seeded excitation dataset (.npz)",
+                       description="Fly seeded random references with a stabilizing controller and log "
+                                   "states, wrench commands, rotor speeds and next states.")
+    p.add_argument("--regime", required=True, help="small (|roll|, |pitch| <= 20 deg) or aggressive (45-60 deg)")
+    p.add_argument("--n-traj", type=int, default=100, help="number of trajectories (default 100)")
+    p.add_argument("--duration", type=float, default=10.0, help="seconds per trajectory (default 10)")
+    p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--noise", choices=("default", "none"), default="default",
+                   help="measurement noise: the stated default (1 mm, 1 mrad, 5 mrad/s, 5 mm/s, 0.01 RU) or none")
+    p.add_argument("--fidelity", choices=("nominal", "high"), default="nominal",
+                   help="simulator fidelity (high adds motor lag, rotor drag, rotor gyroscopic torque)")
+    p.add_argument("--out", required=True, type=Path, help="output file, .npz")
+    p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
+    p.set_defaults(handler=cmd_data)
+
+    p = sub.add_parser("fisher", help="Fisher information and Cramer-Rao bounds of the six parameters",
+                       description="Compare regimes (small, aggressive) and input parameterizations "
+                                   "(wrench command, motor-level command) by their Fisher information.")
+    p.add_argument("--n-traj", type=int, default=20, help="trajectories per regime (default 20)")
+    p.add_argument("--duration", type=float, default=10.0, help="seconds per trajectory (default 10)")
+    p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--json", type=Path, default=None, help="write the table as JSON")
+    p.set_defaults(handler=cmd_fisher)
+
+
+def _write_json(path: Path, obj) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(obj, indent=2, sort_keys=False) + "\n")
+
+
+def cmd_data(args: argparse.Namespace) -> int:
+    """Handler of ``pinnmpc data``."""
+    from .excitation import make_dataset
+    from .params import HIGH_FIDELITY, NOMINAL, NoiseModel
+
+    if args.out.suffix != ".npz":
+        raise ValueError(f"--out must end in .npz; found {str(args.out)!r}")
+    ds = make_dataset(args.regime, args.n_traj, args.duration, args.seed,
+                      noise=NoiseModel() if args.noise == "default" else NoiseModel.none(),
+                      fidelity=HIGH_FIDELITY if args.fidelity == "high" else NOMINAL,
+                      progress=sys.stderr.isatty())
+    ds.save(args.out)
+    s = ds.summary()
+    lo, hi = s["envelope_deg"]
+    print(f"wrote {args.out}: {s['samples']} samples, {args.n_traj} trajectories x {ds.meta['duration_s']:g} s "
+          f"(train/val/test {s['trajectories']['train']}/{s['trajectories']['val']}/{s['trajectories']['test']})")
+    print(f"  regime {s['regime']}: max |roll| {s['max_abs_roll_deg']:.1f} deg, max |pitch| "
+          f"{s['max_abs_pitch_deg']:.1f} deg (target {lo:g}-{hi:g}: "
+          f"{'reached' if s['envelope_reached'] else 'NOT reached'}), yaw {s['yaw_range_deg'][0]:.0f} to "
+          f"{s['yaw_range_deg'][1]:.0f} deg")
+    print(f"  max |body rate| {s['max_abs_body_rate_rad_s']:.2f} rad/s, max speed {s['max_speed_m_s']:.2f} m/s, "
+          f"samples with a saturated rotor {100 * s['saturation_fraction']:.2f} %")
+    if args.json:
+        _write_json(args.json, {"out": str(args.out), **s})
+    return 0
+
+
+def format_fisher_table(table: dict) -> str:
+    """Human-readable form of :func:`sim.fisher.fisher_table`."""
+    st = table["settings"]
+    n = st["noise"]
+    lines = [
+        f"Fisher information, {st['n_traj']} trajectories x {st['duration_s']:g} s per regime, seed {st['seed']}",
+        f"noise (1 sigma): position {n['position']:g} m, attitude {n['attitude']:g} rad, body rate "
+        f"{n['body_rate']:g} rad/s, velocity {n['velocity']:g} m/s, rotor speed {n['rotor_speed']:g} RU",
+        "CRLB standard deviation in % of the true value (inf: not identifiable)",
+        "",
+    ]
+    head = f"{'regime':<11}{'inputs':<8}{'rank':>5}{'cond':>10}" + "".join(f"{t:>9}" for t in THETA_NAMES)
+    lines += [head, "-" * len(head)]
+    for c in table["cases"]:
+        cond = c["condition_number"]
+        row = f"{c['regime']:<11}{c['inputs']:<8}{c['rank']:>5}{(f'{cond:.1e}' if cond else 'inf'):>10}"
+        for t in THETA_NAMES:
+            v = c["crlb_pct"][t]
+            row += f"{('inf' if v is None else f'{v:.3g}'):>9}"
+        lines.append(row)
+    lines += ["", "weakest direction (eigenvector of the smallest eigenvalue, relative coordinates):"]
+    for c in table["cases"]:
+        d = c["weakest_direction_relative"]
+        vec = " ".join(f"{d[t]:+.3f}" for t in THETA_NAMES)
+        lines.append(f"  {c['regime']:<11}{c['inputs']:<8}[{vec}]  lambda_min/lambda_max "
+                     f"{c['eigenvalues'][0] / c['eigenvalues'][-1]:.1e}  |cos| to scale direction "
+                     f"{c['weakest_vs_scale_direction_abs_cos']:.4f}")
+    return "\n".join(lines)
+
+
+def cmd_fisher(args: argparse.Namespace) -> int:
+    """Handler of ``pinnmpc fisher``."""
+    from .fisher import fisher_table
+
+    table = fisher_table(args.n_traj, args.duration, args.seed, progress=sys.stderr.isatty())
+    print(format_fisher_table(table))
+    if args.json:
+        _write_json(args.json, table)
+        print(f"\nwrote {args.json}")
+    return 0

@@ -1,0 +1,126 @@
+"""Excitation datasets: alignment, envelopes, determinism, file round trip, bad input."""
+
+import hashlib
+
+import numpy as np
+import pytest
+
+from sim import NoiseModel, Simulator
+from sim.excitation import REGIMES, load_dataset, make_dataset
+
+TOL = {
+    "noise_std": 0.05,   # sample std of the logged noise vs the stated std (50k samples per state)
+}
+
+
+def test_next_state_is_one_simulator_step_of_state_and_input(clean_small):
+    ds = clean_small
+    x_next = Simulator().step(ds.x.reshape(-1, 12), ds.u.reshape(-1, 4)).reshape(ds.x.shape)
+    assert np.array_equal(x_next, ds.x_next)
+    # Consecutive samples chain: x_next[k] is x[k + 1].
+    assert np.array_equal(ds.x_next[:, :-1], ds.x[:, 1:])
+
+
+def test_logged_input_is_the_one_applied_during_the_step(clean_small):
+    # Pairing x_t with u_{t+1} (the public code's error) must not reproduce x_{t+1}.
+    ds = clean_small
+    shifted = Simulator().step(ds.x[:, :-1].reshape(-1, 12), ds.u[:, 1:].reshape(-1, 4))
+    assert not np.allclose(shifted, ds.x_next[:, :-1].reshape(-1, 12), rtol=0, atol=1e-9)
+
+
+def envelope(ds):
+    ang = np.degrees(np.abs(ds.x[..., 3:5]))
+    return ang[..., 0].max(), ang[..., 1].max()
+
+
+def test_small_regime_reaches_15_and_never_exceeds_20_degrees(clean_small):
+    roll, pitch = envelope(clean_small)
+    assert 15.0 <= roll <= 20.0 and 15.0 <= pitch <= 20.0, (roll, pitch)
+    assert clean_small.summary()["envelope_reached"]
+
+
+def test_aggressive_regime_reaches_45_to_60_degrees(clean_aggressive):
+    roll, pitch = envelope(clean_aggressive)
+    assert 45.0 <= roll <= 60.0 and 45.0 <= pitch <= 60.0, (roll, pitch)
+    assert clean_aggressive.summary()["envelope_reached"]
+
+
+@pytest.mark.parametrize("regime", list(REGIMES))
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_envelope_holds_for_other_seeds(regime, seed):
+    ds = make_dataset(regime, 4, 10.0, 100 + seed, noise=NoiseModel.none())
+    lo, hi = REGIMES[regime].envelope_deg
+    roll, pitch = envelope(ds)
+    assert max(roll, pitch) <= hi and min(roll, pitch) >= lo, (roll, pitch)
+
+
+def file_hash(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_same_seed_gives_byte_identical_files_and_other_seeds_differ(tmp_path):
+    paths = []
+    for name, seed in (("a", 7), ("b", 7), ("c", 8)):
+        paths.append(make_dataset("small", 3, 1.0, seed).save(tmp_path / f"{name}.npz"))
+    assert file_hash(paths[0]) == file_hash(paths[1])
+    assert file_hash(paths[0]) != file_hash(paths[2])
+    a, c = load_dataset(paths[0]), load_dataset(paths[2])
+    assert not np.allclose(a.x, c.x)
+
+
+def test_trajectory_does_not_depend_on_dataset_size():
+    few = make_dataset("small", 2, 2.0, 5)
+    many = make_dataset("small", 5, 2.0, 5)
+    assert np.array_equal(few.x, many.x[:2]) and np.array_equal(few.rotor_speed, many.rotor_speed[:2])
+
+
+def test_save_load_round_trip(tmp_path):
+    ds = make_dataset("aggressive", 3, 1.0, 1)
+    back = load_dataset(ds.save(tmp_path / "d.npz"))
+    for k in ds.ARRAYS:
+        assert np.array_equal(getattr(ds, k), getattr(back, k)), k
+    assert back.meta == ds.meta
+
+
+def test_noise_is_the_stated_default():
+    noisy = make_dataset("small", 5, 10.0, 2)
+    clean = make_dataset("small", 5, 10.0, 2, noise=NoiseModel.none())
+    err = (noisy.x - clean.x).reshape(-1, 12)
+    np.testing.assert_allclose(err.std(axis=0), NoiseModel().state_std, rtol=TOL["noise_std"])
+    n_err = (noisy.rotor_speed - clean.rotor_speed).ravel()
+    np.testing.assert_allclose(n_err.std(), NoiseModel().rotor_speed, rtol=TOL["noise_std"])
+    assert np.array_equal(noisy.u, clean.u)  # the flight itself does not see the noise
+
+
+def test_split_is_by_trajectory():
+    ds = make_dataset("small", 20, 0.5, 0)
+    counts = np.bincount(ds.split, minlength=3)
+    assert counts.tolist() == [14, 3, 3]
+    pairs = ds.pairs("test")
+    assert pairs["x"].shape == (3 * 50, 12)
+    test_idx = np.flatnonzero(ds.split == 2)
+    assert np.array_equal(pairs["x"][:50], ds.x[test_idx[0]])
+
+
+@pytest.mark.parametrize("kwargs,arg", [
+    (dict(regime="medium"), "regime"),
+    (dict(duration=-1.0), "duration"),
+    (dict(duration=float("nan")), "duration"),
+    (dict(n_traj=0), "n_traj"),
+    (dict(n_traj=2.5), "n_traj"),
+    (dict(seed=-3), "seed"),
+    (dict(noise="loud"), "noise"),
+])
+def test_bad_arguments_raise_value_error_naming_them(kwargs, arg):
+    args = dict(regime="small", n_traj=2, duration=1.0, seed=0) | kwargs
+    with pytest.raises(ValueError, match=arg):
+        make_dataset(**args)
+
+
+def test_load_rejects_foreign_files(tmp_path):
+    f = tmp_path / "other.npz"
+    np.savez(f, x=np.zeros(3))
+    with pytest.raises(ValueError, match="missing"):
+        load_dataset(f)
+    with pytest.raises(ValueError, match="does not exist"):
+        load_dataset(tmp_path / "nope.npz")
