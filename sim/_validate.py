@@ -40,26 +40,25 @@ def as_batch(value, name: str, width: int) -> np.ndarray:
     return arr
 
 
-def positive_finite(value, name: str) -> float:
-    """Return ``value`` as a float, raising if it is not finite and > 0."""
+def _finite_number(value, name: str, positive: bool) -> float:
+    bound = "> 0" if positive else ">= 0"
     try:
         v = float(value)
     except (TypeError, ValueError) as e:
-        raise SimInputError(f"{name} must be a positive number; found {value!r}") from e
-    if not math.isfinite(v) or v <= 0.0:
-        raise SimInputError(f"{name} must be finite and > 0; found {value!r}")
+        raise SimInputError(f"{name} must be a finite number {bound}; found {value!r}") from e
+    if not math.isfinite(v) or v < 0.0 or (positive and v == 0.0):
+        raise SimInputError(f"{name} must be finite and {bound}; found {value!r}")
     return v
+
+
+def positive_finite(value, name: str) -> float:
+    """Return ``value`` as a float, raising if it is not finite and > 0."""
+    return _finite_number(value, name, positive=True)
 
 
 def nonnegative_finite(value, name: str) -> float:
     """Return ``value`` as a float, raising if it is not finite and >= 0."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError) as e:
-        raise SimInputError(f"{name} must be a non-negative number; found {value!r}") from e
-    if not math.isfinite(v) or v < 0.0:
-        raise SimInputError(f"{name} must be finite and >= 0; found {value!r}")
-    return v
+    return _finite_number(value, name, positive=False)
 
 
 def positive_int(value, name: str) -> int:
