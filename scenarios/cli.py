@@ -10,9 +10,10 @@ from __future__ import annotations
 import argparse
 import sys
 
+from mpc import cli as mpc_cli
 from sim import cli as sim_cli
 
-PACKAGES = (sim_cli,)
+PACKAGES = (sim_cli, mpc_cli)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,542 @@
+"""The ONNX model contract (DESIGN section 8) and its checker.
+
+A model file maps one control period of the quadrotor::
+
+    inputs   x  float[B, 12]   state, order sim.params.STATE_NAMES (NED, ZYX Euler)
+             u  float[B, 4]    wrench command (T, tau_x, tau_y, tau_z), N and N m
+    output   x_next float[B, 12]   state after DT = 0.01 s
+
+``B`` is a dynamic batch dimension; ``float`` is float32 or float64, the same
+for every tensor. ``metadata_props`` holds the keys of :data:`REQUIRED_METADATA`
+(strings; JSON where the value is structured).
+
+Exact derivatives are optionally shipped beside the model as a *derivative
+graph* ``<stem>.jac.onnx`` (see :func:`jacobian_path`) with the same inputs and
+the outputs ``x_next`` [B, 12], ``A`` = d x_next / d x [B, 12, 12] and
+``B`` = d x_next / d u [B, 12, 4].
+
+:func:`check_model` validates a file against all of this, runs it with
+onnxruntime, and raises :class:`mpc.errors.ModelContractError` (a
+``ValueError``) naming the file and the defect. Nothing here imports torch;
+``onnx`` and ``onnxruntime`` are imported on first use.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sim.params import DT, INPUT_NAMES, STATE_NAMES, THETA_NAMES, QuadParams
+
+from .errors import ModelContractError
+
+#: Version written to the ``pinnmpc.contract`` metadata key.
+CONTRACT_VERSION = "1"
+
+#: Metadata keys every model must carry (all values are strings):
+#: ``pinnmpc.contract`` (:data:`CONTRACT_VERSION`), ``architecture`` (name),
+#: ``dt`` (float, s), ``state_names`` / ``input_names`` (JSON lists),
+#: ``theta`` (JSON object over THETA_NAMES, SI units), ``training_config``
+#: (JSON object), ``config_hash`` (:func:`config_hash` of it), ``dataset_seed``
+#: (int), ``code_version`` (free text), ``test_metrics`` (JSON object).
+REQUIRED_METADATA = ("pinnmpc.contract", "architecture", "dt", "state_names", "input_names", "theta",
+                     "training_config", "config_hash", "dataset_seed", "code_version", "test_metrics")
+
+NX = len(STATE_NAMES)
+NU = len(INPUT_NAMES)
+
+#: Tolerances of the checks: |dt - DT|; derivative-graph x_next vs model
+#: (relative, norm-wise per sample); A, B vs central finite differences of the
+#: model (relative to the Frobenius norm of the finite-difference matrix, per
+#: sample, plus the differences' own rounding noise eps |x_next| / step per
+#: column, which only matters for float32).
+DT_TOL = 1e-12
+JAC_XNEXT_RTOL = {"float64": 1e-9, "float32": 1e-5}
+JAC_FD_RTOL = 1e-3
+#: Relative finite-difference step (times max(1, |value|)) per model dtype.
+FD_STEP = {"float64": 1e-6, "float32": 1e-3}
+#: Batch sizes of the test evaluations.
+TEST_BATCH_SIZES = (1, 3)
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """What :func:`check_model` learned about a valid model file.
+
+    Attributes
+    ----------
+    path : Path
+        The model file.
+    architecture : str
+        Architecture name from the metadata (e.g. ``"baseline"``).
+    dt : float
+        Period of one ``x -> x_next`` step, s (equals ``sim.params.DT``).
+    dtype : numpy.dtype
+        Element type of every tensor, float32 or float64.
+    theta : dict[str, float]
+        Identified parameters by name (THETA_NAMES order), SI units.
+    training_config : dict
+        Training configuration as stored.
+    config_hash : str
+        sha256 hex of the canonical JSON of ``training_config``.
+    dataset_seed : int
+        Seed of the training dataset.
+    code_version : str
+        Version of the code that produced the file.
+    test_metrics : dict
+        Test-set metrics as stored.
+    metadata : dict[str, str]
+        Every ``metadata_props`` entry, raw strings.
+    jacobian : Path or None
+        The derivative graph beside the model when present (and valid).
+    """
+
+    path: Path
+    architecture: str
+    dt: float
+    dtype: np.dtype
+    theta: dict
+    training_config: dict
+    config_hash: str
+    dataset_seed: int
+    code_version: str
+    test_metrics: dict
+    metadata: dict
+    jacobian: Path | None
+
+    def to_dict(self) -> dict:
+        """JSON-ready form: paths as strings, ``dtype`` as its name."""
+        return {
+            "path": str(self.path), "architecture": self.architecture, "dt": self.dt,
+            "dtype": self.dtype.name, "theta": dict(self.theta), "training_config": self.training_config,
+            "config_hash": self.config_hash, "dataset_seed": self.dataset_seed,
+            "code_version": self.code_version, "test_metrics": self.test_metrics,
+            "metadata": dict(self.metadata), "jacobian": None if self.jacobian is None else str(self.jacobian),
+        }
+
+
+def config_hash(config: dict) -> str:
+    """sha256 hex digest of the canonical JSON of a training configuration.
+
+    Parameters
+    ----------
+    config : dict
+        JSON-serializable configuration.
+
+    Returns
+    -------
+    str
+        64 hex characters: ``sha256(json.dumps(config, sort_keys=True, separators=(",", ":")))``.
+    """
+    if not isinstance(config, Mapping):
+        raise TypeError(f"config must be a dict; found {type(config).__name__}")
+    try:
+        text = json.dumps(config, sort_keys=True, separators=(",", ":"))
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"config must be JSON-serializable; {e}") from e
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def jacobian_path(model_path) -> Path:
+    """The derivative graph beside a model: ``models/baseline.onnx -> models/baseline.jac.onnx``."""
+    p = Path(model_path)
+    return p.with_name(p.stem + ".jac.onnx")
+
+
+def open_session(path, threads: int = 1):
+    """An onnxruntime CPU session with ``threads`` intra-op and one inter-op thread.
+
+    Parameters
+    ----------
+    path : str or Path
+        ONNX file.
+    threads : int
+        Intra-op threads (>= 1). One thread keeps timings reproducible and
+        leaves cores to parallel runs.
+
+    Returns
+    -------
+    onnxruntime.InferenceSession
+
+    Raises
+    ------
+    ModelContractError
+        If onnxruntime cannot load the file.
+    """
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise ValueError(f"threads must be an integer >= 1; found {threads!r}")
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = int(threads)
+    so.inter_op_num_threads = 1
+    so.log_severity_level = 3  # errors only: warnings about unused initializers etc. are noise here
+    try:
+        return ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
+    except Exception as e:  # onnxruntime raises its own pybind exception types
+        raise ModelContractError(f"{path}: onnxruntime cannot load the model ({_short(str(e), 300)})") from e
+
+
+def check_model(path) -> ModelInfo:
+    """Validate an ONNX model file against the contract and return what it declares.
+
+    Checks, in order: the file loads and passes ``onnx.checker``; inputs are
+    exactly ``x`` [B, 12] and ``u`` [B, 4] with a dynamic batch dimension and
+    one element type (float32 or float64); the only output is ``x_next``
+    [B, 12] of that type; the metadata of :data:`REQUIRED_METADATA` is present
+    and consistent (contract version, ``dt == DT``, state and input names,
+    positive finite theta, config hash); onnxruntime evaluates hover-like
+    batches of size 1 and 3 to finite (B, 12) outputs. When the derivative
+    graph :func:`jacobian_path` exists it is checked too: same inputs, outputs
+    ``x_next``, ``A`` [B, 12, 12], ``B`` [B, 12, 4], ``x_next`` equal to the
+    model's and ``A``, ``B`` equal to central finite differences of the model.
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.onnx`` model file.
+
+    Returns
+    -------
+    ModelInfo
+
+    Raises
+    ------
+    ModelContractError
+        Naming the file (the model or its derivative graph) and the defect,
+        with what was expected and what was found.
+    """
+    path = Path(path)
+    model = _load(path)
+    where = str(path)
+    dtype = _check_io(model, where, {"x_next": (NX,)})
+    meta = _metadata(model, where)
+    fields = _parse_metadata(meta, where)
+
+    session = open_session(path)
+    batches = []
+    for b in TEST_BATCH_SIZES:
+        x, u = _probe_batch(b, dtype)
+        (x_next,) = _run(session, x, u, where, ["x_next"])
+        _check_output(x_next, (b, NX), dtype, where, "x_next")
+        batches.append((x, u, x_next))
+
+    jac = jacobian_path(path)
+    if jac.exists():
+        _check_jacobian(jac, path, session, dtype, batches)
+    else:
+        jac = None
+    return ModelInfo(path=path, dtype=dtype, metadata=meta, jacobian=jac, **fields)
+
+
+# --------------------------------------------------------------------------- file and graph structure
+
+def _short(text: str, limit: int = 80) -> str:
+    text = str(text)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def _load(path: Path):
+    """Load and ``onnx.checker``-check one file; errors name the file."""
+    import onnx
+
+    if not path.exists():
+        raise ModelContractError(f"{path}: model file not found")
+    if not path.is_file():
+        raise ModelContractError(f"{path}: expected an ONNX file; found a directory")
+    try:
+        model = onnx.load(str(path))
+    except Exception as e:  # protobuf DecodeError, OSError, external-data errors
+        raise ModelContractError(f"{path}: not a readable ONNX file ({type(e).__name__}: {_short(e, 200)})") from e
+    try:
+        onnx.checker.check_model(model)
+    except Exception as e:  # onnx.checker.ValidationError and friends
+        raise ModelContractError(f"{path}: fails onnx.checker ({_short(e, 300)})") from e
+    return model
+
+
+def _type_name(elem_type: int) -> str:
+    import onnx
+
+    if elem_type == onnx.TensorProto.FLOAT:
+        return "float32"
+    if elem_type == onnx.TensorProto.DOUBLE:
+        return "float64"
+    if elem_type == onnx.TensorProto.UNDEFINED:
+        return "undefined"
+    try:
+        return onnx.TensorProto.DataType.Name(elem_type).lower()
+    except ValueError:
+        return f"unknown type {elem_type}"
+
+
+def _dim_str(dim) -> str:
+    if dim.HasField("dim_value"):
+        return str(dim.dim_value)
+    if dim.HasField("dim_param"):
+        return dim.dim_param
+    return "?"
+
+
+def _tensor_type(vi, where: str, role: str):
+    kind = vi.type.WhichOneof("value")
+    if kind != "tensor_type":
+        raise ModelContractError(f"{where}: {role} {vi.name!r} must be a tensor; found {kind or 'no type'}")
+    return vi.type.tensor_type
+
+
+def _check_shape(vi, where: str, role: str, dims: tuple[int, ...]) -> None:
+    """``vi`` must have shape [batch, *dims] with a dynamic batch dimension."""
+    tt = _tensor_type(vi, where, role)
+    expected = "[batch, " + ", ".join(map(str, dims)) + "]"
+    if not tt.HasField("shape"):
+        raise ModelContractError(f"{where}: {role} {vi.name!r} must have rank {1 + len(dims)} "
+                                 f"(shape {expected}); found no declared shape")
+    d = list(tt.shape.dim)
+    found = "[" + ", ".join(_dim_str(k) for k in d) + "]"
+    if len(d) != 1 + len(dims):
+        raise ModelContractError(f"{where}: {role} {vi.name!r} must have rank {1 + len(dims)} "
+                                 f"(shape {expected}); found rank {len(d)}, shape {found}")
+    if d[0].HasField("dim_value"):
+        raise ModelContractError(f"{where}: {role} {vi.name!r} batch dimension must be dynamic (a named or unset "
+                                 f"first dimension, shape {expected}); found fixed size {d[0].dim_value}")
+    for k, (dim, want) in enumerate(zip(d[1:], dims), start=1):
+        if not dim.HasField("dim_value") or dim.dim_value != want:
+            raise ModelContractError(f"{where}: {role} {vi.name!r} must have shape {expected}; found {found} "
+                                     f"(dimension {k} is {_dim_str(dim)}, expected {want})")
+
+
+def _elem_dtype(vi, where: str, role: str) -> np.dtype:
+    import onnx
+
+    et = _tensor_type(vi, where, role).elem_type
+    if et == onnx.TensorProto.FLOAT:
+        return np.dtype(np.float32)
+    if et == onnx.TensorProto.DOUBLE:
+        return np.dtype(np.float64)
+    raise ModelContractError(f"{where}: {role} {vi.name!r} must have element type float32 or float64; "
+                             f"found {_type_name(et)}")
+
+
+def _check_io(model, where: str, outputs: dict) -> np.dtype:
+    """Check inputs ``x``, ``u`` and the named outputs; return the common dtype.
+
+    ``outputs`` maps each required output name to its trailing dimensions.
+    """
+    graph = model.graph
+    initializers = {t.name for t in graph.initializer}
+    inputs = [vi for vi in graph.input if vi.name not in initializers]  # IR < 4 lists initializers as inputs
+    names = [vi.name for vi in inputs]
+    if sorted(names) != ["u", "x"]:
+        raise ModelContractError(f"{where}: graph inputs must be exactly ['x', 'u']; found {names}")
+    by_name = {vi.name: vi for vi in inputs}
+    _check_shape(by_name["x"], where, "input", (NX,))
+    _check_shape(by_name["u"], where, "input", (NU,))
+    tx = _elem_dtype(by_name["x"], where, "input")
+    tu = _elem_dtype(by_name["u"], where, "input")
+    if tx != tu:
+        raise ModelContractError(f"{where}: inputs 'x' and 'u' must have the same element type (float32 or "
+                                 f"float64); found x {tx.name}, u {tu.name}")
+
+    out_names = [vi.name for vi in graph.output]
+    if sorted(out_names) != sorted(outputs):
+        raise ModelContractError(f"{where}: graph outputs must be exactly {list(outputs)}; found {out_names}")
+    for vi in graph.output:
+        _check_shape(vi, where, "output", outputs[vi.name])
+        t = _elem_dtype(vi, where, "output")
+        if t != tx:
+            raise ModelContractError(f"{where}: output {vi.name!r} must have the element type of the inputs "
+                                     f"({tx.name}); found {t.name}")
+    return tx
+
+
+# --------------------------------------------------------------------------- metadata
+
+def _metadata(model, where: str) -> dict:
+    meta: dict[str, str] = {}
+    for entry in model.metadata_props:
+        if entry.key in meta:
+            raise ModelContractError(f"{where}: metadata key {entry.key!r} must appear once; found it repeated")
+        meta[entry.key] = entry.value
+    return meta
+
+
+def _json(meta: dict, key: str, where: str, kind: type, what: str):
+    value = meta[key]
+    try:
+        obj = json.loads(value)
+    except ValueError as e:
+        raise ModelContractError(f"{where}: metadata {key!r} must be {what}; found invalid JSON "
+                                 f"{_short(value)!r} ({e})") from e
+    if not isinstance(obj, kind):
+        raise ModelContractError(f"{where}: metadata {key!r} must be {what}; found a JSON "
+                                 f"{type(obj).__name__}: {_short(value)!r}")
+    return obj
+
+
+def _parse_metadata(meta: dict, where: str) -> dict:
+    """Validate the contract metadata; return the ModelInfo fields it fills."""
+    missing = [k for k in REQUIRED_METADATA if k not in meta]
+    if missing:
+        raise ModelContractError(f"{where}: metadata_props is missing required key(s) {missing}; "
+                                 f"required: {list(REQUIRED_METADATA)}")
+
+    version = meta["pinnmpc.contract"]
+    if version != CONTRACT_VERSION:
+        raise ModelContractError(f"{where}: metadata 'pinnmpc.contract' must be {CONTRACT_VERSION!r} "
+                                 f"(the version this code reads); found {_short(version)!r}")
+
+    architecture = meta["architecture"].strip()
+    if not architecture:
+        raise ModelContractError(f"{where}: metadata 'architecture' must be a non-empty name; found "
+                                 f"{meta['architecture']!r}")
+
+    try:
+        dt = float(meta["dt"])
+    except ValueError as e:
+        raise ModelContractError(f"{where}: metadata 'dt' must be a number (s); found {_short(meta['dt'])!r}") from e
+    if not math.isfinite(dt) or abs(dt - DT) > DT_TOL:
+        raise ModelContractError(f"{where}: metadata 'dt' must equal sim.params.DT = {DT!r} s "
+                                 f"(within {DT_TOL:g}); found {dt!r}")
+
+    for key, want in (("state_names", STATE_NAMES), ("input_names", INPUT_NAMES)):
+        names = _json(meta, key, where, list, f"the JSON list {list(want)}")
+        if names != list(want):
+            raise ModelContractError(f"{where}: metadata {key!r} must be {list(want)}; found {names}")
+
+    theta_obj = _json(meta, "theta", where, dict, f"a JSON object with keys {list(THETA_NAMES)}")
+    if set(theta_obj) != set(THETA_NAMES):
+        lacking = [k for k in THETA_NAMES if k not in theta_obj]
+        extra = sorted(k for k in theta_obj if k not in THETA_NAMES)
+        found = ", ".join(part for part in (f"missing {lacking}" if lacking else "",
+                                            f"unexpected {extra}" if extra else "") if part)
+        raise ModelContractError(f"{where}: metadata 'theta' must have exactly the keys {list(THETA_NAMES)}; "
+                                 f"found {found}")
+    theta = {}
+    for name in THETA_NAMES:
+        v = theta_obj[name]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+            raise ModelContractError(f"{where}: metadata theta[{name!r}] must be a finite number > 0; found {v!r}")
+        theta[name] = float(v)
+
+    training_config = _json(meta, "training_config", where, dict, "a JSON object")
+    test_metrics = _json(meta, "test_metrics", where, dict, "a JSON object")
+
+    h = config_hash(training_config)
+    if meta["config_hash"] != h:
+        raise ModelContractError(f"{where}: metadata config_hash does not match training_config: expected {h} "
+                                 f"(sha256 of its canonical JSON), found {_short(meta['config_hash'])!r}")
+
+    try:
+        dataset_seed = int(meta["dataset_seed"])
+    except ValueError as e:
+        raise ModelContractError(f"{where}: metadata 'dataset_seed' must be an integer; found "
+                                 f"{_short(meta['dataset_seed'])!r}") from e
+
+    return {"architecture": architecture, "dt": dt, "theta": theta, "training_config": training_config,
+            "config_hash": h, "dataset_seed": dataset_seed, "code_version": meta["code_version"],
+            "test_metrics": test_metrics}
+
+
+# --------------------------------------------------------------------------- evaluation
+
+def _probe_batch(batch: int, dtype: np.dtype, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Seeded hover-like test states (batch, 12) and inputs (batch, 4).
+
+    Positions within 0.1 m of (0, 0, -1), angles and body rates within 0.1
+    rad(/s), velocities within 0.2 m/s; thrust within 5 % of the reference
+    hover thrust (0.667 N), torques within 1e-4 N m.
+    """
+    rng = np.random.default_rng([seed, batch])
+    x = np.zeros((batch, NX))
+    x[:, 0:3] = rng.uniform(-0.1, 0.1, (batch, 3))
+    x[:, 2] -= 1.0
+    x[:, 3:9] = rng.uniform(-0.1, 0.1, (batch, 6))
+    x[:, 9:12] = rng.uniform(-0.2, 0.2, (batch, 3))
+    u = np.zeros((batch, NU))
+    u[:, 0] = QuadParams().hover_thrust * (1.0 + rng.uniform(-0.05, 0.05, batch))
+    u[:, 1:] = rng.uniform(-1e-4, 1e-4, (batch, NU - 1))
+    return x.astype(dtype), u.astype(dtype)
+
+
+def _run(session, x: np.ndarray, u: np.ndarray, where: str, names: list[str]) -> list[np.ndarray]:
+    try:
+        return session.run(names, {"x": x, "u": u})
+    except Exception as e:  # onnxruntime's pybind exception types
+        raise ModelContractError(f"{where}: evaluation with onnxruntime failed on a test batch of size "
+                                 f"{x.shape[0]} ({_short(e, 300)})") from e
+
+
+def _check_output(value: np.ndarray, shape: tuple, dtype: np.dtype, where: str, name: str) -> None:
+    value = np.asarray(value)
+    if value.shape != shape:
+        raise ModelContractError(f"{where}: output {name!r} must have shape {shape} for a test batch of size "
+                                 f"{shape[0]}; found {value.shape}")
+    if value.dtype != dtype:
+        raise ModelContractError(f"{where}: output {name!r} must be {dtype.name} at run time; found {value.dtype}")
+    if not np.all(np.isfinite(value)):
+        raise ModelContractError(f"{where}: output {name!r} is not finite on the hover-like test batch of size "
+                                 f"{shape[0]} ({int(np.sum(~np.isfinite(value)))} non-finite entries)")
+
+
+def _fd_jacobians(session, x: np.ndarray, u: np.ndarray, dtype: np.dtype, where: str):
+    """Central finite differences of the model: A (B, 12, 12) and B (B, 12, 4), float64."""
+    z = np.concatenate([x, u], axis=1).astype(np.float64)                     # (b, n)
+    b, n = z.shape
+    h = FD_STEP[dtype.name] * np.maximum(1.0, np.abs(z))                       # (b, n)
+    eye = np.eye(n)
+    zp = (z[:, None, :] + eye * h[:, None, :]).astype(dtype)                   # (b, n, n): perturb coordinate j
+    zm = (z[:, None, :] - eye * h[:, None, :]).astype(dtype)
+    step = np.einsum("bjj->bj", zp.astype(np.float64) - zm.astype(np.float64))  # steps actually representable
+    zz = np.concatenate([zp, zm], axis=1).reshape(-1, n)                      # (b * 2n, n)
+    (out,) = _run(session, np.ascontiguousarray(zz[:, :NX]), np.ascontiguousarray(zz[:, NX:]), where, ["x_next"])
+    out = np.asarray(out, dtype=np.float64).reshape(b, 2 * n, NX)
+    jac = ((out[:, :n] - out[:, n:]) / step[:, :, None]).transpose(0, 2, 1)   # (b, 12, n)
+    return jac[:, :, :NX], jac[:, :, NX:]
+
+
+def _check_jacobian(jac: Path, path: Path, model_session, dtype: np.dtype, batches: list) -> None:
+    """Validate the derivative graph ``jac`` of the model ``path`` on the test batches."""
+    where = str(jac)
+    jmodel = _load(jac)
+    jdtype = _check_io(jmodel, where, {"x_next": (NX,), "A": (NX, NX), "B": (NX, NU)})
+    if jdtype != dtype:
+        raise ModelContractError(f"{where}: derivative graph must use the element type of the model {path.name} "
+                                 f"({dtype.name}); found {jdtype.name}")
+    session = open_session(jac)
+    rtol = JAC_XNEXT_RTOL[dtype.name]
+    for x, u, x_next in batches:
+        b = x.shape[0]
+        xj, a, bm = _run(session, x, u, where, ["x_next", "A", "B"])
+        _check_output(xj, (b, NX), dtype, where, "x_next")
+        _check_output(a, (b, NX, NX), dtype, where, "A")
+        _check_output(bm, (b, NX, NU), dtype, where, "B")
+        ref = x_next.astype(np.float64)
+        diff = np.linalg.norm(xj.astype(np.float64) - ref, axis=1)
+        scale = np.maximum(np.linalg.norm(ref, axis=1), np.finfo(dtype).tiny)
+        rel = diff / scale
+        if not np.all(rel <= rtol):
+            k = int(np.argmax(rel))
+            raise ModelContractError(f"{where}: derivative-graph output 'x_next' must equal the output of "
+                                     f"{path.name} (relative {rtol:g}); found relative difference {rel[k]:.3g} "
+                                     f"at test sample {k} of {b}")
+        a_fd, b_fd = _fd_jacobians(model_session, x, u, dtype, str(path))
+        # Rounding noise of the differences themselves, eps |x_next| / step per column: it matters for
+        # float32 models whose B is small next to |x_next| (e.g. 1e-2 vs 1), never for float64.
+        noise = np.finfo(dtype).eps * np.maximum(1.0, np.linalg.norm(ref, axis=1)) / FD_STEP[dtype.name]
+        for name, got, fd, what in (("A", a, a_fd, "d x_next / d x"), ("B", bm, b_fd, "d x_next / d u")):
+            err = np.linalg.norm(got.astype(np.float64) - fd, axis=(1, 2))
+            norm = np.linalg.norm(fd, axis=(1, 2))
+            bad = ~(err <= JAC_FD_RTOL * norm + noise * np.sqrt(fd.shape[2]))
+            if np.any(bad):
+                k = int(np.argmax(bad))
+                raise ModelContractError(
+                    f"{where}: derivative-graph output {name!r} ({what}) must match central finite differences "
+                    f"of {path.name} (relative {JAC_FD_RTOL:g}); found relative error "
+                    f"{err[k] / max(norm[k], np.finfo(float).tiny):.3g} at test sample {k} of {b}")

@@ -1,0 +1,17 @@
+"""Exceptions raised by :mod:`mpc`.
+
+Every error a user can provoke with a bad file or argument is a
+:class:`ValueError` subclass whose message names the offending file or
+argument and says what was expected and what was found; the ``pinnmpc``
+command line turns these into a one-line error with exit code 2.
+"""
+
+from __future__ import annotations
+
+
+class ModelContractError(ValueError):
+    """An ONNX model file (or its derivative graph) violates the model contract of DESIGN section 8."""
+
+
+class SolverError(RuntimeError):
+    """The MPC optimizer failed in a way the controller cannot recover from."""
