@@ -22,6 +22,7 @@ Controller (vectorized over trajectories):
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import zipfile
@@ -295,6 +296,15 @@ class Dataset:
             "envelope_deg": [lo, hi],
             "envelope_reached": bool(min(max_roll, max_pitch) >= lo and max(max_roll, max_pitch) <= hi),
         }
+
+    def fingerprint(self) -> str:
+        """sha256 of the data arrays (not of the file), so a regenerated dataset has the same value."""
+        h = hashlib.sha256()
+        for k in self.ARRAYS:
+            a = np.ascontiguousarray(getattr(self, k))
+            h.update(f"{k}:{a.dtype.str}:{a.shape}".encode())
+            h.update(a.tobytes())
+        return h.hexdigest()
 
     def save(self, path) -> Path:
         """Write a ``.npz`` file; the same dataset always gives the same bytes."""
