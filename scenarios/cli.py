@@ -11,9 +11,10 @@ import argparse
 import sys
 
 from mpc import cli as mpc_cli
+from pinn import cli as pinn_cli
 from sim import cli as sim_cli
 
-PACKAGES = (sim_cli, mpc_cli)
+PACKAGES = (sim_cli, pinn_cli, mpc_cli)
 
 
 def build_parser() -> argparse.ArgumentParser:

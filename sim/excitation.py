@@ -297,6 +297,12 @@ class Dataset:
             "envelope_reached": bool(min(max_roll, max_pitch) >= lo and max(max_roll, max_pitch) <= hi),
         }
 
+    def subset(self, traj) -> "Dataset":
+        """Dataset of the trajectories selected by ``traj`` (boolean mask or indices over n_traj)."""
+        idx = np.arange(self.n_traj)[traj]
+        return dataclasses.replace(self, **{k: getattr(self, k)[idx] for k in self.ARRAYS},
+                                   meta={**self.meta, "subset_of_n_traj": self.n_traj})
+
     def fingerprint(self) -> str:
         """sha256 of the data arrays (not of the file), so a regenerated dataset has the same value."""
         h = hashlib.sha256()

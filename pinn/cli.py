@@ -1,0 +1,232 @@
+"""``pinnmpc train``, ``pinnmpc evaluate`` and ``pinnmpc ablation``.
+
+torch is imported inside the handlers only (``evaluate`` needs none of it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+ARCHS = ("baseline", "modular", "fourier", "proposed")
+
+
+def register(sub) -> None:
+    """Add this package's subcommands to the ``pinnmpc`` parser."""
+    p = sub.add_parser("train", help="train one PINN, export it to ONNX and record it in the manifest",
+                       description="Physics-informed training with parameter identification; writes "
+                                   "NAME.onnx, NAME.jac.onnx, NAME.pt into --out and updates --out/manifest.json.")
+    p.add_argument("--arch", required=True, choices=ARCHS)
+    p.add_argument("--profile", default="quick", choices=("quick", "full"),
+                   help="budget: quick (CI, < 60 s) or full (shipped models)")
+    p.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--data", type=Path, default=None, help="dataset .npz from `pinnmpc data`")
+    src.add_argument("--regime", default="small", choices=("small", "aggressive"),
+                     help="without --data: generate the default dataset of this regime (100 x 10 s)")
+    p.add_argument("--data-seed", type=int, default=0, help="seed of the generated dataset (default 0)")
+    p.add_argument("--name", default=None, help="file stem (default: ARCH, or ARCH_REGIME off the small regime)")
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    p.add_argument("--out", type=Path, required=True, help="output folder, e.g. models/")
+    p.set_defaults(handler=cmd_train)
+
+    p = sub.add_parser("evaluate", help="Tables I and II of the ONNX models in a folder",
+                       description="1-step and 100-step MAE on the test split and identified parameters "
+                                   "against truth and Cramer-Rao bounds, beside the paper's numbers.")
+    p.add_argument("folder", type=Path)
+    p.add_argument("--data", type=Path, default=None,
+                   help="dataset .npz (default: regenerate each model's training dataset from its metadata)")
+    p.add_argument("--json", type=Path, default=None, help="output JSON (default FOLDER/evaluation.json)")
+    p.set_defaults(handler=cmd_evaluate)
+
+    p = sub.add_parser("ablation", help="Table III: train the five ablation configurations",
+                       description="Baseline, +curriculum, +scheduled sampling, +dropout, +energy/smoothness "
+                                   "(= proposed), same data and budget; 100-step position MAE on the test split.")
+    p.add_argument("--profile", default="quick", choices=("quick", "full"))
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--regime", default="small", choices=("small", "aggressive"))
+    p.add_argument("--data-seed", type=int, default=0)
+    p.add_argument("--jobs", type=int, default=1, help="parallel trainings, one torch thread each (default 1)")
+    p.add_argument("--out", type=Path, required=True, help="output folder (ablation.json)")
+    p.set_defaults(handler=cmd_ablation)
+
+
+# ------------------------------------------------------------------ helpers
+def _dataset(args):
+    """(dataset, data spec) from --data or the default dataset of --regime."""
+    from sim.excitation import load_dataset, make_dataset
+
+    if args.data is not None:
+        ds = load_dataset(args.data)
+        m = ds.meta
+        noise = "default" if any(m["noise"].values()) else "none"
+        spec = {"file": str(args.data), "regime": m["regime"], "n_traj": m["n_traj"], "duration_s": m["duration_s"],
+                "seed": m["seed"], "noise": noise, "fingerprint": ds.fingerprint()}
+        return ds, spec
+    ds = make_dataset(args.regime, 100, 10.0, args.data_seed)
+    spec = {"regime": args.regime, "n_traj": 100, "duration_s": 10.0, "seed": args.data_seed, "noise": "default",
+            "fingerprint": ds.fingerprint()}
+    return ds, spec
+
+
+def torch_step(model):
+    """numpy ``step(x, u)`` of a torch model, evaluated in float64."""
+    import copy
+
+    import torch
+
+    m = copy.deepcopy(model).double().eval()
+
+    def step(x, u):
+        with torch.no_grad():
+            return m(torch.as_tensor(x, dtype=torch.float64), torch.as_tensor(u, dtype=torch.float64)).numpy()
+    return step
+
+
+def test_metrics(model, ds) -> dict:
+    """Compact test-split metrics of a torch model (stored in the ONNX metadata and the manifest)."""
+    from .metrics import one_step_mae, rollout_mae
+
+    step = torch_step(model)
+    one = one_step_mae(step, ds)
+    roll = rollout_mae(step, ds)
+    return {"one_step_mae": one,
+            "rollout_100_mae": {k: v for k, v in roll.items() if k not in ("position_by_step", "divergence_steps")},
+            "rollout_100_divergence_steps": roll["divergence_steps"]}
+
+
+def _update_manifest(folder: Path, name: str, entry: dict) -> Path:
+    path = folder / "manifest.json"
+    data = json.loads(path.read_text()) if path.exists() else {}
+    data[name] = entry
+    path.write_text(json.dumps(dict(sorted(data.items())), indent=2) + "\n")
+    return path
+
+
+def _train_one(ds, spec: dict, arch: str, profile: str, seed: int, threads: int, recipe: str | None,
+               progress: bool):
+    from .train import make_config, train
+
+    cfg = make_config(arch, profile, seed, recipe=recipe, threads=threads)
+    res = train(ds, cfg, progress=progress)
+    return res, test_metrics(res.model, ds)
+
+
+# ----------------------------------------------------------------- commands
+def cmd_train(args: argparse.Namespace) -> int:
+    """Handler of ``pinnmpc train``."""
+    import torch
+
+    from .export import export_model
+
+    if args.threads < 1:
+        raise ValueError(f"--threads must be >= 1; found {args.threads}")
+    ds, spec = _dataset(args)
+    name = args.name or (args.arch if spec["regime"] == "small" else f"{args.arch}_{spec['regime']}")
+    res, metrics = _train_one(ds, spec, args.arch, args.profile, args.seed, args.threads, None,
+                              progress=sys.stderr.isatty())
+    training_config = {"name": name, "recipe": args.arch, "train": res.config.to_dict(), "data": spec}
+    paths = export_model(res.model, args.out, name, training_config, spec["seed"], metrics, res.stats)
+    cmd = (f"pinnmpc train --arch {args.arch} --profile {args.profile} --seed {args.seed} "
+           + (f"--data {args.data} " if args.data else f"--regime {spec['regime']} --data-seed {spec['seed']} ")
+           + f"--threads {args.threads} " + (f"--name {args.name} " if args.name else "") + f"--out {args.out}")
+    last = res.history[-1]
+    entry = {
+        "files": {k: Path(v).name for k, v in paths.items()},
+        "command": cmd,
+        "seed": args.seed,
+        "architecture": args.arch,
+        "profile": args.profile,
+        "data": spec,
+        "config_hash": __import__("mpc.contract", fromlist=["config_hash"]).config_hash(training_config),
+        "metrics": metrics,
+        "theta": dict(zip(("m", "Jxx", "Jyy", "Jzz", "kt", "kq"), last["theta"])),
+        "theta_err_pct": last["theta_err_pct"],
+        "final_losses": {k: last[k] for k in ("data", "phys", "theta", "rotor", "energy", "smooth", "val")},
+        "training_seconds": round(res.seconds, 1),
+        "torch_version": torch.__version__,
+        "cpu_count": os.cpu_count(),
+    }
+    manifest = _update_manifest(args.out, name, entry)
+    r = metrics["rollout_100_mae"]
+    print(f"trained {name} ({args.arch}, {args.profile}) in {res.seconds:.0f} s -> {paths['onnx']}")
+    print(f"  1-step MAE z {metrics['one_step_mae']['z']:.2e} m, phi {metrics['one_step_mae']['phi']:.2e} rad; "
+          f"100-step MAE position {r['position']:.3g} m, phi {r['phi']:.3g} rad, diverged {r['n_diverged']}/{r['n_rollouts']}")
+    print("  theta-hat error %: " + ", ".join(f"{k} {v:+.2f}" for k, v in last["theta_err_pct"].items()))
+    print(f"  validation loss {last['val']:.3e} (first epoch {res.history[0]['val']:.3e}); manifest {manifest}")
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    """Handler of ``pinnmpc evaluate``."""
+    from .evaluate import evaluate_dir, format_tables
+
+    result = evaluate_dir(args.folder, args.data, progress=sys.stderr.isatty())
+    print(format_tables(result))
+    out = args.json or args.folder / "evaluation.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"\nwrote {out}")
+    return 0
+
+
+def _ablation_job(job):
+    ds, spec, recipe, profile, seed = job
+    arch = "proposed" if recipe == "proposed" else "baseline"
+    res, metrics = _train_one(ds, spec, arch, profile, seed, 1, recipe, progress=False)
+    return recipe, res.seconds, metrics, res.history[-1]["theta_err_pct"], res.config.to_dict()
+
+
+def cmd_ablation(args: argparse.Namespace) -> int:
+    """Handler of ``pinnmpc ablation``."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from .evaluate import PAPER_TABLE3
+    from .train import ABLATION
+
+    if args.jobs < 1:
+        raise ValueError(f"--jobs must be >= 1; found {args.jobs}")
+    args.data = None
+    ds, spec = _dataset(args)
+    jobs = [(ds, spec, r, args.profile, args.seed) for r in ABLATION]
+    results = {}
+    from tqdm import tqdm
+    bar = tqdm(total=len(jobs), desc="ablation", unit="config", disable=not sys.stderr.isatty())
+    if args.jobs == 1:
+        for j in jobs:
+            r = _ablation_job(j)
+            results[r[0]] = r
+            bar.update()
+    else:
+        with ProcessPoolExecutor(args.jobs) as ex:
+            for r in ex.map(_ablation_job, jobs):
+                results[r[0]] = r
+                bar.update()
+    bar.close()
+    base = results["baseline"][2]["rollout_100_mae"]["position"]
+    rows = []
+    for recipe in ABLATION:
+        _, secs, metrics, th_err, cfg = results[recipe]
+        mae = metrics["rollout_100_mae"]["position"]
+        rows.append({"configuration": recipe, "position_mae_100_m": mae,
+                     "improvement_pct": 100.0 * (base - mae) / base,
+                     "n_diverged": metrics["rollout_100_mae"]["n_diverged"],
+                     "paper_position_mae_100_m": PAPER_TABLE3[recipe],
+                     "paper_improvement_pct": 100.0 * (PAPER_TABLE3["baseline"] - PAPER_TABLE3[recipe])
+                     / PAPER_TABLE3["baseline"],
+                     "one_step_mae": metrics["one_step_mae"], "theta_err_pct": th_err,
+                     "training_seconds": round(secs, 1), "config": cfg})
+    out = {"profile": args.profile, "seed": args.seed, "data": spec, "rows": rows}
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / "ablation.json"
+    path.write_text(json.dumps(out, indent=2) + "\n")
+    print("Table III: 100-step position MAE on the test split (ours | paper)\n")
+    print(f"{'configuration':<34}{'MAE (m)':>10}{'improvement':>13} | {'paper MAE':>9}{'paper impr.':>12}")
+    for r in rows:
+        print(f"{r['configuration']:<34}{r['position_mae_100_m']:>10.4f}{r['improvement_pct']:>12.0f}% | "
+              f"{r['paper_position_mae_100_m']:>9.3g}{r['paper_improvement_pct']:>11.0f}%")
+    print(f"\nwrote {path}")
+    return 0

@@ -1,0 +1,143 @@
+"""ONNX export of trained models (DESIGN section 8).
+
+``export_model`` writes, in float64 (IPOPT needs exact derivatives; a float32
+model made it fail, DESIGN section 9):
+
+* ``<name>.onnx``: ``x`` [B, 12], ``u`` [B, 4] -> ``x_next`` [B, 12] with the
+  normalization inside, a dynamic batch and the metadata of the contract;
+* ``<name>.jac.onnx``: the same inputs -> ``x_next``, ``A = dx_next/dx``
+  [B, 12, 12], ``B = dx_next/du`` [B, 12, 4], from the models' exact
+  forward-mode Jacobian written with plain tensor operations;
+* ``<name>.pt``: the torch weights, stats and config (for retraining checks
+  and torch/onnxruntime parity tests).
+
+Both ONNX files keep their weights inside (no external data files).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import io
+import json
+import logging
+import warnings
+from pathlib import Path
+
+import torch
+
+from mpc.contract import CONTRACT_VERSION, config_hash, jacobian_path
+from sim import __version__ as code_version
+from sim.params import DT, INPUT_NAMES, STATE_NAMES, THETA_NAMES
+
+from .models import build_model
+
+
+class _Next(torch.nn.Module):
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+
+    def forward(self, x, u):
+        return self.model(x, u)
+
+
+class _Jac(torch.nn.Module):
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+
+    def forward(self, x, u):
+        return self.model.forward_jacobian(x, u)
+
+
+def _export(module, path: Path, outputs: list[str]) -> None:
+    x = torch.zeros(3, 12, dtype=torch.float64)
+    u = torch.zeros(3, 4, dtype=torch.float64)
+    batch = torch.export.Dim("batch")
+    # The exporter is chatty (warnings and log lines about unrelated packages).
+    logging.getLogger("torch.onnx").setLevel(logging.ERROR)
+    with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
+        warnings.simplefilter("ignore")
+        torch.onnx.export(module, (x, u), str(path), input_names=["x", "u"], output_names=outputs,
+                          dynamic_shapes={"x": {0: batch}, "u": {0: batch}}, external_data=False,
+                          dynamo=True, verbose=False)
+
+
+def _set_metadata(path: Path, meta: dict) -> None:
+    import onnx
+
+    m = onnx.load(str(path))
+    del m.metadata_props[:]
+    for k, v in meta.items():
+        e = m.metadata_props.add()
+        e.key, e.value = k, v
+    onnx.save(m, str(path))
+
+
+def export_model(model, out_dir, name: str, training_config: dict, dataset_seed: int, test_metrics: dict,
+                 stats: dict | None = None) -> dict:
+    """Write ``<name>.onnx``, ``<name>.jac.onnx`` and ``<name>.pt`` into ``out_dir``.
+
+    Parameters
+    ----------
+    model : pinn.models.ResidualPINN
+        Trained model (any dtype; exported as a float64 copy in evaluation mode).
+    out_dir : path
+        Target folder (created).
+    name : str
+        File stem.
+    training_config : dict
+        Everything that defines the run (training settings and data); hashed.
+    dataset_seed : int
+        Seed of the training data.
+    test_metrics : dict
+        Test-split metrics to store in the metadata.
+    stats : dict, optional
+        Normalization statistics, stored in the ``.pt`` file.
+
+    Returns
+    -------
+    dict
+        Paths written: ``onnx``, ``jacobian``, ``torch``.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    m64 = copy.deepcopy(model).double().eval()
+    theta = m64.theta.detach().numpy()
+    meta = {
+        "pinnmpc.contract": CONTRACT_VERSION,
+        "architecture": m64.arch,
+        "dt": repr(DT),
+        "state_names": json.dumps(list(STATE_NAMES)),
+        "input_names": json.dumps(list(INPUT_NAMES)),
+        "theta": json.dumps({n: float(v) for n, v in zip(THETA_NAMES, theta)}),
+        "training_config": json.dumps(training_config, sort_keys=True),
+        "config_hash": config_hash(training_config),
+        "dataset_seed": str(int(dataset_seed)),
+        "code_version": code_version,
+        "test_metrics": json.dumps(test_metrics, sort_keys=True),
+        "torch_version": torch.__version__,
+    }
+    path = out_dir / f"{name}.onnx"
+    jac = jacobian_path(path)
+    _export(_Next(m64), path, ["x_next"])
+    _export(_Jac(m64), jac, ["x_next", "A", "B"])
+    _set_metadata(path, meta)
+    _set_metadata(jac, {k: meta[k] for k in ("pinnmpc.contract", "architecture", "config_hash")})
+    pt = out_dir / f"{name}.pt"
+    torch.save({"arch": model.arch, "describe": model.describe(), "state_dict": model.state_dict(),
+                "training_config": training_config,
+                "stats": {k: torch.as_tensor(v) for k, v in (stats or {}).items()}}, pt)
+    return {"onnx": path, "jacobian": jac, "torch": pt}
+
+
+def load_torch_model(path):
+    """Rebuild a model saved by :func:`export_model` (float32, evaluation mode)."""
+    blob = torch.load(path, map_location="cpu", weights_only=False)
+    d = blob["describe"]
+    sd = blob["state_dict"]
+    stats = {"in_mean": sd["in_mean"], "in_std": sd["in_std"], "out_scale": sd["out_scale"]}
+    model = build_model(blob["arch"], stats, sd["log_theta"].exp(), d["hidden"], d["layers"], d["dropout"])
+    model.load_state_dict(sd)
+    return model.eval(), blob

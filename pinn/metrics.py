@@ -1,0 +1,92 @@
+"""Accuracy metrics of a one-step model (DESIGN section 6), always on the test split.
+
+A model is any ``step(x, u) -> x_next`` on numpy arrays (B, 12), (B, 4) ->
+(B, 12): a torch model wrapped by :func:`torch_step`, or an ONNX file through
+onnxruntime (:func:`pinn.evaluate.onnx_step`). Nothing here imports torch.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim.params import NX, STATE_NAMES
+
+#: A rollout whose state leaves these bounds (or is not finite) has diverged.
+FINITE_RANGE = np.repeat([1e3, 1e3, 1e4, 1e3], 3)  # m, rad, rad/s, m/s
+POSITION = slice(0, 3)
+
+
+def one_step_mae(step, ds, split: str = "test", batch: int = 20000) -> dict:
+    """Mean absolute one-step error per state on ``split``.
+
+    Returns
+    -------
+    dict
+        ``{state_name: MAE}`` in the state's units, plus ``position`` (mean over x, y, z).
+    """
+    pairs = ds.pairs(split)
+    x, u, y = pairs["x"], pairs["u"], pairs["x_next"]
+    err = np.empty_like(y)
+    for lo in range(0, len(x), batch):
+        err[lo:lo + batch] = np.abs(step(x[lo:lo + batch], u[lo:lo + batch]) - y[lo:lo + batch])
+    mae = err.mean(axis=0)
+    out = dict(zip(STATE_NAMES, map(float, mae)))
+    out["position"] = float(mae[POSITION].mean())
+    return out
+
+
+def rollout_starts(ds, split: str, horizon: int, n_starts: int, seed: int) -> np.ndarray:
+    """Seeded (trajectory, start index) pairs (n, 2) for rollouts that fit in the data."""
+    traj = np.flatnonzero(ds.split == ("train", "val", "test").index(split))
+    n_steps = ds.x.shape[1]
+    if n_steps < horizon:
+        raise ValueError(f"horizon {horizon} is longer than the trajectories ({n_steps} steps)")
+    rng = np.random.default_rng(seed)
+    return np.column_stack([rng.choice(traj, n_starts), rng.integers(0, n_steps - horizon + 1, n_starts)])
+
+
+def rollout_mae(step, ds, split: str = "test", horizon: int = 100, n_starts: int = 200, seed: int = 0) -> dict:
+    """Autoregressive ``horizon``-step rollouts with the recorded inputs.
+
+    From ``n_starts`` seeded start points of the ``split`` trajectories, the
+    model's own prediction is fed back for ``horizon`` steps. The MAE is over
+    the ``horizon`` predicted steps and all rollouts, per state. A rollout
+    that leaves :data:`FINITE_RANGE` (or becomes non-finite) is counted as
+    diverged with its step of divergence; from that step on it keeps its
+    last in-range prediction, so it stays in the MAE with a large error
+    rather than being dropped.
+
+    Returns
+    -------
+    dict
+        Per-state MAE, ``position`` (mean over x, y, z), ``n_rollouts``,
+        ``n_diverged``, ``divergence_steps`` (list, 1-based), and the
+        position MAE at each horizon step (``position_by_step``).
+    """
+    starts = rollout_starts(ds, split, horizon, n_starts, seed)
+    ti, si = starts[:, 0], starts[:, 1]
+    x = ds.x[ti, si].copy()
+    err = np.zeros((len(starts), horizon, NX))
+    alive = np.ones(len(starts), dtype=bool)
+    div_step = np.zeros(len(starts), dtype=int)
+    for k in range(horizon):
+        u = ds.u[ti, si + k]
+        with np.errstate(all="ignore"):
+            nxt = step(x, u)
+            bad = ~np.all(np.isfinite(nxt) & (np.abs(nxt) < FINITE_RANGE), axis=1)
+        newly = bad & alive
+        div_step[newly] = k + 1
+        alive &= ~bad
+        x = np.where(alive[:, None], nxt, x)
+        err[:, k] = np.abs(x - ds.x_next[ti, si + k])
+    mae = err.mean(axis=(0, 1))
+    out = dict(zip(STATE_NAMES, map(float, mae)))
+    out.update({
+        "position": float(mae[POSITION].mean()),
+        "n_rollouts": int(len(starts)),
+        "n_diverged": int((~alive).sum()),
+        "divergence_steps": [int(s) for s in div_step[~alive]],
+        "position_by_step": [float(v) for v in err[:, :, POSITION].mean(axis=(0, 2))],
+        "horizon": horizon,
+    })
+    return out

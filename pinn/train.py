@@ -1,0 +1,371 @@
+"""Physics-informed training with parameter identification (DESIGN section 6).
+
+Loss per optimizer step::
+
+    L = L_data + lambda_p (L_phys,data + L_phys,colloc) + lambda_r L_rotor
+        + lambda_E L_energy + lambda_S L_smooth
+
+* ``L_data``: squared error of the predicted next state, per state divided
+  by the residual scale ``s``, over a training rollout of ``K`` steps
+  (``K = 1`` without curriculum).
+* ``L_phys``: the network's increment against an RK4 step (10 x 1 ms) of
+  the nominal equations under theta-hat, on the rollout's inputs and on
+  unlabeled collocation points drawn uniformly from the training envelope.
+* ``L_rotor``: the rotor-speed residual. The commanded wrench is exact and
+  the logged rotor speeds are noisy, so the comparison is made on the
+  rotors' side: ``n^2`` that kt-hat, kq-hat allocate for the command
+  against the logged ``n^2``, over its spread. (Comparing on the wrench
+  side, ``M(kt-hat, kq-hat) n_log^2`` against the command, puts the noise
+  in the regressor and biases kq-hat low: errors in variables.)
+* ``L_energy`` (paper Eq. 12): the predicted change of mechanical energy
+  over one step against the trapezoidal integral of thrust, torque and
+  drag power, over ``m g`` times 1 m/s.
+* ``L_smooth`` (paper Eq. 13): ``ReLU(|dx/dt| - v_max)^2`` of predicted
+  steps, ``v_max`` 1.2 times the largest rate seen in the training data.
+
+Curriculum (paper Eq. 11, scaled to the epoch budget): the rollout horizon
+is 5, 10, 25, 50 in four equal quarters of the epochs. Scheduled sampling:
+inside the rollout each sample's next input is its own prediction with
+probability ``p(e)``, rising linearly from 0 (first epoch) to 0.3 (last),
+else the measured state.
+
+Every configuration processes the same number of transitions per optimizer
+step (``batch``; a rollout of ``K`` steps uses ``batch // K`` windows) and
+the same number of steps, so the budgets are equal.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from sim.params import DT, THETA_NAMES, QuadParams
+
+from .models import ARCHITECTURES, build_model
+from .physics import mechanical_energy, power_balance, rk4_increment, rotor_sq_from_wrench
+
+CURRICULUM_HORIZONS = (5, 10, 25, 50)
+SS_MAX = 0.3
+THETA_BIAS = 0.30  # initial guess: every parameter 30 % above the reference value
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that defines a training run (hashed into the model's metadata)."""
+
+    arch: str = "baseline"
+    profile: str = "quick"
+    seed: int = 0
+    epochs: int = 10
+    steps_per_epoch: int = 60
+    batch: int = 1024            # transitions per optimizer step
+    n_colloc: int = 512          # collocation points per step
+    lr: float = 2e-3             # network learning rate (cosine decay to lr / 20)
+    lr_theta: float = 2e-2       # learning rate of log(theta)
+    lambda_p: float = 1.0        # physics residual weight
+    lambda_rotor: float = 1.0    # rotor residual weight
+    hidden: int = 128
+    layers: int = 5
+    dropout: float = 0.0
+    curriculum: bool = False
+    scheduled_sampling: bool = False
+    energy: float = 0.0          # weight of the energy-conservation loss (0 = off)
+    smooth: float = 0.0          # weight of the smoothness loss (0 = off)
+    theta_bias: float = THETA_BIAS
+    theta_warmup: float = 0.2    # fraction of the steps before theta-hat starts to move
+    threads: int = 1
+
+    def to_dict(self) -> dict:
+        """Plain dict (for JSON and hashing)."""
+        return dataclasses.asdict(self)
+
+
+#: Budget per profile: quick is for CI (< 60 s on 2 cores), full for the shipped models.
+PROFILES = {
+    "quick": {"epochs": 8, "steps_per_epoch": 40, "batch": 512, "n_colloc": 256, "lr": 3e-3, "lr_theta": 5e-3},
+    "full": {"epochs": 40, "steps_per_epoch": 150, "batch": 1024, "n_colloc": 512, "lr": 2e-3, "lr_theta": 2e-3},
+}
+
+#: What each architecture / ablation row switches on (Table III adds them one at a time).
+RECIPES = {
+    "baseline": {},
+    "modular": {},
+    "fourier": {},
+    "baseline+curriculum": {"curriculum": True},
+    "baseline+curriculum+ss": {"curriculum": True, "scheduled_sampling": True},
+    "baseline+curriculum+ss+dropout": {"curriculum": True, "scheduled_sampling": True, "dropout": 0.02},
+    "proposed": {"curriculum": True, "scheduled_sampling": True, "dropout": 0.02, "energy": 0.1, "smooth": 0.1},
+}
+ABLATION = ("baseline", "baseline+curriculum", "baseline+curriculum+ss", "baseline+curriculum+ss+dropout", "proposed")
+
+
+def make_config(arch: str, profile: str = "quick", seed: int = 0, recipe: str | None = None, **overrides) -> TrainConfig:
+    """Config for an architecture (and optionally an ablation recipe) under a budget profile."""
+    if arch not in ARCHITECTURES:
+        raise ValueError(f"arch must be one of {', '.join(ARCHITECTURES)}; found {arch!r}")
+    if profile not in PROFILES:
+        raise ValueError(f"profile must be one of {', '.join(PROFILES)}; found {profile!r}")
+    recipe = arch if recipe is None else recipe
+    if recipe not in RECIPES:
+        raise ValueError(f"recipe must be one of {', '.join(RECIPES)}; found {recipe!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed must be an integer >= 0; found {seed!r}")
+    return TrainConfig(arch=arch, profile=profile, seed=seed, **{**PROFILES[profile], **RECIPES[recipe], **overrides})
+
+
+def curriculum_horizon(epoch: int, epochs: int) -> int:
+    """Rollout horizon K(e): 5, 10, 25, 50 over four equal quarters of the epochs (paper Eq. 11)."""
+    quarter = min(len(CURRICULUM_HORIZONS) - 1, (4 * epoch) // max(1, epochs))
+    return CURRICULUM_HORIZONS[quarter]
+
+
+def sampling_probability(epoch: int, epochs: int) -> float:
+    """Scheduled-sampling probability p(e), linear from 0 at the first epoch to 0.3 at the last."""
+    return SS_MAX * epoch / max(1, epochs - 1)
+
+
+# --------------------------------------------------------------------- data
+def training_stats(ds) -> dict:
+    """Normalization and scales from the training split (numpy float64 arrays)."""
+    tr = ds.split == 0
+    x, u, xn = ds.x[tr], ds.u[tr], ds.x_next[tr]
+    feats = np.concatenate([x[..., 3:12], u], axis=-1).reshape(-1, 13)
+    dx = (xn - x).reshape(-1, 12)
+    return {
+        "in_mean": feats.mean(0), "in_std": feats.std(0) + 1e-8,
+        "out_scale": dx.std(0) + 1e-8,
+        "feat_min": feats.min(0), "feat_max": feats.max(0),
+        "n_sq_scale": (ds.rotor_speed[tr] ** 2).reshape(-1, 4).std(0) + 1e-12,
+        "rate_max": 1.2 * np.abs(dx).max(0) / DT,
+    }
+
+
+class _TrainData:
+    """Training trajectories as float32 tensors and window sampling."""
+
+    def __init__(self, ds, gen: torch.Generator):
+        tr = ds.split == 0
+        if not tr.any():
+            raise ValueError("dataset has no training trajectories (need n_traj >= 1 with a train split)")
+        # Trajectory states x_0 .. x_T: x plus the last x_next.
+        states = np.concatenate([ds.x[tr], ds.x_next[tr][:, -1:]], axis=1)
+        self.states = torch.as_tensor(states, dtype=torch.float32)
+        self.u = torch.as_tensor(ds.u[tr], dtype=torch.float32)
+        self.n = torch.as_tensor(ds.rotor_speed[tr], dtype=torch.float32)
+        self.n_traj, self.n_steps = self.u.shape[:2]
+        self.gen = gen
+
+    def windows(self, count: int, horizon: int):
+        """``count`` random windows: states (count, K+1, 12), inputs and rotor speeds (count, K, 4)."""
+        ti = torch.randint(0, self.n_traj, (count,), generator=self.gen)
+        si = torch.randint(0, self.n_steps - horizon + 1, (count,), generator=self.gen)
+        idx = si[:, None] + torch.arange(horizon + 1)
+        states = self.states[ti[:, None], idx]
+        return states, self.u[ti[:, None], idx[:, :-1]], self.n[ti[:, None], idx[:, :-1]]
+
+
+@dataclass
+class TrainResult:
+    """A trained model with its history."""
+
+    model: torch.nn.Module
+    config: TrainConfig
+    history: list = field(default_factory=list)
+    seconds: float = 0.0
+    stats: dict = field(default_factory=dict)
+
+
+def theta_errors_pct(theta: np.ndarray, truth: np.ndarray) -> dict:
+    """``{name: 100 (theta - truth) / truth}``."""
+    return {n: float(100.0 * (t - r) / r) for n, t, r in zip(THETA_NAMES, theta, truth)}
+
+
+def validation_loss(model, ds, stats) -> float:
+    """One-step data loss (normalized MSE) on the validation split, evaluation mode, no grad."""
+    va = ds.split == 1
+    if not va.any():
+        va = ds.split == 0
+    x = torch.as_tensor(ds.x[va].reshape(-1, 12), dtype=torch.float32)
+    u = torch.as_tensor(ds.u[va].reshape(-1, 4), dtype=torch.float32)
+    y = torch.as_tensor(ds.x_next[va].reshape(-1, 12), dtype=torch.float32)
+    was = model.training
+    model.eval()
+    with torch.no_grad():
+        r = (model.increment(x, u) - (y - x)) / model.out_scale
+        out = float((r * r).mean())
+    model.train(was)
+    return out
+
+
+def physics_residual(increment: torch.Tensor, x: torch.Tensor, u: torch.Tensor, theta: torch.Tensor,
+                     p: QuadParams, scale: torch.Tensor) -> torch.Tensor:
+    """Per-state residual (B, 12) of a predicted increment against an RK4 step under ``theta``.
+
+    ``(increment - RK4(x, u; theta) + x) / scale``, with the RK4 step of
+    :func:`pinn.physics.rk4_increment` (10 substeps of 1 ms, as the simulator).
+    """
+    return (increment - rk4_increment(x, u, theta, p)) / scale
+
+
+def step_losses(model, states, us, ns, p_ss: float, colloc: torch.Tensor, p: QuadParams, scales: dict,
+                config: TrainConfig, gen: torch.Generator) -> dict:
+    """Loss terms of one optimizer step (see the module docstring).
+
+    Parameters
+    ----------
+    states : torch.Tensor, shape (W, K + 1, 12)
+        Measured states of ``W`` windows of ``K`` steps.
+    us, ns : torch.Tensor, shape (W, K, 4)
+        Wrench commands and logged rotor speeds.
+    p_ss : float
+        Scheduled-sampling probability.
+    colloc : torch.Tensor, shape (C, 13)
+        Collocation features (phi .. vz, T, tau) in physical units.
+
+    Returns
+    -------
+    dict of scalar tensors: data, phys, theta, rotor, energy, smooth.
+    """
+    K = us.shape[1]
+    s = model.out_scale
+    theta = model.theta
+    # Autoregressive rollout (teacher forcing mixed with the model's own predictions).
+    inp = states[:, 0]
+    inputs, preds = [], []
+    for k in range(K):
+        pred = model(inp, us[:, k])
+        inputs.append(inp)
+        preds.append(pred)
+        if k + 1 < K:
+            nxt = states[:, k + 1]
+            if p_ss > 0:
+                own = torch.rand(nxt.shape[0], 1, generator=gen) < p_ss
+                nxt = torch.where(own, pred, nxt)
+            inp = nxt
+    X = torch.cat(inputs)                                   # step-major: (K W, 12)
+    P = torch.cat(preds)
+    U = us.transpose(0, 1).reshape(-1, 4)
+    Y = states[:, 1:].transpose(0, 1).reshape(-1, 12)
+    inc = P - X
+    r = (P - Y) / s
+    out = {"data": (r * r).mean()}
+
+    # Physics: one RK4 evaluation for the rollout's points and the collocation points.
+    xc = torch.zeros(colloc.shape[0], 12)
+    xc[:, 3:12] = colloc[:, :9]
+    uc = colloc[:, 9:]
+    phys = rk4_increment(torch.cat([X, xc]), torch.cat([U, uc]), theta, p)
+    n = X.shape[0]
+    inc_c = model.increment(xc, uc)
+    # The residual on data points is used twice with its gradient routed: it identifies
+    # theta-hat against the network's prediction (held fixed; the data anchor it), and
+    # it pulls the network toward the physics under theta-hat (held fixed). Letting both
+    # move through one term lets an untrained network drag theta-hat anywhere. On the
+    # collocation points only the network learns.
+    rp = (inc.detach() - phys[:n]) / s
+    rn = (torch.cat([inc, inc_c]) - phys.detach()) / s
+    out["theta"] = (rp * rp).mean()
+    out["phys"] = (rn[:n] * rn[:n]).mean() + (rn[n:] * rn[n:]).mean()
+
+    rw = (rotor_sq_from_wrench(us[:, 0], theta, p) - ns[:, 0] ** 2) / scales["n_sq"]
+    out["rotor"] = (rw * rw).mean()
+
+    zero = torch.zeros(())
+    if config.energy > 0:
+        dE = (mechanical_energy(P, theta, p.g) - mechanical_energy(X, theta, p.g)) / DT
+        pw = 0.5 * (power_balance(X, U, theta, p.g, p.c_d) + power_balance(P, U, theta, p.g, p.c_d))
+        out["energy"] = (((dE - pw) / scales["power"]) ** 2).mean()
+    else:
+        out["energy"] = zero
+    if config.smooth > 0:
+        over = torch.relu((inc / DT).abs() - scales["rate_max"]) / scales["rate_max"]
+        out["smooth"] = (over * over).mean()
+    else:
+        out["smooth"] = zero
+    return out
+
+
+def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | None = None) -> TrainResult:
+    """Train one model on a :class:`sim.excitation.Dataset`.
+
+    Parameters
+    ----------
+    ds : Dataset
+        Training data (its train split is used; validation split for the
+        validation loss).
+    config : TrainConfig
+    progress : bool
+        Show a progress bar (epoch, losses, horizon, theta-hat errors).
+    truth : QuadParams, optional
+        True parameters, only to display theta-hat errors (default: the
+        dataset's). Training never uses them.
+    """
+    torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)
+    gen = torch.Generator().manual_seed(config.seed)
+    p = QuadParams(**ds.meta["params"]) if truth is None else truth
+    ref = QuadParams()  # the stated prior: reference values, biased
+    theta0 = ref.theta * (1.0 + config.theta_bias)
+
+    st = training_stats(ds)
+    model = build_model(config.arch, st, theta0, config.hidden, config.layers, config.dropout)
+    data = _TrainData(ds, gen)
+    T = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
+    feat_lo, feat_hi = T(st["feat_min"]), T(st["feat_max"])
+    scales = {"n_sq": T(st["n_sq_scale"]), "rate_max": T(st["rate_max"]), "power": p.m * p.g * 1.0}
+
+    net_params = [q for n, q in model.named_parameters() if n != "log_theta"]
+    opt = torch.optim.Adam([{"params": net_params, "lr": config.lr},
+                            {"params": [model.log_theta], "lr": config.lr_theta}])
+    total = config.epochs * config.steps_per_epoch
+    warm = int(config.theta_warmup * total)
+    # Network: cosine decay to lr / 20. theta-hat: frozen during the warm-up, while the
+    # network is still far from the data (its physics residual would push theta-hat
+    # anywhere), then constant.
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, [lambda k: 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * k / total)),
+              lambda k: 0.0 if k < warm else 1.0])
+
+    history = []
+    epochs = range(config.epochs)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = epochs = tqdm(epochs, desc=f"train {config.arch}", unit="epoch")
+    t0 = time.perf_counter()
+    model.train()
+    for e in epochs:
+        K = curriculum_horizon(e, config.epochs) if config.curriculum else 1
+        p_ss = sampling_probability(e, config.epochs) if config.scheduled_sampling else 0.0
+        sums = {"data": 0.0, "phys": 0.0, "theta": 0.0, "rotor": 0.0, "energy": 0.0, "smooth": 0.0}
+        for _ in range(config.steps_per_epoch):
+            states, us, ns = data.windows(max(1, config.batch // K), K)
+            f = feat_lo + (feat_hi - feat_lo) * torch.rand(config.n_colloc, 13, generator=gen)
+            losses = step_losses(model, states, us, ns, p_ss, f, p, scales, config, gen)
+            loss = (losses["data"] + config.lambda_p * (losses["phys"] + losses["theta"])
+                    + config.lambda_rotor * losses["rotor"] + config.energy * losses["energy"]
+                    + config.smooth * losses["smooth"])
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(net_params, 10.0)
+            opt.step()
+            sched.step()
+            for k_ in sums:
+                sums[k_] += float(losses[k_].detach())
+        th = model.theta.detach().numpy().astype(float)
+        rec = {"epoch": e, "horizon": K, "sampling_p": p_ss,
+               **{k_: v / config.steps_per_epoch for k_, v in sums.items()},
+               "val": validation_loss(model, ds, st), "theta": th.tolist(),
+               "theta_err_pct": theta_errors_pct(th, p.theta)}
+        history.append(rec)
+        if bar is not None:
+            worst = max(rec["theta_err_pct"].items(), key=lambda kv: abs(kv[1]))
+            bar.set_postfix_str(f"K={K} p={p_ss:.2f} data={rec['data']:.2e} phys={rec['phys']:.2e} "
+                                f"val={rec['val']:.2e} worst theta {worst[0]} {worst[1]:+.2f}%")
+    model.eval()
+    return TrainResult(model=model, config=config, history=history, seconds=time.perf_counter() - t0, stats=st)
