@@ -99,10 +99,15 @@ def test_metrics(model, ds) -> dict:
 
 
 def _update_manifest(folder: Path, name: str, entry: dict) -> Path:
+    """Set ``entry`` under ``name`` in ``folder/manifest.json`` (locked: trainings may run in parallel)."""
+    import fcntl
+
     path = folder / "manifest.json"
-    data = json.loads(path.read_text()) if path.exists() else {}
-    data[name] = entry
-    path.write_text(json.dumps(dict(sorted(data.items())), indent=2) + "\n")
+    with open(folder / ".manifest.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        data = json.loads(path.read_text()) if path.exists() else {}
+        data[name] = entry
+        path.write_text(json.dumps(dict(sorted(data.items())), indent=2) + "\n")
     return path
 
 

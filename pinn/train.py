@@ -19,7 +19,8 @@ Loss per optimizer step::
   in the regressor and biases kq-hat low: errors in variables.)
 * ``L_energy`` (paper Eq. 12): the predicted change of mechanical energy
   over one step against the trapezoidal integral of thrust, torque and
-  drag power, over ``m g`` times 1 m/s.
+  drag power, over ``m g`` times 1 m/s (theta-hat held fixed: it regularizes
+  the network, it does not identify).
 * ``L_smooth`` (paper Eq. 13): ``ReLU(|dx/dt| - v_max)^2`` of predicted
   steps, ``v_max`` 1.2 times the largest rate seen in the training data.
 
@@ -267,7 +268,16 @@ def step_losses(model, states, us, ns, p_ss: float, colloc: torch.Tensor, p: Qua
     # it pulls the network toward the physics under theta-hat (held fixed). Letting both
     # move through one term lets an untrained network drag theta-hat anywhere. On the
     # collocation points only the network learns.
-    rp = (inc.detach() - phys[:n]) / s
+    if model.dropout_p > 0:
+        # Identify against the deterministic (evaluation-mode) prediction: dropout noise
+        # in the target would bias theta-hat.
+        model.eval()
+        with torch.no_grad():
+            target = model.increment(X, U)
+        model.train()
+    else:
+        target = inc.detach()
+    rp = (target - phys[:n]) / s
     rn = (torch.cat([inc, inc_c]) - phys.detach()) / s
     out["theta"] = (rp * rp).mean()
     out["phys"] = (rn[:n] * rn[:n]).mean() + (rn[n:] * rn[n:]).mean()
@@ -277,8 +287,10 @@ def step_losses(model, states, us, ns, p_ss: float, colloc: torch.Tensor, p: Qua
 
     zero = torch.zeros(())
     if config.energy > 0:
-        dE = (mechanical_energy(P, theta, p.g) - mechanical_energy(X, theta, p.g)) / DT
-        pw = 0.5 * (power_balance(X, U, theta, p.g, p.c_d) + power_balance(P, U, theta, p.g, p.c_d))
+        # A regularizer of the network's predictions: theta-hat is held fixed in it.
+        th = theta.detach()
+        dE = (mechanical_energy(P, th, p.g) - mechanical_energy(X, th, p.g)) / DT
+        pw = 0.5 * (power_balance(X, U, th, p.g, p.c_d) + power_balance(P, U, th, p.g, p.c_d))
         out["energy"] = (((dE - pw) / scales["power"]) ** 2).mean()
     else:
         out["energy"] = zero

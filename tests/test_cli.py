@@ -57,3 +57,28 @@ def test_fisher_command_table_and_json(tmp_path, capsys):
 def test_console_script_help_runs_without_traceback():
     r = subprocess.run([sys.executable, "-m", "scenarios.cli", "--help"], capture_output=True, text=True)
     assert r.returncode == 0 and "data" in r.stdout and "fisher" in r.stdout
+
+
+def test_train_check_and_evaluate_round_trip(tmp_path, capsys):
+    """Quick training through the CLI, the contract check of its export, and Tables I/II from it."""
+    data = make_dataset("small", 10, 5.0, 4).save(tmp_path / "d.npz")
+    out = tmp_path / "m"
+    assert main(["train", "--arch", "baseline", "--profile", "quick", "--data", str(data), "--out", str(out)]) == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    entry = manifest["baseline"]
+    assert entry["command"].startswith("pinnmpc train --arch baseline --profile quick --seed 0 --data ")
+    assert {"onnx", "jacobian", "torch"} == set(entry["files"]) and entry["training_seconds"] > 0
+    assert main(["check-model", str(out / "baseline.onnx")]) == 0
+    assert main(["evaluate", str(out)]) == 0
+    ev = json.loads((out / "evaluation.json").read_text())
+    row = ev["models"][0]
+    # The ONNX evaluation reproduces the torch metrics stored at training time.
+    assert row["rollout_100"]["position"] == pytest.approx(entry["metrics"]["rollout_100_mae"]["position"], rel=1e-9)
+    assert set(row["err_over_crlb"]) == {"m", "Jxx", "Jyy", "Jzz", "kt", "kq"}
+    text = capsys.readouterr().out
+    assert "Table I" in text and "Table II" in text and "paper" in text
+
+
+def test_evaluate_rejects_an_empty_folder(tmp_path, capsys):
+    assert main(["evaluate", str(tmp_path)]) == 2
+    assert "no .onnx models" in capsys.readouterr().err
