@@ -78,16 +78,14 @@ def rk4_increment(x: torch.Tensor, u: torch.Tensor, theta: torch.Tensor, p: Quad
     return z
 
 
-def wrench_from_rotor_speed(n: torch.Tensor, theta: torch.Tensor, p: QuadParams) -> torch.Tensor:
-    """Wrench (..., 4) that ``kt, kq`` of ``theta`` give from rotor speeds ``n`` (..., 4), RU."""
-    M = torch.stack([torch.stack(list(row)) for row in mixer(theta[4], theta[5], p.d / math.sqrt(2.0))])
-    return (n * n) @ M.T
+def mixer_torch(theta: torch.Tensor, p: QuadParams) -> torch.Tensor:
+    """Mixer ``M`` (4, 4) with ``wrench = M n^2``, from ``kt, kq`` of ``theta`` (see :mod:`sim.rotors`)."""
+    return torch.stack([torch.stack(list(row)) for row in mixer(theta[4], theta[5], p.d / math.sqrt(2.0))])
 
 
 def rotor_sq_from_wrench(w: torch.Tensor, theta: torch.Tensor, p: QuadParams) -> torch.Tensor:
     """Rotor speeds squared (..., 4), RU^2, that ``kt, kq`` of ``theta`` allocate for wrench ``w`` (..., 4)."""
-    M = torch.stack([torch.stack(list(row)) for row in mixer(theta[4], theta[5], p.d / math.sqrt(2.0))])
-    return w @ torch.linalg.inv(M).T
+    return w @ torch.linalg.inv(mixer_torch(theta, p)).T
 
 
 def mechanical_energy(x: torch.Tensor, theta: torch.Tensor, g: float) -> torch.Tensor:
