@@ -50,6 +50,9 @@ def register(sub) -> None:
     p.add_argument("--regime", default="small", choices=("small", "aggressive"))
     p.add_argument("--data-seed", type=int, default=0)
     p.add_argument("--jobs", type=int, default=1, help="parallel trainings, one torch thread each (default 1)")
+    p.add_argument("--reuse", type=Path, default=None,
+                   help="models folder: a configuration already trained there (same training config and "
+                        "data fingerprint) is taken from its manifest instead of being trained again")
     p.add_argument("--out", type=Path, required=True, help="output folder (ablation.json)")
     p.set_defaults(handler=cmd_ablation)
 
@@ -178,11 +181,31 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _ablation_arch(recipe: str) -> str:
+    return "proposed" if recipe == "proposed" else "baseline"
+
+
 def _ablation_job(job):
     ds, spec, recipe, profile, seed = job
-    arch = "proposed" if recipe == "proposed" else "baseline"
-    res, metrics = _train_one(ds, spec, arch, profile, seed, 1, recipe, progress=False)
+    res, metrics = _train_one(ds, spec, _ablation_arch(recipe), profile, seed, 1, recipe, progress=False)
     return recipe, res.seconds, metrics, res.history[-1]["theta_err_pct"], res.config.to_dict()
+
+
+def _reusable(folder: Path, recipe: str, spec: dict, profile: str, seed: int):
+    """An already trained model of ``folder`` with exactly this configuration and data, as a job result."""
+    from mpc.contract import check_model
+
+    from .train import make_config
+
+    manifest = folder / "manifest.json"
+    if not manifest.exists():
+        return None
+    cfg = make_config(_ablation_arch(recipe), profile, seed, recipe=recipe, threads=1).to_dict()
+    for name, entry in json.loads(manifest.read_text()).items():
+        tc = check_model(folder / entry["files"]["onnx"]).training_config
+        if tc.get("train") == cfg and tc.get("data", {}).get("fingerprint") == spec["fingerprint"]:
+            return recipe, entry["training_seconds"], entry["metrics"], entry["theta_err_pct"], cfg
+    return None
 
 
 def cmd_ablation(args: argparse.Namespace) -> int:
@@ -196,8 +219,14 @@ def cmd_ablation(args: argparse.Namespace) -> int:
         raise ValueError(f"--jobs must be >= 1; found {args.jobs}")
     args.data = None
     ds, spec = _dataset(args)
-    jobs = [(ds, spec, r, args.profile, args.seed) for r in ABLATION]
     results = {}
+    if args.reuse is not None:
+        for r in ABLATION:
+            hit = _reusable(args.reuse, r, spec, args.profile, args.seed)
+            if hit is not None:
+                results[r] = hit
+                print(f"{r}: reusing the trained model in {args.reuse} (same config and data)")
+    jobs = [(ds, spec, r, args.profile, args.seed) for r in ABLATION if r not in results]
     from tqdm import tqdm
     bar = tqdm(total=len(jobs), desc="ablation", unit="config", disable=not sys.stderr.isatty())
     if args.jobs == 1:
@@ -215,6 +244,7 @@ def cmd_ablation(args: argparse.Namespace) -> int:
     rows = []
     for recipe in ABLATION:
         _, secs, metrics, th_err, cfg = results[recipe]
+        reused = args.reuse is not None and recipe not in {j[2] for j in jobs}
         mae = metrics["rollout_100_mae"]["position"]
         rows.append({"configuration": recipe, "position_mae_100_m": mae,
                      "improvement_pct": 100.0 * (base - mae) / base,
@@ -223,7 +253,7 @@ def cmd_ablation(args: argparse.Namespace) -> int:
                      "paper_improvement_pct": 100.0 * (PAPER_TABLE3["baseline"] - PAPER_TABLE3[recipe])
                      / PAPER_TABLE3["baseline"],
                      "one_step_mae": metrics["one_step_mae"], "theta_err_pct": th_err,
-                     "training_seconds": round(secs, 1), "config": cfg})
+                     "training_seconds": round(secs, 1), "config": cfg, "reused_from_models": reused})
     out = {"profile": args.profile, "seed": args.seed, "data": spec, "rows": rows}
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "ablation.json"

@@ -162,3 +162,32 @@ def format_tables(result: dict) -> str:
             row += f"{e:>+9.2f}% {_g(c, '.1f'):>5}σ | {PAPER_TABLE2[n]:>3g}%"
         lines.append(row)
     return "\n".join(lines)
+
+
+def markdown_tables(result: dict, ablation: dict | None = None) -> str:
+    """Tables I, II (and III from an ablation result) in Markdown, ours beside the paper's."""
+    L = ["| model | 1-step z (m) | 1-step φ (rad) | 100-step z (m) | 100-step φ (rad) | 100-step position (m) "
+         "| diverged | paper 1-step z / φ | paper 100-step z / φ |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in result["models"]:
+        pap = PAPER_TABLE1.get(r["architecture"]) if r["regime"] == "small" else None
+        o, k = r["one_step"], r["rollout_100"]
+        paper = (f"{pap['z_1']:g} / {pap['phi_1']:g} | {pap['z_100']:g} / {pap['phi_100']:g}" if pap else "– | –")
+        L.append(f"| {r['name']} | {o['z']:.2e} | {o['phi']:.2e} | {k['z']:.4f} | {k['phi']:.4f} | "
+                 f"{k['position']:.4f} | {k['n_diverged']}/{k['n_rollouts']} | {paper} |")
+    L += ["", "| model | " + " | ".join(THETA_NAMES) + " |", "|---|" + "---|" * len(THETA_NAMES)]
+    for r in result["models"]:
+        cells = [f"{r['theta_err_pct'][n]:+.2f} % ({r['err_over_crlb'][n]:.1f} σ)" if "err_over_crlb" in r
+                 else f"{r['theta_err_pct'][n]:+.2f} %" for n in THETA_NAMES]
+        L.append(f"| {r['name']} | " + " | ".join(cells) + " |")
+    L.append("| paper (Table II) | " + " | ".join(f"{PAPER_TABLE2[n]:g} %" for n in THETA_NAMES) + " |")
+    crlb = next((r for r in result["models"] if r["regime"] == "small" and "crlb_std" in r), None)
+    if crlb is not None:
+        L.append("| CRLB σ, small regime (% of truth) | " + " | ".join(
+            f"{100 * crlb['crlb_std'][n] / crlb['theta_true'][n]:.3f} %" for n in THETA_NAMES) + " |")
+    if ablation is not None:
+        L += ["", "| configuration | 100-step position MAE (m) | improvement | diverged | paper MAE (m) | paper improvement |",
+              "|---|---|---|---|---|---|"]
+        for r in ablation["rows"]:
+            L.append(f"| {r['configuration']} | {r['position_mae_100_m']:.4f} | {r['improvement_pct']:+.0f} % | "
+                     f"{r['n_diverged']} | {r['paper_position_mae_100_m']:g} | {r['paper_improvement_pct']:.0f} % |")
+    return "\n".join(L)

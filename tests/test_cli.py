@@ -77,6 +77,12 @@ def test_train_check_and_evaluate_round_trip(tmp_path, capsys):
     assert set(row["err_over_crlb"]) == {"m", "Jxx", "Jyy", "Jzz", "kt", "kq"}
     text = capsys.readouterr().out
     assert "Table I" in text and "Table II" in text and "paper" in text
+    # The ablation can take this run instead of training the same configuration again.
+    from pinn.cli import _reusable
+    hit = _reusable(out, "baseline", entry["data"], "quick", 0)
+    assert hit is not None and hit[2] == entry["metrics"]
+    assert _reusable(out, "baseline", entry["data"], "quick", 1) is None
+    assert _reusable(out, "baseline+curriculum", entry["data"], "quick", 0) is None
 
 
 def test_evaluate_rejects_an_empty_folder(tmp_path, capsys):
