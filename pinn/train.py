@@ -320,6 +320,9 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
     gen = torch.Generator().manual_seed(config.seed)
+    # The dataset's parameters: training takes only the known constants g, c_d and d from
+    # them (inside the physics); theta-hat never sees m, J, kt, kq, which serve only to
+    # display theta-hat errors.
     p = QuadParams(**ds.meta["params"]) if truth is None else truth
     ref = QuadParams()  # the stated prior: reference values, biased
     theta0 = ref.theta * (1.0 + config.theta_bias)
@@ -329,7 +332,7 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
     data = _TrainData(ds, gen)
     T = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
     feat_lo, feat_hi = T(st["feat_min"]), T(st["feat_max"])
-    scales = {"n_sq": T(st["n_sq_scale"]), "rate_max": T(st["rate_max"]), "power": p.m * p.g * 1.0}
+    scales = {"n_sq": T(st["n_sq_scale"]), "rate_max": T(st["rate_max"]), "power": ref.m * ref.g * 1.0}
 
     net_params = [q for n, q in model.named_parameters() if n != "log_theta"]
     opt = torch.optim.Adam([{"params": net_params, "lr": config.lr},
