@@ -1,0 +1,101 @@
+"""The shipped ONNX models: contract, torch/onnxruntime parity, exact derivatives, reproducibility."""
+
+import json
+import shlex
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mpc.contract import check_model, jacobian_path, open_session
+
+ROOT = Path(__file__).resolve().parents[1]
+MODELS = ROOT / "models"
+MANIFEST = json.loads((MODELS / "manifest.json").read_text())
+NAMES = sorted(MANIFEST)
+
+TOL = {
+    "parity": 1e-5,        # torch vs onnxruntime, relative to each state's spread of x_next - x
+    "fd": 1e-3,            # exported A, B vs central differences of the model (relative, per sample)
+    "reproduce": 0.05,     # retrained metrics vs the manifest's
+}
+REQUIRED = {"baseline", "modular", "fourier", "proposed", "baseline_aggressive", "proposed_aggressive"}
+
+
+def envelope_inputs(n, seed=0):
+    rng = np.random.default_rng(seed)
+    x = np.column_stack([rng.uniform(-3, 3, (n, 3)), np.radians(rng.uniform(-20, 20, (n, 2))),
+                         np.radians(rng.uniform(-60, 60, n)), rng.uniform(-2, 2, (n, 3)), rng.uniform(-4, 4, (n, 3))])
+    u = np.column_stack([rng.uniform(0.3, 1.0, n), rng.uniform(-3e-3, 3e-3, (n, 2)), rng.uniform(-2e-3, 2e-3, n)])
+    return x, u
+
+
+def test_every_required_model_is_shipped():
+    assert REQUIRED <= set(NAMES)
+    for name in NAMES:
+        for f in MANIFEST[name]["files"].values():
+            assert (MODELS / f).is_file(), f
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_shipped_model_passes_the_contract_and_matches_its_manifest(name):
+    info = check_model(MODELS / f"{name}.onnx")
+    assert info.jacobian == jacobian_path(MODELS / f"{name}.onnx")
+    assert info.config_hash == MANIFEST[name]["config_hash"]
+    assert info.test_metrics["rollout_100_mae"] == MANIFEST[name]["metrics"]["rollout_100_mae"]
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_torch_and_onnxruntime_agree(name):
+    import torch
+
+    from pinn.export import load_torch_model
+
+    model, _ = load_torch_model(MODELS / f"{name}.pt")
+    x, u = envelope_inputs(1000)
+    with torch.no_grad():
+        ref = model.double()(torch.tensor(x), torch.tensor(u)).numpy()
+    got = open_session(MODELS / f"{name}.onnx").run(["x_next"], {"x": x, "u": u})[0]
+    scale = np.std(ref - x, axis=0)
+    assert np.max(np.abs(got - ref) / scale) < TOL["parity"]
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_exported_derivatives_match_central_differences(name):
+    x, u = envelope_inputs(20, seed=1)
+    model = open_session(MODELS / f"{name}.onnx")
+    _, A, B = open_session(jacobian_path(MODELS / f"{name}.onnx")).run(["x_next", "A", "B"], {"x": x, "u": u})
+
+    def f(xx, uu):
+        return model.run(["x_next"], {"x": xx, "u": uu})[0]
+    fd_A = np.zeros_like(A)
+    fd_B = np.zeros_like(B)
+    for j in range(12):
+        h = 1e-6 * np.maximum(1.0, np.abs(x[:, j]))
+        e = np.zeros_like(x)
+        e[:, j] = h
+        fd_A[:, :, j] = (f(x + e, u) - f(x - e, u)) / (2 * h[:, None])
+    for j in range(4):
+        h = 1e-6 * np.maximum(1e-3, np.abs(u[:, j]))
+        e = np.zeros_like(u)
+        e[:, j] = h
+        fd_B[:, :, j] = (f(x, u + e) - f(x, u - e)) / (2 * h[:, None])
+    for got, fd in ((A, fd_A), (B, fd_B)):
+        rel = np.linalg.norm(got - fd, axis=(1, 2)) / np.linalg.norm(fd, axis=(1, 2))
+        assert np.max(rel) < TOL["fd"]
+
+
+@pytest.mark.slow
+def test_retraining_reproduces_the_shipped_metrics(tmp_path):
+    """Run the manifest command of the shipped baseline into a temporary folder (about 5 minutes)."""
+    from scenarios.cli import main
+
+    entry = MANIFEST["baseline"]
+    args = shlex.split(entry["command"])[1:]
+    args[args.index("--out") + 1] = str(tmp_path)
+    assert main(args) == 0
+    new = json.loads((tmp_path / "manifest.json").read_text())["baseline"]["metrics"]
+    for group in ("one_step_mae", "rollout_100_mae"):
+        for key in ("position", "z", "phi", "vz"):
+            old, now = entry["metrics"][group][key], new[group][key]
+            assert abs(now - old) <= TOL["reproduce"] * old, (group, key, old, now)
