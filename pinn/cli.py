@@ -114,8 +114,7 @@ def _update_manifest(folder: Path, name: str, entry: dict) -> Path:
     return path
 
 
-def _train_one(ds, spec: dict, arch: str, profile: str, seed: int, threads: int, recipe: str | None,
-               progress: bool):
+def _train_one(ds, arch: str, profile: str, seed: int, threads: int, recipe: str | None, progress: bool):
     from .train import make_config, train
 
     cfg = make_config(arch, profile, seed, recipe=recipe, threads=threads)
@@ -134,7 +133,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--threads must be >= 1; found {args.threads}")
     ds, spec = _dataset(args)
     name = args.name or (args.arch if spec["regime"] == "small" else f"{args.arch}_{spec['regime']}")
-    res, metrics = _train_one(ds, spec, args.arch, args.profile, args.seed, args.threads, None,
+    res, metrics = _train_one(ds, args.arch, args.profile, args.seed, args.threads, None,
                               progress=sys.stderr.isatty())
     training_config = {"name": name, "recipe": args.arch, "train": res.config.to_dict(), "data": spec}
     paths = export_model(res.model, args.out, name, training_config, spec["seed"], metrics, res.stats)
@@ -186,8 +185,8 @@ def _ablation_arch(recipe: str) -> str:
 
 
 def _ablation_job(job):
-    ds, spec, recipe, profile, seed = job
-    res, metrics = _train_one(ds, spec, _ablation_arch(recipe), profile, seed, 1, recipe, progress=False)
+    ds, recipe, profile, seed = job
+    res, metrics = _train_one(ds, _ablation_arch(recipe), profile, seed, 1, recipe, progress=False)
     return recipe, res.seconds, metrics, res.history[-1]["theta_err_pct"], res.config.to_dict()
 
 
@@ -226,7 +225,7 @@ def cmd_ablation(args: argparse.Namespace) -> int:
             if hit is not None:
                 results[r] = hit
                 print(f"{r}: reusing the trained model in {args.reuse} (same config and data)")
-    jobs = [(ds, spec, r, args.profile, args.seed) for r in ABLATION if r not in results]
+    jobs = [(ds, r, args.profile, args.seed) for r in ABLATION if r not in results]
     from tqdm import tqdm
     bar = tqdm(total=len(jobs), desc="ablation", unit="config", disable=not sys.stderr.isatty())
     if args.jobs == 1:
@@ -244,7 +243,7 @@ def cmd_ablation(args: argparse.Namespace) -> int:
     rows = []
     for recipe in ABLATION:
         _, secs, metrics, th_err, cfg = results[recipe]
-        reused = args.reuse is not None and recipe not in {j[2] for j in jobs}
+        reused = args.reuse is not None and recipe not in {j[1] for j in jobs}
         mae = metrics["rollout_100_mae"]["position"]
         rows.append({"configuration": recipe, "position_mae_100_m": mae,
                      "improvement_pct": 100.0 * (base - mae) / base,

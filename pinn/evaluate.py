@@ -77,9 +77,9 @@ def crlb_train_split(ds) -> dict:
     return {n: float(v) for n, v in zip(THETA_NAMES, res.crlb_std)}
 
 
-def evaluate_model(path, ds=None, crlb: dict | None = None, n_starts: int = 200) -> dict:
-    """Table I and II entries of one ONNX model."""
-    info = check_model(path)
+def evaluate_model(path, ds=None, crlb: dict | None = None, n_starts: int = 200, info=None) -> dict:
+    """Table I and II entries of one ONNX model (``info``: its :func:`check_model` result, if already known)."""
+    info = check_model(path) if info is None else info
     if ds is None:
         ds = regenerate(data_spec(info.training_config))
     step = onnx_step(path)
@@ -116,6 +116,7 @@ def evaluate_dir(folder, data_path=None, progress: bool = False) -> dict:
         from tqdm import tqdm
         it = tqdm(files, desc="evaluate", unit="model", leave=False)
     for f in it:
+        info = check_model(f)
         if data_path is not None:
             key = str(data_path)
             if key not in cache:
@@ -123,13 +124,13 @@ def evaluate_dir(folder, data_path=None, progress: bool = False) -> dict:
                 ds = load_dataset(data_path)
                 cache[key] = (ds, crlb_train_split(ds))
         else:
-            spec = data_spec(check_model(f).training_config)
+            spec = data_spec(info.training_config)
             key = json.dumps(spec, sort_keys=True)
             if key not in cache:
                 ds = regenerate(spec)
                 cache[key] = (ds, crlb_train_split(ds))
         ds, crlb = cache[key]
-        rows.append(evaluate_model(f, ds, crlb))
+        rows.append(evaluate_model(f, ds, crlb, info=info))
     return {"models": rows, "paper": {"table1": PAPER_TABLE1, "table2_err_pct": PAPER_TABLE2,
                                       "table3_position_mae_m": PAPER_TABLE3}}
 
