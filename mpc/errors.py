@@ -15,3 +15,7 @@ class ModelContractError(ValueError):
 
 class SolverError(RuntimeError):
     """The MPC optimizer failed in a way the controller cannot recover from."""
+
+
+class ConfigurationError(ValueError):
+    """An inconsistent controller configuration (weights, horizon, bounds), or a bad measured state."""

@@ -1,0 +1,159 @@
+"""Prediction models behind one small interface (DESIGN section 9).
+
+A prediction model maps one control period, batched over samples::
+
+    x_next = model.step(x, u)                 # (N, 12), (N, 4) -> (N, 12)
+    x_next, A, B = model.linearize(x, u)      # A (N, 12, 12) = dx_next/dx, B (N, 12, 4) = dx_next/du
+
+Implementations:
+
+* :class:`AnalyticModel`: the nominal equations of :mod:`sim` (CasADi, RK4
+  over 10 x 1 ms), with the reference parameters ("oracle") or with the
+  parameters identified by a PINN (:meth:`AnalyticModel.from_onnx_theta`);
+* :class:`OnnxModel`: any ONNX file that passes the model contract and has
+  its derivative graph beside it, evaluated by onnxruntime (one session per
+  file, thread count set). No torch anywhere.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim._validate import as_batch, broadcast_batch
+from sim.params import NU, NX, THETA_NAMES, QuadParams
+
+from .errors import ModelContractError
+
+
+def _batch(x, u) -> tuple[np.ndarray, np.ndarray]:
+    """Validated float64 arrays (N, 12), (N, 4) with broadcast batch axes."""
+    x, u = broadcast_batch(as_batch(x, "x", NX), as_batch(u, "u", NU))
+    return np.ascontiguousarray(x.reshape(-1, NX)), np.ascontiguousarray(u.reshape(-1, NU))
+
+
+class PredictionModel:
+    """Interface of a one-period prediction model (see the module docstring)."""
+
+    #: Short name used in results (``oracle``, ``baseline``, ...).
+    name: str = "model"
+    #: Parameters the model stands for, ``(m, Jxx, Jyy, Jzz, kt, kq)``, if known.
+    theta: np.ndarray | None = None
+
+    def step(self, x, u) -> np.ndarray:  # pragma: no cover - interface
+        """Next states (N, 12) for states (N, 12) and wrenches (N, 4)."""
+        raise NotImplementedError
+
+    def linearize(self, x, u):  # pragma: no cover - interface
+        """``(x_next (N, 12), A (N, 12, 12), B (N, 12, 4))``, exact derivatives."""
+        raise NotImplementedError
+
+
+class AnalyticModel(PredictionModel):
+    """The nominal equations in CasADi, RK4 over one control period.
+
+    Parameters
+    ----------
+    params : QuadParams, optional
+        Parameters (reference values, the "oracle", when omitted).
+    name : str
+        Name used in results.
+    """
+
+    def __init__(self, params: QuadParams | None = None, name: str = "oracle"):
+        import casadi as ca
+
+        from sim.dynamics_casadi import step_function
+
+        self.params = QuadParams() if params is None else params
+        if not isinstance(self.params, QuadParams):
+            raise ModelContractError(f"params must be a QuadParams; found {type(params).__name__}")
+        self.name = name
+        self.theta = self.params.theta
+        #: CasADi function ``F(x, u) -> x_next`` (column vectors), for symbolic use (NMPC).
+        self.casadi_step = step_function(self.params)
+        xs, us = ca.SX.sym("x", NX), ca.SX.sym("u", NU)
+        xn = self.casadi_step(xs, us)
+        self._lin = ca.Function("lin", [xs, us], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, us)])
+        self._maps: dict = {}
+
+    @classmethod
+    def from_onnx_theta(cls, path) -> "AnalyticModel":
+        """The analytic model with the parameters identified in an ONNX model's metadata."""
+        from .contract import check_model
+
+        info = check_model(path)
+        params = QuadParams().with_theta([info.theta[n] for n in THETA_NAMES])
+        return cls(params, name=f"analytic[{info.architecture}]")
+
+    def _mapped(self, fn: str, n: int):
+        key = (fn, n)
+        if key not in self._maps:
+            base = self.casadi_step if fn == "step" else self._lin
+            self._maps[key] = base.map(n, "serial")
+        return self._maps[key]
+
+    def step(self, x, u) -> np.ndarray:
+        """Next states (N, 12)."""
+        x, u = _batch(x, u)
+        return np.asarray(self._mapped("step", len(x))(x.T, u.T)).T
+
+    def linearize(self, x, u):
+        """``(x_next, A, B)`` by CasADi's automatic differentiation."""
+        x, u = _batch(x, u)
+        n = len(x)
+        xn, A, B = self._mapped("lin", n)(x.T, u.T)
+        A = np.asarray(A).reshape(NX, n, NX).transpose(1, 0, 2)
+        B = np.asarray(B).reshape(NX, n, NU).transpose(1, 0, 2)
+        return np.asarray(xn).T, A, B
+
+
+class OnnxModel(PredictionModel):
+    """An ONNX dynamics model through onnxruntime, with its derivative graph.
+
+    Parameters
+    ----------
+    path : path
+        Model file; it must pass :func:`mpc.contract.check_model` and have its
+        derivative graph ``<stem>.jac.onnx`` beside it.
+    threads : int
+        onnxruntime intra-op threads per session (default 1).
+
+    Raises
+    ------
+    ModelContractError
+        If the file violates the contract or has no derivative graph.
+    """
+
+    def __init__(self, path, threads: int = 1):
+        from .contract import check_model, jacobian_path, open_session
+
+        self.info = check_model(path)
+        if self.info.jacobian is None:
+            raise ModelContractError(
+                f"{path}: the MPC needs exact derivatives, but {jacobian_path(path)} does not exist "
+                "(export the derivative graph beside the model, see README 'Export')")
+        self.path = self.info.path
+        self.name = self.path.stem
+        self.theta = np.array([self.info.theta[n] for n in THETA_NAMES])
+        self.dtype = self.info.dtype
+        self._model = open_session(self.path, threads)
+        self._jac = open_session(self.info.jacobian, threads)
+
+    def step(self, x, u) -> np.ndarray:
+        """Next states (N, 12)."""
+        x, u = _batch(x, u)
+        out = self._model.run(["x_next"], {"x": x.astype(self.dtype), "u": u.astype(self.dtype)})[0]
+        return out.astype(float)
+
+    def linearize(self, x, u):
+        """``(x_next, A, B)`` from the derivative graph, one onnxruntime call for the whole batch."""
+        x, u = _batch(x, u)
+        xn, A, B = self._jac.run(["x_next", "A", "B"], {"x": x.astype(self.dtype), "u": u.astype(self.dtype)})
+        return xn.astype(float), A.astype(float), B.astype(float)
+
+
+def load_model(spec: str, threads: int = 1) -> PredictionModel:
+    """``"oracle"`` for the analytic model with reference parameters, else an ONNX file path."""
+    if spec == "oracle":
+        return AnalyticModel()
+    return OnnxModel(spec, threads)

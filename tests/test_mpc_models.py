@@ -1,0 +1,139 @@
+"""Prediction models and LQR of mpc/ (issue 4, first part)."""
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import control
+import numpy as np
+import pytest
+
+from mpc.errors import ConfigurationError, ModelContractError
+from mpc.lqr import LQRController, default_weights, hover_point
+from mpc.models import AnalyticModel, OnnxModel, load_model
+from sim import QuadParams, Simulator
+from sim.rotors import allocate
+
+ROOT = Path(__file__).resolve().parents[1]
+BASELINE = ROOT / "models" / "baseline.onnx"
+P = QuadParams()
+
+TOL = {
+    "analytic_vs_simulator": 1e-12,   # relative to each state's spread
+    "analytic_jacobian_fd": 1e-6,     # CasADi AD vs central differences of the numpy simulator
+    "onnx_jacobian_fd": 1e-3,         # derivative graph vs central differences of the ONNX model
+    "dlqr_gain": 1e-6,                # K from mpc vs control.dlqr on an independent linearization
+    "hover_error_m": 0.01,            # LQR within 1 cm of the setpoint after 2 s
+}
+
+
+def feasible_samples(n, seed=0):
+    rng = np.random.default_rng(seed)
+    x = np.column_stack([rng.uniform(-2, 2, (n, 3)), np.radians(rng.uniform(-20, 20, (n, 3))),
+                         rng.uniform(-1, 1, (n, 3)), rng.uniform(-2, 2, (n, 3))])
+    u = np.column_stack([rng.uniform(0.5, 0.8, n), rng.uniform(-1e-3, 1e-3, (n, 3))])
+    return x, u
+
+
+def central_jacobians(step, x, u, h=1e-6):
+    """Central differences of a batched ``step`` with respect to x and u, (N, 12, 12) and (N, 12, 4)."""
+    A = np.zeros((len(x), 12, 12))
+    B = np.zeros((len(x), 12, 4))
+    for j in range(12):
+        e = np.zeros_like(x)
+        e[:, j] = h
+        A[:, :, j] = (step(x + e, u) - step(x - e, u)) / (2 * h)
+    for j in range(4):
+        hj = h * 1e-2 if j > 0 else h
+        e = np.zeros_like(u)
+        e[:, j] = hj
+        B[:, :, j] = (step(x, u + e) - step(x, u - e)) / (2 * hj)
+    return A, B
+
+
+def rel(a, b):
+    return np.max(np.linalg.norm(a - b, axis=(1, 2)) / np.linalg.norm(b, axis=(1, 2)))
+
+
+def test_analytic_model_is_the_simulator_step():
+    x, u = feasible_samples(200)
+    assert np.all(allocate(u, P) > 0)
+    got = AnalyticModel().step(x, u)
+    ref = Simulator(P).step(x, u)
+    assert np.max(np.abs(got - ref) / np.std(ref - x, axis=0)) < TOL["analytic_vs_simulator"]
+
+
+def test_analytic_jacobians_match_finite_differences():
+    x, u = feasible_samples(10, seed=1)
+    xn, A, B = AnalyticModel().linearize(x, u)
+    fA, fB = central_jacobians(Simulator(P).step, x, u)
+    np.testing.assert_allclose(xn, Simulator(P).step(x, u), rtol=0, atol=1e-12)
+    assert rel(A, fA) < TOL["analytic_jacobian_fd"] and rel(B, fB) < TOL["analytic_jacobian_fd"]
+
+
+def test_onnx_model_jacobians_match_finite_differences():
+    m = OnnxModel(BASELINE)
+    x, u = feasible_samples(10, seed=2)
+    xn, A, B = m.linearize(x, u)
+    np.testing.assert_allclose(xn, m.step(x, u), rtol=0, atol=1e-12)
+    fA, fB = central_jacobians(m.step, x, u)
+    assert rel(A, fA) < TOL["onnx_jacobian_fd"] and rel(B, fB) < TOL["onnx_jacobian_fd"]
+    assert m.name == "baseline" and m.theta.shape == (6,)
+
+
+def test_onnx_model_without_derivative_graph_is_refused(tmp_path):
+    shutil.copy(BASELINE, tmp_path / "lonely.onnx")
+    with pytest.raises(ModelContractError, match="derivative graph"):
+        OnnxModel(tmp_path / "lonely.onnx")
+
+
+def test_analytic_model_with_identified_parameters():
+    m = AnalyticModel.from_onnx_theta(BASELINE)
+    from mpc.contract import check_model
+    theta = check_model(BASELINE).theta
+    assert m.params.m == theta["m"] and m.params.Jzz == theta["Jzz"] and m.params.g == P.g
+    assert load_model("oracle").name == "oracle"
+
+
+def test_lqr_gain_is_python_controls_dlqr():
+    # Independent linearization: central differences of the numpy simulator at hover.
+    x, u = hover_point(P)
+    fA, fB = central_jacobians(Simulator(P).step, x[None], u[None], h=1e-7)
+    Q, R = default_weights(P)
+    K_ref, _, _ = control.dlqr(fA[0], fB[0], Q, R)
+    K = LQRController().K
+    assert np.max(np.abs(K - K_ref)) / np.max(np.abs(K_ref)) < TOL["dlqr_gain"]
+
+
+def test_lqr_brings_the_simulator_to_hover_with_feasible_inputs():
+    c = LQRController()
+    s = Simulator(P)
+    x = np.zeros(12)
+    x[0:3] = [0.3, -0.2, -0.6]
+    x[3] = 0.05
+    n_max_sq = P.n_max_sq
+    for k in range(200):  # 2 s
+        u, info = c(x, k * 0.01)
+        n_sq = allocate(u, P)
+        assert np.all(n_sq >= -1e-12) and np.all(n_sq <= n_max_sq * (1 + 1e-12))
+        assert info.is_optimal() and info.solve_time_s >= 0
+        x = s.step(x, u)
+    assert np.linalg.norm(x[0:3] - [0, 0, -1]) < TOL["hover_error_m"]
+
+
+def test_bad_configuration_and_state_are_clear_errors():
+    with pytest.raises(ConfigurationError, match="Q must have shape"):
+        LQRController(Q=np.eye(11))
+    with pytest.raises(ConfigurationError, match="R must be symmetric positive definite"):
+        LQRController(R=np.zeros((4, 4)))
+    with pytest.raises(ValueError, match="x must be finite"):
+        LQRController()(np.full(12, np.nan), 0.0)
+    with pytest.raises(ValueError, match="x must have shape"):
+        AnalyticModel().step(np.zeros(11), np.zeros(4))
+
+
+def test_mpc_imports_without_torch():
+    code = "import sys; sys.modules['torch'] = None; import mpc, mpc.models, mpc.lqr, mpc.controller, mpc.contract"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
