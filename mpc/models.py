@@ -157,3 +157,33 @@ def load_model(spec: str, threads: int = 1) -> PredictionModel:
     if spec == "oracle":
         return AnalyticModel()
     return OnnxModel(spec, threads)
+
+
+class LinearModel(PredictionModel):
+    """Affine model ``x_next = x0 + A (x - x0) + B (u - u0)`` (for example the hover linearization).
+
+    Parameters
+    ----------
+    A : array_like, shape (12, 12)
+    B : array_like, shape (12, 4)
+    x0 : array_like, shape (12,)
+    u0 : array_like, shape (4,)
+    """
+
+    def __init__(self, A, B, x0, u0, name: str = "linear"):
+        self.A, self.B = np.asarray(A, dtype=float), np.asarray(B, dtype=float)
+        self.x0, self.u0 = np.asarray(x0, dtype=float), np.asarray(u0, dtype=float)
+        if self.A.shape != (NX, NX) or self.B.shape != (NX, NU):
+            raise ModelContractError(f"A must be (12, 12) and B (12, 4); found {self.A.shape} and {self.B.shape}")
+        self.name = name
+
+    def step(self, x, u) -> np.ndarray:
+        """Next states (N, 12)."""
+        x, u = _batch(x, u)
+        return self.x0 + (x - self.x0) @ self.A.T + (u - self.u0) @ self.B.T
+
+    def linearize(self, x, u):
+        """``(x_next, A, B)`` with the constant matrices repeated over the batch."""
+        x, u = _batch(x, u)
+        n = len(x)
+        return self.step(x, u), np.repeat(self.A[None], n, 0), np.repeat(self.B[None], n, 0)

@@ -1,0 +1,243 @@
+"""LTV-MPC with OSQP (DESIGN section 9).
+
+Each control period the prediction model is linearized along the shifted
+previous plan in one batched call, ``x_{k+1} = A_k x_k + B_k u_k + c_k``,
+and one sparse QP is solved::
+
+    min  sum_k (x_k - r_k)' Q (x_k - r_k) + (u_k - u_h)' R (u_k - u_h) + (x_N - r_N)' P (x_N - r_N)
+    s.t. x_0 = measured state, the linearized dynamics,
+         0 <= M^-1 u_k <= n_max^2      (rotor-feasible wrench set, linear in u)
+         |phi_k|, |theta_k| <= attitude limit,   k = 1 .. N
+
+with ``P`` the discrete Riccati solution of the hover LQR. The sparsity
+pattern is built once; each period only its values, the linear cost and the
+bounds are updated (``OSQP.update``) and the solver is warm-started with the
+shifted previous solution.
+
+Failure is data: a QP that does not solve makes the controller apply the
+next input of the previous plan ("shifted_plan"); three failures in a row
+fall back to the hover LQR ("lqr_fallback"). Both are counted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from sim.params import DT, NU, NX, QuadParams
+from sim.rotors import mixer_matrix, realize
+
+from .controller import ControlInfo, Reference, Timer, check_state, hover_reference
+from .errors import ConfigurationError
+from .lqr import LQRController, default_weights, hover_point
+from .models import PredictionModel
+
+MAX_FAILURES_BEFORE_LQR = 3
+
+
+@dataclass(frozen=True)
+class LTVSettings:
+    """Settings of :class:`LTVMPC` (units in comments)."""
+
+    horizon: int = 30                 # steps of DT = 0.01 s
+    attitude_limit_rad: float = 1.0   # |roll|, |pitch| bound on predicted states, rad (57 deg)
+    constraints: bool = True          # rotor-feasible set and attitude bounds (False: unconstrained)
+    max_iter: int = 4000              # OSQP iterations per period
+    time_limit_s: float = 0.0         # OSQP wall-time limit per period, s (0 = none)
+    eps_abs: float = 1e-5
+    eps_rel: float = 1e-5
+    polish: bool = False
+
+    def __post_init__(self):
+        if not isinstance(self.horizon, int) or self.horizon < 1:
+            raise ConfigurationError(f"horizon must be an integer >= 1; found {self.horizon!r}")
+        if not 0 < self.attitude_limit_rad < np.pi / 2:
+            raise ConfigurationError(f"attitude_limit_rad must lie in (0, pi/2); found {self.attitude_limit_rad}")
+        if self.max_iter < 1:
+            raise ConfigurationError(f"max_iter must be >= 1; found {self.max_iter}")
+        if self.time_limit_s < 0:
+            raise ConfigurationError(f"time_limit_s must be >= 0; found {self.time_limit_s}")
+
+
+class LTVMPC:
+    """Linear time-varying MPC on any :class:`mpc.models.PredictionModel`.
+
+    Parameters
+    ----------
+    model : PredictionModel
+        Prediction model (analytic or ONNX).
+    reference : callable, optional
+        ``reference(times) -> (K, 12)``; hover at 1 m when omitted.
+    settings : LTVSettings, optional
+    p : QuadParams, optional
+        Vehicle parameters for the rotor limits, the hover input and the LQR
+        terminal cost and fallback (reference values when omitted).
+    Q, R : array_like, optional
+        Weights (:func:`mpc.lqr.default_weights` when omitted).
+    """
+
+    def __init__(self, model: PredictionModel, reference: Reference | None = None,
+                 settings: LTVSettings | None = None, p: QuadParams | None = None, Q=None, R=None):
+        import osqp
+
+        if not isinstance(model, PredictionModel):
+            raise ConfigurationError(f"model must be a PredictionModel; found {type(model).__name__}")
+        self.model = model
+        self.s = LTVSettings() if settings is None else settings
+        self.p = QuadParams() if p is None else p
+        self.reference = hover_reference() if reference is None else reference
+        Qd, Rd = default_weights(self.p)
+        self.lqr = LQRController(self.reference, self.p, Qd if Q is None else Q, Rd if R is None else R)
+        self.Q, self.R, self.P = self.lqr.Q, self.lqr.R, self.lqr.P
+        self.u_hover = hover_point(self.p)[1]
+        N = self.s.horizon
+        self.N = N
+        self.nx_var = (N + 1) * NX
+        self._build_pattern()
+        self._status = osqp.SolverStatus
+        self._solver = osqp.OSQP()
+        settings_ = dict(verbose=False, warm_starting=True, max_iter=self.s.max_iter, eps_abs=self.s.eps_abs,
+                         eps_rel=self.s.eps_rel, polishing=self.s.polish)
+        if self.s.time_limit_s > 0:
+            settings_["time_limit"] = self.s.time_limit_s
+        self._solver.setup(self._H, np.zeros(self._H.shape[0]), self._A0, self._l0, self._u0, **settings_)
+        self._plan_x: np.ndarray | None = None
+        self._plan_u: np.ndarray | None = None
+        self._z: np.ndarray | None = None
+        self.failures_in_a_row = 0
+        self.counts = {"solver_failures": 0, "shifted_plan": 0, "lqr_fallback": 0}
+
+    # ----------------------------------------------------------- QP set-up
+    def _xi(self, k):
+        return k * NX
+
+    def _ui(self, k):
+        return self.nx_var + k * NU
+
+    def _build_pattern(self) -> None:
+        """Constant Hessian and the constraint matrix pattern (entries in a fixed order)."""
+        N = self.N
+        self._H = sp.triu(sp.block_diag([sp.csc_matrix(self.Q)] * N + [sp.csc_matrix(self.P)]
+                                        + [sp.csc_matrix(self.R)] * N, format="csc"), format="csc")
+        rows, cols, vals = [], [], []
+        self._dyn_slots = []  # (entry index range) of A_k and B_k per stage
+
+        def add(r0, c0, block):
+            b = np.atleast_2d(block)
+            rr, cc = np.meshgrid(np.arange(b.shape[0]), np.arange(b.shape[1]), indexing="ij")
+            start = len(vals)
+            rows.extend((r0 + rr).ravel())
+            cols.extend((c0 + cc).ravel())
+            vals.extend(b.ravel())
+            return start, len(vals)
+
+        add(0, self._xi(0), np.eye(NX))                     # x_0 = measured state
+        r = NX
+        for k in range(N):
+            add(r, self._xi(k + 1), -np.eye(NX))            # -x_{k+1} + A_k x_k + B_k u_k = -c_k
+            a = add(r, self._xi(k), np.ones((NX, NX)))
+            b = add(r, self._ui(k), np.ones((NX, NU)))
+            self._dyn_slots.append((a, b))
+            r += NX
+        self._n_eq = r
+        lo, hi = [np.zeros(r)], [np.zeros(r)]
+        if self.s.constraints:
+            Minv = np.linalg.inv(mixer_matrix(self.p))
+            for k in range(N):
+                add(r, self._ui(k), Minv)
+                r += NU
+            lo.append(np.zeros(N * NU))
+            hi.append(np.full(N * NU, self.p.n_max_sq))
+            sel = np.zeros((2, NX))
+            sel[0, 3] = sel[1, 4] = 1.0
+            for k in range(1, N + 1):
+                add(r, self._xi(k), sel)
+                r += 2
+            lim = self.s.attitude_limit_rad
+            lo.append(np.full(2 * N, -lim))
+            hi.append(np.full(2 * N, lim))
+        n_entries = len(vals)
+        ids = sp.csc_matrix((np.arange(1, n_entries + 1, dtype=float), (rows, cols)),
+                            shape=(r, self.nx_var + N * NU))
+        ids.sort_indices()
+        self._perm = ids.data.astype(np.int64) - 1           # CSC slot -> entry index
+        self._vals = np.asarray(vals, dtype=float)
+        self._A0 = sp.csc_matrix((self._vals[self._perm], ids.indices, ids.indptr), shape=ids.shape)
+        self._l0, self._u0 = np.concatenate(lo), np.concatenate(hi)
+
+    # ------------------------------------------------------------- control
+    def _nominal(self, x: np.ndarray):
+        """Linearization trajectory: the shifted previous plan, or the state held at hover input."""
+        N = self.N
+        if self._plan_x is None:
+            return np.tile(x, (N, 1)), np.tile(self.u_hover, (N, 1))
+        xs = np.vstack([self._plan_x[1:N], self._plan_x[N:N + 1]])
+        us = np.vstack([self._plan_u[1:], self._plan_u[-1:]])
+        xs[0] = x
+        return xs, us
+
+    def __call__(self, x, t: float):
+        """Input (4,) and :class:`ControlInfo` for the measured state ``x`` at time ``t`` (s)."""
+        x = check_state(x)
+        N = self.N
+        with Timer() as tm:
+            xb, ub = self._nominal(x)
+            fx, A, B = self.model.linearize(xb, ub)
+            c = fx - np.einsum("kij,kj->ki", A, xb) - np.einsum("kij,kj->ki", B, ub)
+            vals = self._vals.copy()
+            for k, ((a0, a1), (b0, b1)) in enumerate(self._dyn_slots):
+                vals[a0:a1] = A[k].ravel()
+                vals[b0:b1] = B[k].ravel()
+            lo, hi = self._l0.copy(), self._u0.copy()
+            lo[:NX] = hi[:NX] = x
+            lo[NX:self._n_eq] = hi[NX:self._n_eq] = -c.ravel()
+            ref = self.reference(t + DT * np.arange(N + 1))
+            q = np.concatenate([-(ref[:N] @ self.Q).ravel(), -(self.P @ ref[N]),
+                                -np.tile(self.R @ self.u_hover, N)])
+            self._solver.update(q=q, l=lo, u=hi, Ax=vals[self._perm])
+            if self._z is not None:
+                self._solver.warm_start(x=self._shifted(self._z))
+            res = self._solver.solve(raise_error=False)  # failure is data: handled below
+            status = res.info.status
+            solved = (self._status.OSQP_SOLVED, self._status.OSQP_SOLVED_INACCURATE)
+            ok = res.info.status_val in solved and res.x is not None and np.all(np.isfinite(res.x))
+            if ok:
+                z = res.x
+                self._z = z
+                self._plan_x = z[:self.nx_var].reshape(N + 1, NX)
+                self._plan_u = z[self.nx_var:].reshape(N, NU)
+                self.failures_in_a_row = 0
+                u = self._plan_u[0]
+                optimal = res.info.status_val == self._status.OSQP_SOLVED
+                info_status, fallback = "optimal" if optimal else status, None
+            else:
+                self.counts["solver_failures"] += 1
+                self.failures_in_a_row += 1
+                if self.failures_in_a_row >= MAX_FAILURES_BEFORE_LQR or self._plan_u is None:
+                    u = self.lqr.input(x, ref[0])
+                    fallback = "lqr"
+                    self.counts["lqr_fallback"] += 1
+                    self._plan_x = self._plan_u = self._z = None
+                else:
+                    self._plan_x = np.vstack([self._plan_x[1:], self._plan_x[-1:]])
+                    self._plan_u = np.vstack([self._plan_u[1:], self._plan_u[-1:]])
+                    u = self._plan_u[0]
+                    fallback = "shifted_plan"
+                    self.counts["shifted_plan"] += 1
+                info_status = status
+            u = realize(u, self.p).wrench  # exact projection onto the rotor-feasible set
+        return u, ControlInfo(solve_time_s=tm.elapsed, status=info_status, iterations=int(res.info.iter),
+                              predicted=None if self._plan_x is None else self._plan_x.copy(), fallback=fallback,
+                              extra={"counts": dict(self.counts)})
+
+    def update_settings(self, **settings) -> None:
+        """Change OSQP settings between periods (for example ``max_iter`` or ``time_limit``)."""
+        self._solver.update_settings(**settings)
+
+    def _shifted(self, z: np.ndarray) -> np.ndarray:
+        N = self.N
+        xs = z[:self.nx_var].reshape(N + 1, NX)
+        us = z[self.nx_var:].reshape(N, NU)
+        return np.concatenate([np.vstack([xs[1:], xs[-1:]]).ravel(), np.vstack([us[1:], us[-1:]]).ravel()])
