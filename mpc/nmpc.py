@@ -1,0 +1,283 @@
+"""Nonlinear MPC with CasADi + IPOPT, multiple shooting (DESIGN section 9).
+
+Decision variables ``X`` (12, N + 1) and ``U`` (4, N); constraints
+``X[:, k + 1] = F(X[:, k], U[:, k])``, ``X[:, 0] = measured state``, the
+rotor-feasible wrench set ``0 <= M^-1 U[:, k] <= n_max^2`` and attitude
+bounds on ``X[3:5, 1:]``; cost as the LTV-MPC (tracking ``Q``, ``R`` on
+``u - u_hover``, Riccati terminal cost ``P``).
+
+``F`` over the whole horizon is one CasADi function of ``(X[:, :N], U)``:
+
+* analytic model: the CasADi RK4 step mapped over the horizon;
+* ONNX model: a ``casadi.Callback`` that evaluates all N stages in one
+  onnxruntime call, with a Jacobian callback that takes ``A_k``, ``B_k`` from
+  the derivative graph in one call and a declared block-diagonal sparsity
+  (``has_jac_sparsity`` / ``get_jac_sparsity``).
+
+IPOPT uses a limited-memory Hessian for every model (callbacks give no
+second derivatives; the analytic model gets the same, for a fair timing
+comparison), iteration and CPU-time limits, and a warm start from the
+shifted previous solution. Failures are handled as in :mod:`mpc.ltv`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from sim.params import DT, NU, NX, QuadParams
+from sim.rotors import mixer_matrix, realize
+
+from .controller import ControlInfo, Reference, Timer, check_state, hover_reference
+from .errors import ConfigurationError
+from .lqr import LQRController, default_weights, hover_point
+from .ltv import MAX_FAILURES_BEFORE_LQR
+from .models import AnalyticModel, PredictionModel
+
+SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+
+
+@dataclass(frozen=True)
+class NMPCSettings:
+    """Settings of :class:`NMPC` (units in comments)."""
+
+    horizon: int = 30                 # steps of DT = 0.01 s
+    attitude_limit_rad: float = 1.0   # |roll|, |pitch| bound on predicted states, rad
+    max_iter: int = 100               # IPOPT iterations per period
+    time_limit_s: float = 1.0         # IPOPT CPU-time limit per period, s (> 0)
+    tol: float = 1e-6                 # IPOPT tolerance
+
+    def __post_init__(self):
+        if not isinstance(self.horizon, int) or self.horizon < 1:
+            raise ConfigurationError(f"horizon must be an integer >= 1; found {self.horizon!r}")
+        if not 0 < self.attitude_limit_rad < np.pi / 2:
+            raise ConfigurationError(f"attitude_limit_rad must lie in (0, pi/2); found {self.attitude_limit_rad}")
+        if self.max_iter < 1:
+            raise ConfigurationError(f"max_iter must be >= 1; found {self.max_iter}")
+        if not self.time_limit_s > 0:
+            raise ConfigurationError(f"time_limit_s must be > 0; found {self.time_limit_s}")
+
+
+def _block_diagonal(n_stages: int, rows: int, cols: int):
+    """Sparsity of a block-diagonal (rows N) x (cols N) matrix and the CCS order of its dense blocks."""
+    r, c, ids = [], [], []
+    for k in range(n_stages):
+        for j in range(cols):
+            for i in range(rows):
+                r.append(k * rows + i)
+                c.append(k * cols + j)
+                ids.append(k * rows * cols + i * cols + j)   # index into blocks (N, rows, cols) raveled
+    sp = ca.Sparsity.triplet(n_stages * rows, n_stages * cols, r, c)
+    # Column-major order of (col, row) pairs is exactly the order generated above.
+    return sp, np.asarray(ids)
+
+
+class _HorizonJacobian(ca.Callback):
+    """Jacobian of :class:`_Horizon`: block-diagonal A_k and B_k from the derivative graph."""
+
+    def __init__(self, name, model, n, opts):
+        ca.Callback.__init__(self)
+        self.model, self.n = model, n
+        self.sp_x, self.ids_x = _block_diagonal(n, NX, NX)
+        self.sp_u, self.ids_u = _block_diagonal(n, NX, NU)
+        self.construct(name, opts)
+
+    def get_n_in(self):
+        return 3
+
+    def get_n_out(self):
+        return 2
+
+    def get_sparsity_in(self, i):
+        return ca.Sparsity.dense(NX if i != 1 else NU, self.n) if i < 2 else ca.Sparsity.dense(NX, self.n)
+
+    def get_sparsity_out(self, i):
+        return self.sp_x if i == 0 else self.sp_u
+
+    def eval(self, arg):
+        _, A, B = self.model.linearize(np.asarray(arg[0]).T, np.asarray(arg[1]).T)
+        return [ca.DM(self.sp_x, A.ravel()[self.ids_x]), ca.DM(self.sp_u, B.ravel()[self.ids_u])]
+
+
+class _Horizon(ca.Callback):
+    """All N stages of an ONNX model in one onnxruntime call: (12 x N, 4 x N) -> 12 x N."""
+
+    def __init__(self, name, model, n, opts=None):
+        ca.Callback.__init__(self)
+        self.model, self.n = model, n
+        self.construct(name, {} if opts is None else opts)
+
+    def get_n_in(self):
+        return 2
+
+    def get_n_out(self):
+        return 1
+
+    def get_sparsity_in(self, i):
+        return ca.Sparsity.dense(NX if i == 0 else NU, self.n)
+
+    def get_sparsity_out(self, i):
+        return ca.Sparsity.dense(NX, self.n)
+
+    def eval(self, arg):
+        return [ca.DM(self.model.step(np.asarray(arg[0]).T, np.asarray(arg[1]).T).T)]
+
+    def has_jacobian(self):
+        return True
+
+    def get_jacobian(self, name, inames, onames, opts):
+        # Keep a reference: CasADi does not own Python callbacks.
+        self._jac = _HorizonJacobian(name, self.model, self.n, opts)
+        return self._jac
+
+    def has_jac_sparsity(self, oind, iind):
+        return True
+
+    def get_jac_sparsity(self, oind, iind, symmetric):
+        return _block_diagonal(self.n, NX, NX if iind == 0 else NU)[0]
+
+
+class NMPC:
+    """Nonlinear MPC on any :class:`mpc.models.PredictionModel` (parameters as in :class:`mpc.ltv.LTVMPC`)."""
+
+    def __init__(self, model: PredictionModel, reference: Reference | None = None,
+                 settings: NMPCSettings | None = None, p: QuadParams | None = None, Q=None, R=None):
+        if not isinstance(model, PredictionModel):
+            raise ConfigurationError(f"model must be a PredictionModel; found {type(model).__name__}")
+        self.model = model
+        self.s = NMPCSettings() if settings is None else settings
+        self.p = QuadParams() if p is None else p
+        self.reference = hover_reference() if reference is None else reference
+        Qd, Rd = default_weights(self.p)
+        self.lqr = LQRController(self.reference, self.p, Qd if Q is None else Q, Rd if R is None else R)
+        self.Q, self.R, self.P = self.lqr.Q, self.lqr.R, self.lqr.P
+        self.u_hover = hover_point(self.p)[1]
+        self.N = N = self.s.horizon
+        self._build(N)
+        self._w: np.ndarray | None = None
+        self.failures_in_a_row = 0
+        self.counts = {"solver_failures": 0, "shifted_plan": 0, "lqr_fallback": 0}
+
+    def _build(self, N: int) -> None:
+        # IPOPT works on scaled variables: X = sx * Xs, U = u_hover + su * Us, with sx and su the
+        # acceptable deviations of the default weights (torques are ~1e-3 N m; unscaled, the
+        # limited-memory Hessian needed ~50 iterations per period).
+        from .lqr import DEFAULT_INPUT_SCALE_FRAC_T, DEFAULT_STATE_SCALE, DEFAULT_TORQUE_SCALE
+
+        self._sx = DEFAULT_STATE_SCALE.copy()
+        self._su = np.array([DEFAULT_INPUT_SCALE_FRAC_T * self.p.m * self.p.g] + [DEFAULT_TORQUE_SCALE] * 3)
+        Xs = ca.MX.sym("Xs", NX, N + 1)
+        Us = ca.MX.sym("Us", NU, N)
+        X = ca.mtimes(ca.diag(ca.DM(self._sx)), Xs)
+        U = ca.repmat(ca.DM(self.u_hover), 1, N) + ca.mtimes(ca.diag(ca.DM(self._su)), Us)
+        x0 = ca.MX.sym("x0", NX)
+        ref = ca.MX.sym("ref", NX, N + 1)
+        if isinstance(self.model, AnalyticModel):
+            F = self.model.casadi_step.map(N, "serial")
+            self._horizon = None
+        else:
+            self._horizon = F = _Horizon("horizon", self.model, N)
+        Xn = F(X[:, :N], U)
+        Q, R, P = ca.DM(self.Q), ca.DM(self.R), ca.DM(self.P)
+        E = X - ref
+        D = U - ca.repmat(ca.DM(self.u_hover), 1, N)
+        cost = (ca.sum2(ca.sum1(E[:, :N] * ca.mtimes(Q, E[:, :N]))) + ca.sum2(ca.sum1(D * ca.mtimes(R, D)))
+                + ca.mtimes([E[:, N].T, P, E[:, N]]))
+        Minv = ca.DM(np.linalg.inv(mixer_matrix(self.p)))
+        inv_sx = ca.DM(1.0 / self._sx)
+        g = ca.vertcat(ca.vec((Xn - X[:, 1:]) * ca.repmat(inv_sx, 1, N)), (X[:, 0] - x0) * inv_sx,
+                       ca.vec(ca.mtimes(Minv, U)) / self.p.n_max_sq)
+        self._n_dyn = NX * N + NX
+        w = ca.vertcat(ca.vec(Xs), ca.vec(Us))
+        nlp = {"x": w, "f": cost, "g": g, "p": ca.vertcat(x0, ca.vec(ref))}
+        opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
+                "ipopt.hessian_approximation": "limited-memory", "ipopt.max_iter": self.s.max_iter,
+                "ipopt.max_cpu_time": self.s.time_limit_s, "ipopt.tol": self.s.tol, "error_on_fail": False}
+        self._solver = ca.nlpsol("nmpc", "ipopt", nlp, {
+            **opts, "ipopt.warm_start_init_point": "yes", "ipopt.warm_start_bound_push": 1e-9,
+            "ipopt.warm_start_mult_bound_push": 1e-9, "ipopt.mu_init": 1e-5, "ipopt.mu_strategy": "adaptive"})
+        lim = self.s.attitude_limit_rad
+        lbX = np.full((NX, N + 1), -np.inf)
+        ubX = np.full((NX, N + 1), np.inf)
+        lbX[3:5, 1:], ubX[3:5, 1:] = -lim / self._sx[3:5, None], lim / self._sx[3:5, None]
+        self._lbw = np.concatenate([lbX.ravel(order="F"), np.full(NU * N, -np.inf)])
+        self._ubw = np.concatenate([ubX.ravel(order="F"), np.full(NU * N, np.inf)])
+        self._lbg = np.concatenate([np.zeros(self._n_dyn), np.zeros(NU * N)])
+        self._ubg = np.concatenate([np.zeros(self._n_dyn), np.ones(NU * N)])
+        self._nX = NX * (N + 1)
+        self._lam = None
+
+    def update_settings(self, **changes) -> None:
+        """Change settings (for example ``time_limit_s``); rebuilds the solver, keeps the warm start."""
+        import dataclasses
+
+        new = dataclasses.replace(self.s, **changes)
+        if new.horizon != self.N:
+            raise ConfigurationError("horizon cannot change after construction; build a new NMPC")
+        self.s = new
+        w = self._w
+        self._build(self.N)
+        self._w = w
+
+    def _unpack(self, w):
+        """Physical X (N + 1, 12) and U (N, 4) from the scaled decision vector."""
+        N = self.N
+        return (w[:self._nX].reshape(N + 1, NX) * self._sx,
+                self.u_hover + w[self._nX:].reshape(N, NU) * self._su)
+
+    def _pack(self, X, U):
+        return np.concatenate([(X / self._sx).ravel(), ((U - self.u_hover) / self._su).ravel()])
+
+    def _guess(self, x, ref):
+        N = self.N
+        if self._w is None:
+            return self._pack(np.tile(x, (N + 1, 1)), np.tile(self.u_hover, (N, 1)))
+        X, U = self._unpack(self._w)
+        X = np.vstack([X[1:], X[-1:]])
+        U = np.vstack([U[1:], U[-1:]])
+        X[0] = x
+        return self._pack(X, U)
+
+    def __call__(self, x, t: float):
+        """Input (4,) and :class:`ControlInfo` for the measured state ``x`` at time ``t`` (s)."""
+        x = check_state(x)
+        N = self.N
+        with Timer() as tm:
+            ref = self.reference(t + DT * np.arange(N + 1))
+            args = dict(x0=self._guess(x, ref), p=np.concatenate([x, ref.ravel()]), lbx=self._lbw, ubx=self._ubw,
+                        lbg=self._lbg, ubg=self._ubg)
+            if self._lam is not None:
+                args.update(lam_x0=self._lam[0], lam_g0=self._lam[1])
+            sol = self._solver(**args)
+            st = self._solver.stats()
+            status = st.get("return_status", "unknown")
+            w = np.asarray(sol["x"]).ravel()
+            ok = status in SUCCESS and np.all(np.isfinite(w))
+            fallback = None
+            if ok:
+                self._w = w
+                self._lam = (np.asarray(sol["lam_x"]).ravel(), np.asarray(sol["lam_g"]).ravel())
+                self.failures_in_a_row = 0
+                u = self._unpack(w)[1][0]
+            else:
+                self.counts["solver_failures"] += 1
+                self.failures_in_a_row += 1
+                self._lam = None
+                if self.failures_in_a_row >= MAX_FAILURES_BEFORE_LQR or self._w is None:
+                    u = self.lqr.input(x, ref[0])
+                    fallback = "lqr"
+                    self.counts["lqr_fallback"] += 1
+                    self._w = None
+                else:
+                    X, U = self._unpack(self._w)
+                    self._w = self._pack(np.vstack([X[1:], X[-1:]]), np.vstack([U[1:], U[-1:]]))
+                    u = U[1]
+                    fallback = "shifted_plan"
+                    self.counts["shifted_plan"] += 1
+            u = realize(u, self.p).wrench
+        predicted = None if self._w is None else self._unpack(self._w)[0].copy()
+        return u, ControlInfo(solve_time_s=tm.elapsed, status="optimal" if ok else status,
+                              iterations=int(st.get("iter_count", 0)), predicted=predicted, fallback=fallback,
+                              extra={"counts": dict(self.counts), "ipopt_status": status})

@@ -1,0 +1,97 @@
+"""NMPC with CasADi + IPOPT (issue 4, third part)."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mpc.errors import ConfigurationError
+from mpc.models import AnalyticModel, OnnxModel
+from mpc.nmpc import NMPC, NMPCSettings
+from sim import QuadParams, Simulator
+from sim.rotors import allocate
+
+ROOT = Path(__file__).resolve().parents[1]
+P = QuadParams()
+TOL = {
+    "hover_error_m": 0.01,     # oracle NMPC from a 0.5 m offset: within 1 cm from 2 s on
+    "rotor_feasible": 1e-9,    # relative slack on 0 <= n^2 <= n_max^2
+    "replay_abs": 1e-12,       # replayed plan input vs the stored plan, N and N m
+}
+
+
+def offset_state():
+    x = np.zeros(12)
+    x[0:3] = [0.5, 0.0, -1.0]
+    return x
+
+
+def fly(controller, steps):
+    sim, x = Simulator(P), offset_state()
+    xs, us, infos = [x], [], []
+    for k in range(steps):
+        u, info = controller(x, k * 0.01)
+        x = sim.step(x, u)
+        xs.append(x), us.append(u), infos.append(info)
+    return np.array(xs), np.array(us), infos
+
+
+@pytest.fixture(scope="module")
+def oracle_flight():
+    return fly(NMPC(AnalyticModel(), settings=NMPCSettings(horizon=20)), 250)
+
+
+def test_oracle_nmpc_reaches_hover_within_two_seconds_and_stays(oracle_flight):
+    xs, _, infos = oracle_flight
+    err = np.linalg.norm(xs[:, 0:3] - [0, 0, -1], axis=1)
+    assert np.all(err[200:] < TOL["hover_error_m"]), err[200]
+    assert all(i.is_optimal() for i in infos)
+
+
+def test_every_applied_input_is_rotor_feasible(oracle_flight):
+    n_sq = allocate(oracle_flight[1], P)
+    assert np.all(n_sq >= -TOL["rotor_feasible"] * P.n_max_sq)
+    assert np.all(n_sq <= (1 + TOL["rotor_feasible"]) * P.n_max_sq)
+
+
+def test_forced_solver_failures_shift_the_plan_then_fall_back_to_lqr():
+    mpc = NMPC(AnalyticModel(), settings=NMPCSettings(horizon=10))
+    x = offset_state()
+    _, i0 = mpc(x, 0.0)
+    plan_u = mpc._unpack(mpc._w)[1]
+    assert i0.is_optimal()
+    mpc.update_settings(time_limit_s=1e-9)
+    (u1, i1), (u2, i2), (u3, i3) = (mpc(x, 0.01), mpc(x, 0.02), mpc(x, 0.03))
+    assert (i1.fallback, i2.fallback, i3.fallback) == ("shifted_plan", "shifted_plan", "lqr")
+    np.testing.assert_allclose(u1, plan_u[1], rtol=0, atol=TOL["replay_abs"])
+    np.testing.assert_allclose(u2, plan_u[2], rtol=0, atol=TOL["replay_abs"])
+    assert mpc.counts == {"solver_failures": 3, "shifted_plan": 2, "lqr_fallback": 1}
+    assert "CpuTime" in i1.extra["ipopt_status"]
+
+
+def test_onnx_pinn_nmpc_plan_obeys_the_model():
+    """The ONNX callback path (one onnxruntime call per horizon, declared block sparsity) solves."""
+    nm = NMPC(OnnxModel(ROOT / "models" / "baseline.onnx"), settings=NMPCSettings(horizon=10))
+    x = np.zeros(12)
+    x[2] = -1.0
+    x[0] = 0.05
+    u, info = nm(x, 0.0)
+    assert info.is_optimal(), info.extra["ipopt_status"]
+    assert info.predicted.shape == (11, 12)
+    # The plan obeys the model: predicted x_1 is the ONNX step from x_0 with the first input.
+    model = nm.model
+    np.testing.assert_allclose(info.predicted[1], model.step(x, nm._unpack(nm._w)[1][0])[0], atol=1e-6)
+
+
+def test_two_runs_give_identical_inputs():
+    a = fly(NMPC(AnalyticModel(), settings=NMPCSettings(horizon=10)), 15)[1]
+    b = fly(NMPC(AnalyticModel(), settings=NMPCSettings(horizon=10)), 15)[1]
+    assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(horizon=0), "horizon"), (dict(time_limit_s=0.0), "time_limit_s"), (dict(max_iter=0), "max_iter"),
+])
+def test_bad_settings_are_clear_errors(kwargs, match):
+    with pytest.raises(ConfigurationError, match=match):
+        NMPCSettings(**kwargs)
