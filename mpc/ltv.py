@@ -158,6 +158,9 @@ class LTVMPC:
             lim = self.s.attitude_limit_rad
             lo.append(np.full(2 * N, -lim))
             hi.append(np.full(2 * N, lim))
+        # Entry indices of all A_k and B_k, in the order of A.ravel() and B.ravel() of (N, 12, *) arrays.
+        self._idx_A = np.concatenate([np.arange(a0, a1) for (a0, a1), _ in self._dyn_slots])
+        self._idx_B = np.concatenate([np.arange(b0, b1) for _, (b0, b1) in self._dyn_slots])
         n_entries = len(vals)
         ids = sp.csc_matrix((np.arange(1, n_entries + 1, dtype=float), (rows, cols)),
                             shape=(r, self.nx_var + N * NU))
@@ -187,9 +190,8 @@ class LTVMPC:
             fx, A, B = self.model.linearize(xb, ub)
             c = fx - np.einsum("kij,kj->ki", A, xb) - np.einsum("kij,kj->ki", B, ub)
             vals = self._vals.copy()
-            for k, ((a0, a1), (b0, b1)) in enumerate(self._dyn_slots):
-                vals[a0:a1] = A[k].ravel()
-                vals[b0:b1] = B[k].ravel()
+            vals[self._idx_A] = A.ravel()
+            vals[self._idx_B] = B.ravel()
             lo, hi = self._l0.copy(), self._u0.copy()
             lo[:NX] = hi[:NX] = x
             lo[NX:self._n_eq] = hi[NX:self._n_eq] = -c.ravel()
