@@ -23,6 +23,9 @@ from .errors import ConfigurationError
 
 Reference = Callable[[np.ndarray], np.ndarray]
 
+#: Failed solves in a row after which the MPCs fall back to the hover LQR.
+MAX_FAILURES_BEFORE_LQR = 3
+
 
 @dataclass(frozen=True)
 class ControlInfo:
@@ -69,3 +72,53 @@ class Timer:
     def __exit__(self, *exc):
         self.elapsed = time.perf_counter() - self._t0
         return False
+
+
+class MPCBase:
+    """What the LTV-MPC and the NMPC share: set-up of model, reference, weights and LQR, and failure bookkeeping.
+
+    After a failed solve, :meth:`_failure` says what to apply: ``"shifted_plan"``
+    (the next input of the previous plan) while fewer than
+    :data:`MAX_FAILURES_BEFORE_LQR` failures came in a row and a plan exists,
+    else ``"lqr"`` (the hover LQR). Both are counted in ``counts``.
+    """
+
+    def _setup(self, model, reference, p, Q, R) -> None:
+        from sim.params import QuadParams
+
+        from .lqr import LQRController, default_weights, hover_point
+        from .models import PredictionModel
+
+        if not isinstance(model, PredictionModel):
+            raise ConfigurationError(f"model must be a PredictionModel; found {type(model).__name__}")
+        self.model = model
+        self.p = QuadParams() if p is None else p
+        self.reference = hover_reference() if reference is None else reference
+        Qd, Rd = default_weights(self.p)
+        self.lqr = LQRController(self.reference, self.p, Qd if Q is None else Q, Rd if R is None else R)
+        self.Q, self.R, self.P = self.lqr.Q, self.lqr.R, self.lqr.P
+        self.u_hover = hover_point(self.p)[1]
+        self.failures_in_a_row = 0
+        self.counts = {"solver_failures": 0, "shifted_plan": 0, "lqr_fallback": 0}
+
+    def _success(self) -> None:
+        self.failures_in_a_row = 0
+
+    def _failure(self, has_plan: bool) -> str:
+        self.counts["solver_failures"] += 1
+        self.failures_in_a_row += 1
+        if self.failures_in_a_row >= MAX_FAILURES_BEFORE_LQR or not has_plan:
+            self.counts["lqr_fallback"] += 1
+            return "lqr"
+        self.counts["shifted_plan"] += 1
+        return "shifted_plan"
+
+
+def check_common_settings(horizon, attitude_limit_rad, max_iter) -> None:
+    """Validate the settings both MPCs have (horizon in steps, attitude bound in rad, iteration limit)."""
+    if not isinstance(horizon, int) or isinstance(horizon, bool) or horizon < 1:
+        raise ConfigurationError(f"horizon must be an integer >= 1; found {horizon!r}")
+    if not 0 < attitude_limit_rad < np.pi / 2:
+        raise ConfigurationError(f"attitude_limit_rad must lie in (0, pi/2); found {attitude_limit_rad}")
+    if max_iter < 1:
+        raise ConfigurationError(f"max_iter must be >= 1; found {max_iter}")

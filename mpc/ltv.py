@@ -29,12 +29,9 @@ import scipy.sparse as sp
 from sim.params import DT, NU, NX, QuadParams
 from sim.rotors import mixer_matrix, realize
 
-from .controller import ControlInfo, Reference, Timer, check_state, hover_reference
+from .controller import ControlInfo, MPCBase, Reference, Timer, check_common_settings, check_state
 from .errors import ConfigurationError
-from .lqr import LQRController, default_weights, hover_point
 from .models import PredictionModel
-
-MAX_FAILURES_BEFORE_LQR = 3
 
 
 @dataclass(frozen=True)
@@ -51,17 +48,12 @@ class LTVSettings:
     polish: bool = False
 
     def __post_init__(self):
-        if not isinstance(self.horizon, int) or self.horizon < 1:
-            raise ConfigurationError(f"horizon must be an integer >= 1; found {self.horizon!r}")
-        if not 0 < self.attitude_limit_rad < np.pi / 2:
-            raise ConfigurationError(f"attitude_limit_rad must lie in (0, pi/2); found {self.attitude_limit_rad}")
-        if self.max_iter < 1:
-            raise ConfigurationError(f"max_iter must be >= 1; found {self.max_iter}")
+        check_common_settings(self.horizon, self.attitude_limit_rad, self.max_iter)
         if self.time_limit_s < 0:
             raise ConfigurationError(f"time_limit_s must be >= 0; found {self.time_limit_s}")
 
 
-class LTVMPC:
+class LTVMPC(MPCBase):
     """Linear time-varying MPC on any :class:`mpc.models.PredictionModel`.
 
     Parameters
@@ -82,16 +74,8 @@ class LTVMPC:
                  settings: LTVSettings | None = None, p: QuadParams | None = None, Q=None, R=None):
         import osqp
 
-        if not isinstance(model, PredictionModel):
-            raise ConfigurationError(f"model must be a PredictionModel; found {type(model).__name__}")
-        self.model = model
+        self._setup(model, reference, p, Q, R)
         self.s = LTVSettings() if settings is None else settings
-        self.p = QuadParams() if p is None else p
-        self.reference = hover_reference() if reference is None else reference
-        Qd, Rd = default_weights(self.p)
-        self.lqr = LQRController(self.reference, self.p, Qd if Q is None else Q, Rd if R is None else R)
-        self.Q, self.R, self.P = self.lqr.Q, self.lqr.R, self.lqr.P
-        self.u_hover = hover_point(self.p)[1]
         N = self.s.horizon
         self.N = N
         self.nx_var = (N + 1) * NX
@@ -106,8 +90,6 @@ class LTVMPC:
         self._plan_x: np.ndarray | None = None
         self._plan_u: np.ndarray | None = None
         self._z: np.ndarray | None = None
-        self.failures_in_a_row = 0
-        self.counts = {"solver_failures": 0, "shifted_plan": 0, "lqr_fallback": 0}
 
     # ----------------------------------------------------------- QP set-up
     def _xi(self, k):
@@ -210,24 +192,19 @@ class LTVMPC:
                 self._z = z
                 self._plan_x = z[:self.nx_var].reshape(N + 1, NX)
                 self._plan_u = z[self.nx_var:].reshape(N, NU)
-                self.failures_in_a_row = 0
+                self._success()
                 u = self._plan_u[0]
                 optimal = res.info.status_val == self._status.OSQP_SOLVED
                 info_status, fallback = "optimal" if optimal else status, None
             else:
-                self.counts["solver_failures"] += 1
-                self.failures_in_a_row += 1
-                if self.failures_in_a_row >= MAX_FAILURES_BEFORE_LQR or self._plan_u is None:
+                fallback = self._failure(self._plan_u is not None)
+                if fallback == "lqr":
                     u = self.lqr.input(x, ref[0])
-                    fallback = "lqr"
-                    self.counts["lqr_fallback"] += 1
                     self._plan_x = self._plan_u = self._z = None
                 else:
                     self._plan_x = np.vstack([self._plan_x[1:], self._plan_x[-1:]])
                     self._plan_u = np.vstack([self._plan_u[1:], self._plan_u[-1:]])
                     u = self._plan_u[0]
-                    fallback = "shifted_plan"
-                    self.counts["shifted_plan"] += 1
                 info_status = status
             u = realize(u, self.p).wrench  # exact projection onto the rotor-feasible set
         return u, ControlInfo(solve_time_s=tm.elapsed, status=info_status, iterations=int(res.info.iter),

@@ -30,10 +30,8 @@ import numpy as np
 from sim.params import DT, NU, NX, QuadParams
 from sim.rotors import mixer_matrix, realize
 
-from .controller import ControlInfo, Reference, Timer, check_state, hover_reference
+from .controller import ControlInfo, MPCBase, Reference, Timer, check_common_settings, check_state
 from .errors import ConfigurationError
-from .lqr import LQRController, default_weights, hover_point
-from .ltv import MAX_FAILURES_BEFORE_LQR
 from .models import AnalyticModel, PredictionModel
 
 SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
@@ -50,12 +48,7 @@ class NMPCSettings:
     tol: float = 1e-6                 # IPOPT tolerance
 
     def __post_init__(self):
-        if not isinstance(self.horizon, int) or self.horizon < 1:
-            raise ConfigurationError(f"horizon must be an integer >= 1; found {self.horizon!r}")
-        if not 0 < self.attitude_limit_rad < np.pi / 2:
-            raise ConfigurationError(f"attitude_limit_rad must lie in (0, pi/2); found {self.attitude_limit_rad}")
-        if self.max_iter < 1:
-            raise ConfigurationError(f"max_iter must be >= 1; found {self.max_iter}")
+        check_common_settings(self.horizon, self.attitude_limit_rad, self.max_iter)
         if not self.time_limit_s > 0:
             raise ConfigurationError(f"time_limit_s must be > 0; found {self.time_limit_s}")
 
@@ -139,26 +132,16 @@ class _Horizon(ca.Callback):
         return _block_diagonal(self.n, NX, NX if iind == 0 else NU)[0]
 
 
-class NMPC:
+class NMPC(MPCBase):
     """Nonlinear MPC on any :class:`mpc.models.PredictionModel` (parameters as in :class:`mpc.ltv.LTVMPC`)."""
 
     def __init__(self, model: PredictionModel, reference: Reference | None = None,
                  settings: NMPCSettings | None = None, p: QuadParams | None = None, Q=None, R=None):
-        if not isinstance(model, PredictionModel):
-            raise ConfigurationError(f"model must be a PredictionModel; found {type(model).__name__}")
-        self.model = model
+        self._setup(model, reference, p, Q, R)
         self.s = NMPCSettings() if settings is None else settings
-        self.p = QuadParams() if p is None else p
-        self.reference = hover_reference() if reference is None else reference
-        Qd, Rd = default_weights(self.p)
-        self.lqr = LQRController(self.reference, self.p, Qd if Q is None else Q, Rd if R is None else R)
-        self.Q, self.R, self.P = self.lqr.Q, self.lqr.R, self.lqr.P
-        self.u_hover = hover_point(self.p)[1]
         self.N = N = self.s.horizon
         self._build(N)
         self._w: np.ndarray | None = None
-        self.failures_in_a_row = 0
-        self.counts = {"solver_failures": 0, "shifted_plan": 0, "lqr_fallback": 0}
 
     def _build(self, N: int) -> None:
         # IPOPT works on scaled variables: X = sx * Xs, U = u_hover + su * Us, with sx and su the
@@ -259,23 +242,18 @@ class NMPC:
             if ok:
                 self._w = w
                 self._lam = (np.asarray(sol["lam_x"]).ravel(), np.asarray(sol["lam_g"]).ravel())
-                self.failures_in_a_row = 0
+                self._success()
                 u = self._unpack(w)[1][0]
             else:
-                self.counts["solver_failures"] += 1
-                self.failures_in_a_row += 1
                 self._lam = None
-                if self.failures_in_a_row >= MAX_FAILURES_BEFORE_LQR or self._w is None:
+                fallback = self._failure(self._w is not None)
+                if fallback == "lqr":
                     u = self.lqr.input(x, ref[0])
-                    fallback = "lqr"
-                    self.counts["lqr_fallback"] += 1
                     self._w = None
                 else:
                     X, U = self._unpack(self._w)
                     self._w = self._pack(np.vstack([X[1:], X[-1:]]), np.vstack([U[1:], U[-1:]]))
                     u = U[1]
-                    fallback = "shifted_plan"
-                    self.counts["shifted_plan"] += 1
             u = realize(u, self.p).wrench
         predicted = None if self._w is None else self._unpack(self._w)[0].copy()
         return u, ControlInfo(solve_time_s=tm.elapsed, status="optimal" if ok else status,
