@@ -65,6 +65,8 @@ def test_forced_solver_failures_shift_the_plan_then_fall_back_to_lqr():
     assert (i1.fallback, i2.fallback, i3.fallback) == ("shifted_plan", "shifted_plan", "lqr")
     np.testing.assert_allclose(u1, plan_u[1], rtol=0, atol=TOL["replay_abs"])
     np.testing.assert_allclose(u2, plan_u[2], rtol=0, atol=TOL["replay_abs"])
+    np.testing.assert_allclose(u3, mpc.lqr.input(x, mpc.reference(np.array([0.03]))[0]), rtol=0,
+                               atol=TOL["replay_abs"])
     assert mpc.counts == {"solver_failures": 3, "shifted_plan": 2, "lqr_fallback": 1}
     assert "CpuTime" in i1.extra["ipopt_status"]
 
