@@ -84,7 +84,7 @@ class _HorizonJacobian(ca.Callback):
         return 2
 
     def get_sparsity_in(self, i):
-        return ca.Sparsity.dense(NX if i != 1 else NU, self.n) if i < 2 else ca.Sparsity.dense(NX, self.n)
+        return ca.Sparsity.dense(NU if i == 1 else NX, self.n)  # X, U, then the nominal output
 
     def get_sparsity_out(self, i):
         return self.sp_x if i == 0 else self.sp_u

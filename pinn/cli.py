@@ -127,6 +127,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc train``."""
     import torch
 
+    from mpc.contract import config_hash
+    from sim.params import THETA_NAMES
+
     from .export import export_model
 
     if args.threads < 1:
@@ -148,9 +151,9 @@ def cmd_train(args: argparse.Namespace) -> int:
         "architecture": args.arch,
         "profile": args.profile,
         "data": spec,
-        "config_hash": __import__("mpc.contract", fromlist=["config_hash"]).config_hash(training_config),
+        "config_hash": config_hash(training_config),
         "metrics": metrics,
-        "theta": dict(zip(("m", "Jxx", "Jyy", "Jzz", "kt", "kq"), last["theta"])),
+        "theta": dict(zip(THETA_NAMES, last["theta"])),
         "theta_err_pct": last["theta_err_pct"],
         "final_losses": {k: last[k] for k in ("data", "phys", "theta", "rotor", "energy", "smooth", "val")},
         "training_seconds": round(res.seconds, 1),

@@ -45,7 +45,7 @@ from ._validate import as_batch, broadcast_batch, choice
 from .dynamics_casadi import step_function
 from .errors import SimInputError
 from .params import NX, THETA_NAMES, NoiseModel, QuadParams
-from .rotors import ROTOR_X, ROTOR_Y, SPIN, allocate
+from .rotors import allocate, mixer
 
 INPUT_KINDS = ("wrench", "motor")
 #: Eigenvalues below this fraction of the largest count as zero (rank).
@@ -220,7 +220,7 @@ def rotor_sensitivities(w, p: QuadParams | None = None) -> tuple[np.ndarray, np.
     p = QuadParams() if p is None else p
     w = np.atleast_2d(as_batch(w, "w", 4))
     lever = p.lever
-    M0 = np.array([[1.0] * 4, list(-lever * ROTOR_Y), list(lever * ROTOR_X), list(SPIN)])
+    M0 = np.array(mixer(1.0, 1.0, lever), dtype=float)  # the mixer with kt = kq = 1
     M0inv = np.linalg.inv(M0)
     part_t = (w[:, :3] / p.kt) @ M0inv[:, :3].T     # thrust and roll/pitch part of n^2
     part_q = np.outer(w[:, 3] / p.kq, M0inv[:, 3])  # yaw part of n^2
