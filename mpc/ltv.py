@@ -46,11 +46,20 @@ class LTVSettings:
     eps_abs: float = 1e-5
     eps_rel: float = 1e-5
     polish: bool = False
+    # OSQP re-equilibrates the problem on every matrix update, and checks termination every
+    # `check_termination` iterations. Measured (proposed PINN, N = 30, one run): its defaults 10 and 25
+    # took 2.04 ms per period, 2 and 10 took 1.60 ms, with the same tracking error and no failures.
+    scaling: int = 2                  # Ruiz equilibration iterations (OSQP `scaling`)
+    check_termination: int = 10       # OSQP termination check interval, iterations
 
     def __post_init__(self):
         check_common_settings(self.horizon, self.attitude_limit_rad, self.max_iter)
         if self.time_limit_s < 0:
             raise ConfigurationError(f"time_limit_s must be >= 0; found {self.time_limit_s}")
+        for name in ("scaling", "check_termination"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+                raise ConfigurationError(f"{name} must be an integer >= 0; found {v!r}")
 
 
 class LTVMPC(MPCBase):
@@ -83,7 +92,8 @@ class LTVMPC(MPCBase):
         self._status = osqp.SolverStatus
         self._solver = osqp.OSQP()
         settings_ = dict(verbose=False, warm_starting=True, max_iter=self.s.max_iter, eps_abs=self.s.eps_abs,
-                         eps_rel=self.s.eps_rel, polishing=self.s.polish)
+                         eps_rel=self.s.eps_rel, polishing=self.s.polish,
+                         scaling=self.s.scaling, check_termination=self.s.check_termination)
         if self.s.time_limit_s > 0:
             settings_["time_limit"] = self.s.time_limit_s
         self._solver.setup(self._H, np.zeros(self._H.shape[0]), self._A0, self._l0, self._u0, **settings_)
