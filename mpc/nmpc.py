@@ -45,7 +45,9 @@ class NMPCSettings:
     attitude_limit_rad: float = 1.0   # |roll|, |pitch| bound on predicted states, rad
     max_iter: int = 100               # IPOPT iterations per period
     time_limit_s: float = 1.0         # IPOPT CPU-time limit per period, s (> 0)
-    tol: float = 1e-6                 # IPOPT tolerance
+    # IPOPT tolerance (on the scaled problem). Measured (figure-8, one run): 1e-6 took 68 ms per period with
+    # the proposed PINN (18 iterations) and 86 ms with the oracle; 1e-4 took 45 and 57 ms, same tracking error.
+    tol: float = 1e-4
 
     def __post_init__(self):
         check_common_settings(self.horizon, self.attitude_limit_rad, self.max_iter)
@@ -178,6 +180,8 @@ class NMPC(MPCBase):
         opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
                 "ipopt.hessian_approximation": "limited-memory", "ipopt.max_iter": self.s.max_iter,
                 "ipopt.max_cpu_time": self.s.time_limit_s, "ipopt.tol": self.s.tol, "error_on_fail": False}
+        if self._horizon is None:
+            opts["expand"] = True   # analytic model: SX graph, much cheaper to evaluate than MX
         self._solver = ca.nlpsol("nmpc", "ipopt", nlp, {
             **opts, "ipopt.warm_start_init_point": "yes", "ipopt.warm_start_bound_push": 1e-9,
             "ipopt.warm_start_mult_bound_push": 1e-9, "ipopt.mu_init": 1e-5, "ipopt.mu_strategy": "adaptive"})
