@@ -24,29 +24,13 @@ import numpy as np
 from sim import Simulator
 from sim.params import DT, NX
 
-from .controller import hover_reference
+from .controller import figure8_reference, hover_reference
 from .lqr import LQRController
 from .ltv import LTVMPC, LTVSettings
 from .models import AnalyticModel, OnnxModel
 from .nmpc import NMPC, NMPCSettings
 
 HORIZON = 30
-
-
-def figure8_reference(amplitude: float = 0.75, period: float = 6.0, height: float = 1.0):
-    """Lemniscate x = A sin(wt), y = A sin(wt) cos(wt) at ``height`` (NED z = -height), with velocities."""
-    w = 2 * np.pi / period
-
-    def ref(times):
-        t = np.asarray(times, dtype=float)
-        out = np.zeros((t.size, NX))
-        out[:, 0] = amplitude * np.sin(w * t)
-        out[:, 1] = amplitude * np.sin(w * t) * np.cos(w * t)
-        out[:, 2] = -height
-        out[:, 9] = amplitude * w * np.cos(w * t)
-        out[:, 10] = amplitude * w * np.cos(2 * w * t)
-        return out
-    return ref
 
 
 def _controller(kind: str, model, reference):

@@ -54,6 +54,31 @@ def hover_reference(position=(0.0, 0.0, -1.0), yaw: float = 0.0) -> Reference:
     return ref
 
 
+def figure8_reference(amplitude: float = 0.75, period: float = 6.0, height: float = 1.0,
+                      center=(0.0, 0.0)) -> Reference:
+    """Lemniscate ``x = A sin(wt), y = A sin(wt) cos(wt)`` at ``height`` (m; NED z = -height), w = 2 pi / period.
+
+    Velocities are the analytic derivatives ``vx = A w cos(wt)``, ``vy = A w cos(2wt)``;
+    attitude, rates and yaw are zero. ``amplitude`` in m, ``period`` in s.
+    """
+    for name, v in (("amplitude", amplitude), ("period", period), ("height", height)):
+        if not (np.isfinite(v) and v > 0):
+            raise ConfigurationError(f"{name} must be finite and > 0; found {v}")
+    cx, cy = (float(c) for c in as_batch(center, "center", 2))
+    w = 2 * np.pi / period
+
+    def ref(times):
+        t = np.asarray(times, dtype=float).ravel()
+        out = np.zeros((t.size, NX))
+        out[:, 0] = cx + amplitude * np.sin(w * t)
+        out[:, 1] = cy + amplitude * np.sin(w * t) * np.cos(w * t)
+        out[:, 2] = -height
+        out[:, 9] = amplitude * w * np.cos(w * t)
+        out[:, 10] = amplitude * w * np.cos(2 * w * t)
+        return out
+    return ref
+
+
 def check_state(x, name: str = "x") -> np.ndarray:
     """The measured state as a finite (12,) array, else a clear error (before anything runs)."""
     x = as_batch(x, name, NX)
@@ -95,7 +120,8 @@ class MPCBase:
         self.p = QuadParams() if p is None else p
         self.reference = hover_reference() if reference is None else reference
         Qd, Rd = default_weights(self.p)
-        self.lqr = LQRController(self.reference, self.p, Qd if Q is None else Q, Rd if R is None else R)
+        self.lqr = LQRController(self.reference, self.p, Qd if Q is None else Q, Rd if R is None else R,
+                                 model=model)
         self.Q, self.R, self.P = self.lqr.Q, self.lqr.R, self.lqr.P
         self.u_hover = hover_point(self.p)[1]
         self.failures_in_a_row = 0

@@ -1,7 +1,7 @@
 """LQR about hover (DESIGN section 9): baseline controller, MPC terminal cost, fallback.
 
-The hover linearization comes from the analytic model (exact derivatives of
-one RK4 control period); the gain and the Riccati solution from
+The hover linearization comes from a prediction model (the analytic one
+unless another is given: exact derivatives of one RK4 control period); the gain and the Riccati solution from
 python-control's ``dlqr``. The applied input is projected onto the
 rotor-feasible wrench set (allocation, per-rotor clipping, realized wrench),
 so every input the controller returns can be flown.
@@ -70,7 +70,10 @@ def lqr(A, B, Q, R) -> tuple[np.ndarray, np.ndarray]:
     import control
 
     Q, R = _check_weights(Q, R)
-    K, P, _ = control.dlqr(A, B, Q, R)
+    try:
+        K, P, _ = control.dlqr(A, B, Q, R)
+    except Exception as e:  # python-control raises several types for a non-stabilizable pair
+        raise ConfigurationError(f"no LQR gain for this hover linearization (control.dlqr: {e})") from e
     return np.asarray(K), np.asarray(P)
 
 
@@ -85,13 +88,22 @@ class LQRController:
         Parameters of the analytic model (reference values when omitted).
     Q, R : array_like, optional
         Weights (:func:`default_weights` when omitted).
+    model : PredictionModel, optional
+        Model whose hover linearization gives the gain (the analytic model
+        with ``p`` when omitted). The MPCs pass their own prediction model, so
+        a PINN-based controller never uses the true equations.
     """
 
-    def __init__(self, reference: Reference | None = None, p: QuadParams | None = None, Q=None, R=None):
+    def __init__(self, reference: Reference | None = None, p: QuadParams | None = None, Q=None, R=None,
+                 model: PredictionModel | None = None):
         self.p = QuadParams() if p is None else p
+        if model is not None and not isinstance(model, PredictionModel):
+            raise ConfigurationError(f"model must be a PredictionModel; found {type(model).__name__}")
         Qd, Rd = default_weights(self.p)
         self.Q, self.R = _check_weights(Qd if Q is None else Q, Rd if R is None else R)
-        self.A, self.B = hover_linearization(AnalyticModel(self.p), self.p)
+        self.A, self.B = hover_linearization(AnalyticModel(self.p) if model is None else model, self.p)
+        if not (np.all(np.isfinite(self.A)) and np.all(np.isfinite(self.B))):
+            raise ConfigurationError("the model's hover linearization is not finite; cannot compute an LQR gain")
         self.K, self.P = lqr(self.A, self.B, self.Q, self.R)
         self.u_hover = hover_point(self.p)[1]
         self.reference = hover_reference() if reference is None else reference
