@@ -1,1 +1,5 @@
-"""Closed-loop scenarios and the ``pinnmpc`` command line."""
+"""Closed-loop scenarios, the runner, metrics and the ``pinnmpc`` command line (DESIGN section 10)."""
+
+from .library import Scenario, get_scenario, scenario_names
+
+__all__ = ["Scenario", "get_scenario", "scenario_names"]

@@ -14,7 +14,9 @@ from mpc import cli as mpc_cli
 from pinn import cli as pinn_cli
 from sim import cli as sim_cli
 
-PACKAGES = (sim_cli, pinn_cli, mpc_cli)
+from . import commands as scenario_cli
+
+PACKAGES = (sim_cli, pinn_cli, mpc_cli, scenario_cli)
 
 
 def build_parser() -> argparse.ArgumentParser:

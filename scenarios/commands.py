@@ -1,0 +1,124 @@
+"""``pinnmpc fly``, ``pinnmpc run`` and ``pinnmpc report``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+#: Fields printed by ``pinnmpc fly`` (DESIGN section 13), in order.
+FLY_FIELDS = ("scenario", "controller", "model", "rmse_position_m", "max_position_error_m", "crashed",
+              "crash_time_s", "solve_ms", "deadline_misses", "solver_failures", "fallbacks")
+
+
+def register(sub) -> None:
+    """Add this package's subcommands to the ``pinnmpc`` parser."""
+    from .library import scenario_names
+    from .runner import CONTROLLERS, HORIZON
+
+    names = scenario_names()
+    p = sub.add_parser("fly", help="fly one closed-loop run and print its metrics",
+                       description="One closed-loop run: a scenario flown on the reference simulator by a "
+                                   "controller using a prediction model. Scenarios: " + ", ".join(names) + ".")
+    p.add_argument("--model", required=True, metavar="{oracle,FILE.onnx}",
+                   help="'oracle' (the true equations) or an ONNX model that passes check-model")
+    p.add_argument("--controller", required=True, choices=CONTROLLERS)
+    p.add_argument("--scenario", required=True, metavar="NAME", help="scenario name (see above)")
+    p.add_argument("--seed", type=int, default=None, help="seed of noise and gusts (default: the scenario's, 0)")
+    p.add_argument("--horizon", type=int, default=HORIZON, help=f"MPC horizon in steps of 10 ms (default {HORIZON})")
+    p.add_argument("--json", metavar="FILE", type=Path, default=None, help="write the result as JSON")
+    p.add_argument("--trace", metavar="FILE.npz", type=Path, default=None, help="write the trace arrays")
+    p.add_argument("--plot", metavar="FILE.png", type=Path, default=None, help="plot path, height, error, inputs")
+    p.set_defaults(handler=cmd_fly)
+
+    p = sub.add_parser("run", help="the main job: Tables I-III, every closed-loop run, the report",
+                       description="Evaluates the shipped models (Tables I-III, Fisher bounds), flies every "
+                                   "scenario with the LTV-MPC (oracle and every shipped model) and the LQR, and "
+                                   "the three base scenarios with the NMPC (every scenario with --full), then "
+                                   "writes DIR/report.md and DIR/report.html. About 7 minutes on 2 cores "
+                                   "(--full: about 25).")
+    p.add_argument("--out", type=Path, default=Path("results/main"), help="results folder (default results/main)")
+    p.add_argument("--jobs", type=int, default=None, help="worker processes (default: number of CPUs)")
+    p.add_argument("--models", type=Path, default=Path("models"), help="folder of ONNX models (default models)")
+    p.add_argument("--full", action="store_true", help="fly the NMPC on every scenario too")
+    p.set_defaults(handler=cmd_run)
+
+    p = sub.add_parser("report", help="rebuild report.md and report.html from a saved results folder",
+                       description="Rebuild DIR/report.md, DIR/report.html and DIR/figures from the files "
+                                   "pinnmpc run saved in DIR (nothing is flown again).")
+    p.add_argument("dir", metavar="DIR", type=Path)
+    p.set_defaults(handler=cmd_report)
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, dict):
+        return ", ".join(f"{k} {_fmt(x)}" for k, x in v.items())
+    return "null" if v is None else str(v)
+
+
+def cmd_fly(args: argparse.Namespace) -> int:
+    """Handler of ``pinnmpc fly``."""
+    import numpy as np
+
+    from .runner import RunSpec, fly
+
+    for name in ("json", "trace", "plot"):
+        path = getattr(args, name)
+        if path is not None and path.exists() and path.is_dir():
+            raise ValueError(f"--{name} {str(path)!r} is a folder; give a file name")
+    if args.plot is not None and args.plot.suffix.lower() != ".png":
+        raise ValueError(f"--plot must name a .png file; found {str(args.plot)!r}")
+    spec = RunSpec(args.scenario, args.controller, args.model, args.seed, args.horizon)
+    result, trace = fly(spec, progress=sys.stderr.isatty())
+    for k in FLY_FIELDS:
+        print(f"{k:<22}{_fmt(result[k])}")
+    if result["crashed"]:
+        print(f"{'crash_reason':<22}{result['crash_reason']}")
+    if result["error"]:
+        print(f"{'error':<22}{result['error']}")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2) + "\n")
+        print(f"wrote {args.json}")
+    if args.trace:
+        args.trace.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(args.trace, **trace)
+        print(f"wrote {args.trace}")
+    if args.plot:
+        from .plot import plot_run
+        plot_run(result, trace, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """Handler of ``pinnmpc run``."""
+    from .campaign import run_main_job
+
+    if args.jobs is not None and args.jobs < 1:
+        raise ValueError(f"--jobs must be >= 1; found {args.jobs}")
+    out = run_main_job(args.out, args.models, args.jobs, args.full, progress=True)
+    runs = out["results"]
+    crashed = [r["run_id"] for r in runs if r.get("crashed")]
+    errors = [r["run_id"] for r in runs if r.get("error")]
+    print(f"{len(runs)} closed-loop runs, {len(crashed)} crashed, {len(errors)} could not start")
+    for rid in crashed:
+        print(f"  crashed: {rid}")
+    for rid in errors:
+        print(f"  error:   {rid}")
+    print(f"wrote {out['report']} and {Path(out['report']).with_suffix('.html')}")
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    """Handler of ``pinnmpc report``."""
+    from reports import build_report
+
+    if not args.dir.is_dir():
+        raise ValueError(f"DIR {str(args.dir)!r} is not a folder of saved results")
+    path = build_report(args.dir)
+    print(f"wrote {path} and {Path(path).with_suffix('.html')}")
+    return 0

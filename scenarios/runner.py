@@ -1,0 +1,262 @@
+"""Closed-loop runs: scenario x controller x prediction model (DESIGN section 10).
+
+One run flies the reference simulator at 1 kHz with control at 100 Hz::
+
+    from scenarios.runner import RunSpec, fly
+    result, trace = fly(RunSpec("figure8-slow", "ltv", "models/proposed.onnx"))
+
+``result`` is a JSON-ready dict with the fields of ``pinnmpc fly --json``
+(DESIGN section 13) and ``trace`` a dict of arrays (saved as ``.npz``). A
+crash ends the run and is recorded; a run that cannot start (for example a
+model whose hover linearization has no LQR gain) is recorded with its
+``error``. :func:`sweep` runs many specs in a process pool.
+
+Per control period ``k`` (``t = k dt``): the controller sees the measured
+state (the true state, plus noise in ``+noise`` scenarios) and returns
+``u``; with ``delay_steps = d`` the simulator applies the input computed
+``d`` periods earlier (hover input before that); the simulator carries
+rotor speeds across periods (motor lag of ``+highfi``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sim.params import DT, NU, NX, QuadParams
+
+from .errors import ScenarioError
+from .library import get_scenario
+from .metrics import closed_loop_metrics, crash_reason
+
+CONTROLLERS = ("nmpc", "ltv", "lqr")
+#: MPC horizon of every run unless stated, steps of DT.
+HORIZON = 30
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """What to fly: a scenario name, a controller, a prediction model (``"oracle"`` or an ONNX path)."""
+
+    scenario: str
+    controller: str
+    model: str = "oracle"
+    seed: int | None = None       # None: the scenario's own seed
+    horizon: int = HORIZON        # MPC horizon, steps
+
+    def __post_init__(self):
+        if self.controller not in CONTROLLERS:
+            raise ScenarioError(f"controller must be one of {', '.join(CONTROLLERS)}; found {self.controller!r}")
+        get_scenario(self.scenario)  # raises for an unknown name
+        if not isinstance(self.model, str) or not self.model:
+            raise ScenarioError(f"model must be 'oracle' or the path of an .onnx file; found {self.model!r}")
+        if self.model != "oracle":
+            path = Path(self.model)
+            if path.suffix != ".onnx":
+                raise ScenarioError(f"model must be 'oracle' or the path of an .onnx file; found {self.model!r}")
+            if not path.is_file():
+                raise ScenarioError(f"model file {self.model!r} does not exist")
+
+    @property
+    def model_name(self) -> str:
+        return "oracle" if self.model == "oracle" else Path(self.model).stem
+
+    @property
+    def run_id(self) -> str:
+        """File-name-safe identifier ``<scenario>__<controller>__<model>``."""
+        return f"{self.scenario}__{self.controller}__{self.model_name}"
+
+
+def _sha256(path: str) -> str | None:
+    if path == "oracle":
+        return None
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def make_controller(kind: str, model, reference, p: QuadParams | None = None, horizon: int = HORIZON):
+    """The controller ``kind`` (``nmpc``, ``ltv``, ``lqr``) on prediction ``model`` following ``reference``."""
+    from mpc.lqr import LQRController
+    from mpc.ltv import LTVMPC, LTVSettings
+    from mpc.nmpc import NMPC, NMPCSettings
+
+    if kind == "nmpc":
+        return NMPC(model, reference, NMPCSettings(horizon=horizon), p=p)
+    if kind == "ltv":
+        return LTVMPC(model, reference, LTVSettings(horizon=horizon), p=p)
+    if kind == "lqr":
+        return LQRController(reference, p, model=model)
+    raise ScenarioError(f"controller must be one of {', '.join(CONTROLLERS)}; found {kind!r}")
+
+
+def fly(spec: RunSpec, progress: bool = False) -> tuple[dict, dict]:
+    """Fly one closed-loop run; ``(result, trace)``.
+
+    Raises only for bad input (unknown names, a model that fails the
+    contract); everything that happens in flight is recorded.
+    """
+    from mpc.models import load_model
+    from sim import Simulator
+
+    sc = get_scenario(spec.scenario, spec.seed)
+    model = load_model(spec.model)          # contract errors raise here, before anything flies
+    ref = sc.reference()
+    p = QuadParams()
+    K = sc.steps
+    t_all = DT * np.arange(K + 1)
+    X_ref = ref(t_all)
+    X = np.full((K + 1, NX), np.nan)
+    Xm = np.full((K, NX), np.nan)
+    U = np.full((K, NU), np.nan)
+    Ucmd = np.full((K, NU), np.nan)
+    solve_s = np.zeros(K)
+    iters = np.zeros(K, dtype=np.int64)
+    status = np.full(K, "", dtype="<U24")
+    failed = np.zeros(K, dtype=bool)
+    lqr_fb = np.zeros(K, dtype=bool)
+    crash_step, why, error = None, None, None
+    base = {"run_id": spec.run_id, "scenario": spec.scenario, "controller": spec.controller,
+            "model": spec.model_name, "model_file": None if spec.model == "oracle" else str(spec.model),
+            "model_sha256": _sha256(spec.model), "seed": sc.seed, "horizon": spec.horizon}
+    t0 = time.perf_counter()
+    k_end = 0
+    try:
+        ctrl = make_controller(spec.controller, model, ref, p, spec.horizon)
+    except ValueError as e:  # e.g. no LQR gain for this model's hover linearization
+        error = f"{type(e).__name__}: {e}"
+        ctrl = None
+    if ctrl is not None:
+        sim = Simulator(p, sc.fidelity, payload_kg=sc.payload_kg, wind=sc.wind)
+        rng = np.random.default_rng([sc.seed, 0x5EED])
+        x = np.array(sc.x0, dtype=float)
+        X[0] = x
+        n = None
+        pending = [np.array([p.m * p.g, 0.0, 0.0, 0.0])] * sc.delay_steps
+        steps = range(K)
+        if progress:
+            from tqdm import tqdm
+            steps = tqdm(steps, desc=spec.run_id, unit="step", leave=False)
+        for k in steps:
+            t = k * DT
+            xm = x if sc.noise is None else sim.measure(x, rng, sc.noise)
+            Xm[k] = xm
+            u_cmd, info = ctrl(xm, t)
+            Ucmd[k] = u_cmd
+            if sc.delay_steps:
+                pending.append(u_cmd)
+                u = pending.pop(0)
+            else:
+                u = u_cmd
+            U[k] = u
+            solve_s[k] = info.solve_time_s
+            iters[k] = info.iterations
+            status[k] = info.status
+            failed[k] = info.fallback is not None
+            lqr_fb[k] = info.fallback == "lqr"
+            with np.errstate(all="ignore"):
+                res = sim.step_full(x, u, rotor_speed=n, t=t)
+            x, n = res.x, res.rotor_speed
+            X[k + 1] = x
+            k_end = k + 1
+            why = crash_reason(x, X_ref[k + 1])
+            if why is not None:
+                crash_step = k + 1
+                break
+    wall = time.perf_counter() - t0
+    if error is None:
+        metrics = closed_loop_metrics(X[:k_end + 1], X_ref[:k_end + 1], solve_s[:k_end], failed[:k_end],
+                                      lqr_fb[:k_end], crash_step, why)
+    else:
+        metrics = {"rmse_position_m": None, "max_position_error_m": None, "crashed": False, "crash_time_s": None,
+                   "crash_reason": None, "solve_ms": None, "deadline_misses": 0, "solver_failures": 0,
+                   "fallbacks": 0, "steps": 0}
+    result = {**base, **metrics, "shifted_plan": int(np.sum(failed[:k_end] & ~lqr_fb[:k_end])),
+              "error": error, "wall_time_s": wall, "scenario_spec": sc.to_dict()}
+    trace = {"t": t_all[:k_end + 1], "x": X[:k_end + 1], "x_ref": X_ref[:k_end + 1], "x_measured": Xm[:k_end],
+             "u": U[:k_end], "u_command": Ucmd[:k_end], "solve_s": solve_s[:k_end], "iterations": iters[:k_end],
+             "status": status[:k_end], "solver_failed": failed[:k_end], "lqr_fallback": lqr_fb[:k_end]}
+    return result, trace
+
+
+def save_run(result: dict, trace: dict, out_dir: Path) -> dict:
+    """Write ``runs/<id>.json`` and ``traces/<id>.npz`` under ``out_dir``; the result with its trace path."""
+    out_dir = Path(out_dir)
+    (out_dir / "runs").mkdir(parents=True, exist_ok=True)
+    (out_dir / "traces").mkdir(parents=True, exist_ok=True)
+    rel = f"traces/{result['run_id']}.npz"
+    np.savez_compressed(out_dir / rel, **trace)
+    result = {**result, "trace": rel}
+    (out_dir / "runs" / f"{result['run_id']}.json").write_text(json.dumps(result, indent=2, sort_keys=True) + "\n")
+    return result
+
+
+def _worker_init() -> None:
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
+
+
+def _run_and_save(spec: RunSpec, out_dir: str) -> dict:
+    try:
+        result, trace = fly(spec)
+    except ValueError as e:  # bad model file etc.: recorded, the sweep goes on
+        result = {"run_id": spec.run_id, "scenario": spec.scenario, "controller": spec.controller,
+                  "model": spec.model_name, "error": f"{type(e).__name__}: {e}", "crashed": False,
+                  "crash_time_s": None, "rmse_position_m": None, "max_position_error_m": None, "solve_ms": None,
+                  "deadline_misses": 0, "solver_failures": 0, "fallbacks": 0, "steps": 0}
+        trace = {}
+    return save_run(result, trace, Path(out_dir))
+
+
+def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True) -> list[dict]:
+    """Fly every spec (independent runs, ``jobs`` processes); results in the order of ``specs``.
+
+    Each result is also written to ``out_dir/runs/<id>.json`` with its trace
+    in ``out_dir/traces/<id>.npz``.
+    """
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ScenarioError(f"jobs must be an integer >= 1; found {jobs!r}")
+    ids = [s.run_id for s in specs]
+    dup = {i for i in ids if ids.count(i) > 1}
+    if dup:
+        raise ScenarioError(f"duplicate runs in the sweep: {sorted(dup)}")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=len(specs), desc="closed-loop runs", unit="run")
+    results: dict[str, dict] = {}
+    try:
+        if jobs == 1:
+            for s in specs:
+                results[s.run_id] = _run_and_save(s, str(out_dir))
+                if bar:
+                    bar.update()
+        else:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            _worker_init()
+            # Longest runs first (NMPC, long scenarios) so the pool ends together.
+            order = sorted(specs, key=lambda s: -(get_scenario(s.scenario).steps * (20 if s.controller == "nmpc" else 1)))
+            with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
+                                     initializer=_worker_init) as pool:
+                futs = {pool.submit(_run_and_save, s, str(out_dir)): s for s in order}
+                for f in as_completed(futs):
+                    results[futs[f].run_id] = f.result()
+                    if bar:
+                        bar.update()
+    finally:
+        if bar:
+            bar.close()
+    return [results[i] for i in ids]
+
+
+def spec_dict(spec: RunSpec) -> dict:
+    """JSON-ready form of a :class:`RunSpec`."""
+    return asdict(spec)

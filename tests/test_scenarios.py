@@ -1,0 +1,277 @@
+"""Scenarios, closed-loop metrics, the runner and ``pinnmpc fly`` (issue 5)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+from onnx import helper, numpy_helper
+
+from mpc.contract import jacobian_path
+from scenarios import get_scenario, scenario_names
+from scenarios.errors import ScenarioError
+from scenarios.library import PAYLOAD_FRACTION, WindGusts
+from scenarios.metrics import TIMING_FIELDS, TRACE_TIMING_FIELDS, closed_loop_metrics, crash_reason
+from scenarios.runner import RunSpec, fly, sweep
+from sim.params import DT, NX, NoiseModel, QuadParams
+
+REPO = Path(__file__).resolve().parents[1]
+MODELS = REPO / "models"
+
+TOL = {
+    "fd_velocity_abs": 1e-7,     # m/s, central difference (h = 1e-5 s) vs analytic velocity
+    "metric_abs": 1e-12,         # synthetic trace metrics vs their closed form
+    "noise_std_rel": 0.15,       # sample std of the measurement noise vs NoiseModel (500 samples)
+}
+
+
+# --------------------------------------------------------------------------- scenarios as data
+
+def test_scenario_names_are_the_designs():
+    names = scenario_names()
+    assert names[:3] == ["hover", "figure8-slow", "figure8-fast"]
+    assert len(names) == 3 + 3 * 5
+    for v in ("highfi", "payload", "wind", "noise", "delay"):
+        assert f"figure8-fast+{v}" in names
+
+
+def test_unknown_names_raise_a_value_error_naming_them():
+    for bad in ("hovr", "hover+foo", "figure8"):
+        with pytest.raises(ScenarioError, match="unknown scenario"):
+            get_scenario(bad)
+    with pytest.raises(ScenarioError, match="controller"):
+        RunSpec("hover", "pid")
+    with pytest.raises(ScenarioError, match="does not exist"):
+        RunSpec("hover", "ltv", "nowhere.onnx")
+    with pytest.raises(ScenarioError, match="seed"):
+        get_scenario("hover", seed=-1)
+
+
+def test_variants_change_only_their_field():
+    base = get_scenario("figure8-slow")
+    assert base.duration_s == 12.0 and base.period_s == 6.0
+    assert get_scenario("figure8-slow+payload").payload_kg == pytest.approx(PAYLOAD_FRACTION * QuadParams().m)
+    assert get_scenario("figure8-slow+delay").delay_steps == 1
+    assert get_scenario("figure8-slow+noise").noise == NoiseModel()
+    assert not get_scenario("figure8-slow+highfi").fidelity.is_nominal
+    assert get_scenario("figure8-slow+wind").wind is not None
+    for v in ("payload", "delay", "noise", "highfi", "wind"):
+        s = get_scenario(f"figure8-slow+{v}")
+        assert (s.x0, s.duration_s, s.period_s) == (base.x0, base.duration_s, base.period_s)
+
+
+def test_hover_starts_off_the_setpoint_as_designed():
+    s = get_scenario("hover")
+    x0 = np.array(s.x0)
+    offset = np.linalg.norm(x0[:3] - np.array([0.0, 0.0, -1.0]))
+    assert 0.3 <= offset <= 0.5
+    assert 0 < np.max(np.abs(np.rad2deg(x0[3:6]))) <= 6
+
+
+@pytest.mark.parametrize("name", ["figure8-slow", "figure8-fast"])
+def test_figure8_velocities_are_the_derivative_of_positions(name):
+    ref = get_scenario(name).reference()
+    t = np.linspace(0.0, 12.0, 2401)
+    h = 1e-5
+    fd = (ref(t + h)[:, 0:3] - ref(t - h)[:, 0:3]) / (2 * h)
+    np.testing.assert_allclose(ref(t)[:, 9:12], fd, rtol=0, atol=TOL["fd_velocity_abs"])
+    r = ref(t)
+    assert np.all(r[:, 2] == -1.0)                       # 1 m altitude, NED
+    assert np.max(np.abs(r[:, 0])) == pytest.approx(0.75, abs=1e-3)
+
+
+def test_figure8_starts_on_its_reference():
+    s = get_scenario("figure8-fast")
+    np.testing.assert_array_equal(np.array(s.x0), s.reference()(np.array([0.0]))[0])
+
+
+def test_wind_gusts_have_their_designed_shape():
+    w = WindGusts(gust_peak=1.5, gust_duration_s=0.8, n_gusts=3, flight_duration_s=6.0, seed=4)
+    mean = np.array(w.mean)
+    starts = w.to_dict()["gust_starts_s"]
+    assert len(starts) == 3 and all(0 <= s < 6.0 for s in starts)
+    np.testing.assert_array_equal(w(starts[0] - 0.01), mean)              # before a gust: the steady part
+    mid = w(starts[0] + 0.4) - mean                                       # gust midpoint: the full peak
+    assert np.linalg.norm(mid) == pytest.approx(1.5, rel=1e-12)
+    assert mid[2] == 0.0                                                  # horizontal
+    assert WindGusts(seed=4).to_dict() == WindGusts(seed=4).to_dict()
+    assert WindGusts(seed=4).to_dict() != WindGusts(seed=5).to_dict()
+
+
+# --------------------------------------------------------------------------- metrics
+
+def test_metrics_on_a_synthetic_trace_with_known_answer():
+    K = 100
+    x_ref = np.zeros((K + 1, NX))
+    x_ref[:, 2] = -1.0
+    x = x_ref.copy()
+    x[1:51, 0] += 0.1            # 50 samples 0.1 m off (north)
+    x[51:, 1] += 0.2             # 50 samples 0.2 m off (east)
+    solve = np.full(K, 0.002)
+    solve[:5] = 0.05             # 5 deadline misses (50 ms > 10 ms)
+    failed = np.zeros(K, bool)
+    failed[[3, 4, 5, 40]] = True
+    lqr = np.zeros(K, bool)
+    lqr[5] = True
+    m = closed_loop_metrics(x, x_ref, solve, failed, lqr, None)
+    assert m["rmse_position_m"] == pytest.approx(np.sqrt((0.01 + 0.04) / 2), abs=TOL["metric_abs"])
+    assert m["max_position_error_m"] == pytest.approx(0.2, abs=TOL["metric_abs"])
+    assert m["solve_ms"]["median"] == pytest.approx(2.0, abs=TOL["metric_abs"])
+    assert m["solve_ms"]["max"] == pytest.approx(50.0, abs=TOL["metric_abs"])
+    # p95 of 95 x 2 ms and 5 x 50 ms (linear interpolation at index 94.05 of 0..99): 2 + 0.05 * 48 ms
+    assert m["solve_ms"]["p95"] == pytest.approx(2.0 + 0.05 * 48.0, abs=1e-9)
+    assert (m["deadline_misses"], m["solver_failures"], m["fallbacks"], m["steps"]) == (5, 4, 1, K)
+    assert m["crashed"] is False and m["crash_time_s"] is None
+
+
+def test_crash_ends_the_metrics_at_the_crash():
+    K = 20
+    x_ref = np.zeros((K + 1, NX))
+    x_ref[:, 2] = -1.0
+    x = x_ref.copy()
+    x[1:, 0] = 0.3
+    m = closed_loop_metrics(x[:13], x_ref[:13], np.zeros(12), np.zeros(12, bool), np.zeros(12, bool), 12, "tilt")
+    assert m["crashed"] and m["crash_time_s"] == pytest.approx(0.12)
+    assert m["rmse_position_m"] == pytest.approx(0.3) and m["steps"] == 12
+
+
+def test_crash_conditions():
+    ref = np.zeros(NX)
+    ref[2] = -1.0
+    x = ref.copy()
+    assert crash_reason(x, ref) is None
+    x[2] = 0.01
+    assert crash_reason(x, ref) == "below ground"
+    x = ref.copy()
+    x[0] = 2.01
+    assert crash_reason(x, ref) == "position error > 2 m"
+    x = ref.copy()
+    x[4] = np.deg2rad(80.5)
+    assert crash_reason(x, ref) == "tilt > 80 deg"
+    x[4] = np.deg2rad(79.5)
+    assert crash_reason(x, ref) is None
+    x[7] = np.nan
+    assert crash_reason(x, ref) == "non-finite state"
+
+
+# --------------------------------------------------------------------------- runner
+
+def _scaled_model(src: Path, dst: Path, s: float) -> Path:
+    """A copy of ``src`` whose predicted change of state is multiplied by ``s`` (and its derivative graph).
+
+    ``x_next' = x + s (x_next - x)``, ``A' = I + s (A - I)``, ``B' = s B``; with ``s = -1``
+    the model predicts time running backwards: a deliberately wrong, contract-valid model.
+    """
+    for which, path_in, path_out in (("model", src, dst), ("jac", jacobian_path(src), jacobian_path(dst))):
+        m = onnx.load(str(path_in))
+        g = m.graph
+        for node in g.node:                       # rename the graph's outputs to *_raw
+            node.output[:] = [o + "_raw" if o in ("x_next", "A", "B") else o for o in node.output]
+        g.initializer.extend([numpy_helper.from_array(np.array(s, dtype=np.float64), "scale_s"),
+                              numpy_helper.from_array(np.eye(NX), "eye12")])
+        g.node.extend([helper.make_node("Sub", ["x_next_raw", "x"], ["d_raw"]),
+                       helper.make_node("Mul", ["d_raw", "scale_s"], ["d_s"]),
+                       helper.make_node("Add", ["x", "d_s"], ["x_next"])])
+        if which == "jac":
+            g.node.extend([helper.make_node("Sub", ["A_raw", "eye12"], ["a1"]),
+                           helper.make_node("Mul", ["a1", "scale_s"], ["a2"]),
+                           helper.make_node("Add", ["a2", "eye12"], ["A"]),
+                           helper.make_node("Mul", ["B_raw", "scale_s"], ["B"])])
+        onnx.save(m, str(path_out))
+    return dst
+
+
+@pytest.fixture(scope="module")
+def reversed_model(tmp_path_factory):
+    return _scaled_model(MODELS / "proposed.onnx", tmp_path_factory.mktemp("bad") / "reversed.onnx", -1.0)
+
+
+def _deterministic(result: dict) -> str:
+    return json.dumps({k: v for k, v in result.items() if k not in TIMING_FIELDS}, sort_keys=True)
+
+
+def test_a_wrong_model_crashes_as_data_and_the_sweep_goes_on(reversed_model, tmp_path):
+    specs = [RunSpec("hover", "ltv", str(reversed_model)), RunSpec("hover", "lqr", "oracle")]
+    res = sweep(specs, tmp_path, jobs=1, progress=False)
+    bad, good = res
+    assert bad["crashed"] is True and bad["error"] is None
+    assert 0 < bad["crash_time_s"] < 5.0 and bad["crash_reason"]
+    assert bad["steps"] == round(bad["crash_time_s"] / DT)
+    assert good["crashed"] is False and good["rmse_position_m"] < 0.2
+    tr = np.load(tmp_path / bad["trace"])
+    assert len(tr["t"]) == bad["steps"] + 1 and crash_reason(tr["x"][-1], tr["x_ref"][-1]) is not None
+    saved = json.loads((tmp_path / "runs" / f"{bad['run_id']}.json").read_text())
+    assert saved["crashed"] is True
+
+
+def test_same_seed_gives_identical_results_and_another_seed_does_not(tmp_path):
+    spec = RunSpec("hover+noise", "ltv", str(MODELS / "proposed.onnx"), seed=3)
+    r1, t1 = fly(spec)
+    r2, t2 = fly(spec)
+    assert _deterministic(r1) == _deterministic(r2)
+    assert set(t1) == set(t2)
+    for k in set(t1) - set(TRACE_TIMING_FIELDS):
+        np.testing.assert_array_equal(t1[k], t2[k])
+    r3, t3 = fly(RunSpec("hover+noise", "ltv", str(MODELS / "proposed.onnx"), seed=4))
+    assert _deterministic(r3) != _deterministic(r1)
+    assert not np.array_equal(t3["x_measured"], t1["x_measured"])
+
+
+def test_a_two_process_sweep_equals_the_serial_one(tmp_path):
+    specs = [RunSpec("hover+wind", "lqr", "oracle", seed=2), RunSpec("figure8-fast", "lqr", "oracle"),
+             RunSpec("hover+delay", "ltv", str(MODELS / "fourier.onnx"))]
+    serial = sweep(specs, tmp_path / "a", jobs=1, progress=False)
+    pooled = sweep(specs, tmp_path / "b", jobs=2, progress=False)
+    assert [r["run_id"] for r in pooled] == [s.run_id for s in specs]
+    assert [_deterministic(r) for r in serial] == [_deterministic(r) for r in pooled]
+
+
+def test_delay_applies_the_previous_command_and_noise_has_its_std():
+    r, tr = fly(RunSpec("hover+delay", "lqr", "oracle"))
+    np.testing.assert_array_equal(tr["u"][1:], tr["u_command"][:-1])
+    p = QuadParams()
+    np.testing.assert_array_equal(tr["u"][0], [p.m * p.g, 0, 0, 0])
+    r, tr = fly(RunSpec("hover+noise", "lqr", "oracle"))
+    dev = tr["x_measured"] - tr["x"][:-1]
+    np.testing.assert_allclose(dev.std(axis=0), NoiseModel().state_std, rtol=TOL["noise_std_rel"])
+
+
+def test_sweep_rejects_duplicates_and_bad_jobs(tmp_path):
+    s = RunSpec("hover", "lqr")
+    with pytest.raises(ScenarioError, match="duplicate"):
+        sweep([s, s], tmp_path, progress=False)
+    with pytest.raises(ScenarioError, match="jobs"):
+        sweep([s], tmp_path, jobs=0, progress=False)
+
+
+# --------------------------------------------------------------------------- pinnmpc fly
+
+def test_fly_json_has_the_designs_fields(tmp_path, capsys):
+    from scenarios.cli import main
+
+    out = tmp_path / "r.json"
+    png = tmp_path / "r.png"
+    assert main(["fly", "--model", "oracle", "--controller", "lqr", "--scenario", "figure8-fast",
+                 "--json", str(out), "--plot", str(png)]) == 0
+    r = json.loads(out.read_text())
+    for k in ("scenario", "controller", "model", "rmse_position_m", "max_position_error_m", "crashed",
+              "crash_time_s", "deadline_misses", "solver_failures", "fallbacks"):
+        assert k in r
+    assert set(r["solve_ms"]) == {"median", "p95", "max"}
+    assert (r["scenario"], r["controller"], r["model"]) == ("figure8-fast", "lqr", "oracle")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    printed = capsys.readouterr().out
+    assert f"{r['rmse_position_m']:.4g}" in printed
+
+
+def test_fly_bad_input_is_a_one_line_error(tmp_path, capsys):
+    from scenarios.cli import main
+
+    assert main(["fly", "--model", "oracle", "--controller", "ltv", "--scenario", "circle"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown scenario 'circle'" in err and "Traceback" not in err
+    assert main(["fly", "--model", str(tmp_path / "m.onnx"), "--controller", "ltv", "--scenario", "hover"]) == 2
+    assert "does not exist" in capsys.readouterr().err
