@@ -1,0 +1,124 @@
+"""Assemble ``report.md``, ``report.html`` and ``figures/*.png`` from a saved results folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .figures import (FIG_DIR, FigureOut, fisher_figure, headline_figure, model_colors, rollout_figure,
+                      solve_time_figure, trajectory_figures)
+from .headline import correlation_text, headline_data
+from .html import markdown_to_html
+from .inputs import load_inputs
+from .summary import summary_text
+from .tables import (closed_loop_table, fisher_table, provenance_section, solve_time_table, table_one,
+                     table_three, table_two)
+
+#: Title of the report (the Markdown ``#`` heading and the HTML title).
+TITLE = "pinn-mpc report"
+#: Section headings of the report, in order (Markdown ``##``, HTML ``<h2>``).
+SECTIONS = (
+    "Summary",
+    "Table I: one-step and 100-step accuracy",
+    "Table II: parameter identification and Cramér-Rao bounds",
+    "Table III: ablation",
+    "Closed-loop results",
+    "Headline: open-loop error against closed-loop error",
+    "Trajectories and tracking error",
+    "Rollout error growth",
+    "Fisher information spectrum",
+    "Solve time",
+    "Provenance",
+)
+
+
+def _figure_md(f: FigureOut) -> str:
+    return f"![{f.alt}]({f.path})\n\n{f.caption}"
+
+
+def _clear_figures(run_dir: Path) -> None:
+    """Remove the PNG files of an earlier build so that none is left stale."""
+    d = run_dir / FIG_DIR
+    if d.is_dir():
+        for p in sorted(d.glob("*.png")):
+            p.unlink()
+
+
+def report_markdown(run_dir) -> str:
+    """Read ``run_dir``, write its figures and return the report as Markdown.
+
+    Parameters
+    ----------
+    run_dir : str or Path
+        Results folder (see :mod:`reports.inputs` for the files read).
+
+    Raises
+    ------
+    ReportError
+        A required file is missing or malformed.
+    """
+    inp = load_inputs(run_dir)
+    d = inp.run_dir
+    _clear_figures(d)
+    head = headline_data(inp.runs, inp.models_by_name())
+    corr = correlation_text(head)
+    body = {}
+    body["Summary"] = summary_text(inp.runs, corr if head.points else None)
+    body["Table I: one-step and 100-step accuracy"] = table_one(inp.evaluation)
+    body["Table II: parameter identification and Cramér-Rao bounds"] = (
+        table_two(inp.evaluation) + "\n\n" + fisher_table(inp.fisher))
+    body["Table III: ablation"] = table_three(inp.ablation)
+    body["Closed-loop results"] = closed_loop_table(inp.runs)
+    f = headline_figure(head, d)
+    body["Headline: open-loop error against closed-loop error"] = (
+        _figure_md(f) + "\n\n" + corr if f is not None else
+        "No closed-loop run of a learned model listed in `evaluation.json` has an RMSE, so there is no "
+        "headline figure." + (f" Models flown but not in `evaluation.json`: {', '.join(head.unmatched)}."
+                              if head.unmatched else ""))
+    colors = model_colors([r["model"] for r in inp.runs] + list(inp.models_by_name()))
+    figs, notes = trajectory_figures(inp, d, colors)
+    body["Trajectories and tracking error"] = "\n\n".join([_figure_md(f) for f in figs] + notes)
+    f = rollout_figure(inp.evaluation, d, colors)
+    body["Rollout error growth"] = (_figure_md(f) if f is not None else
+                                    "`evaluation.json` holds no per-step rollout errors (`position_by_step`).")
+    f = fisher_figure(inp.fisher, d)
+    body["Fisher information spectrum"] = (_figure_md(f) if f is not None else
+                                           "`fisher.json` holds no eigenvalues.")
+    f = solve_time_figure(inp.runs, d)
+    body["Solve time"] = ((_figure_md(f) + "\n\n" if f is not None else "") + solve_time_table(inp.runs))
+    body["Provenance"] = provenance_section(inp.provenance, inp.plan)
+    parts = [f"# {TITLE}", f"Results folder: `{d.name}`. Generated from the saved files in it."]
+    parts += [f"## {s}\n\n{body[s].strip()}" for s in SECTIONS]
+    return "\n\n".join(parts) + "\n"
+
+
+def build_report(run_dir) -> Path:
+    """Build ``report.md``, ``report.html`` and ``figures/*.png`` in ``run_dir``.
+
+    Works from the saved files alone (``pinnmpc report DIR`` rebuilds a
+    report). Deterministic: the same files give the same outputs.
+
+    Parameters
+    ----------
+    run_dir : str or Path
+        Results folder with ``results.json``, ``evaluation.json`` and
+        ``fisher.json`` (required), and ``ablation.json``, ``provenance.json``,
+        ``traces/*.npz`` (optional).
+
+    Returns
+    -------
+    Path
+        Path of the written ``report.md``.
+
+    Raises
+    ------
+    ReportError
+        (a ``ValueError``) A required file is missing or malformed; the
+        message names it.
+    """
+    d = Path(run_dir)
+    md = report_markdown(d)
+    page = markdown_to_html(md, d, TITLE)
+    out = d / "report.md"
+    out.write_text(md, encoding="utf-8")
+    (d / "report.html").write_text(page, encoding="utf-8")
+    return out

@@ -1,0 +1,66 @@
+"""Names, display labels and the fixed ordering of scenarios, controllers and models.
+
+Every table and figure of the report lists runs in the same order: scenario
+(``hover``, ``figure8-slow``, ``figure8-fast``, then the variants of each in the
+order ``+highfi +payload +wind +noise +delay``, then any other name
+alphabetically), controller (NMPC, LTV-MPC, LQR, then others), model (the
+oracle first, then alphabetically).
+"""
+
+from __future__ import annotations
+
+#: Base scenarios in report order.
+BASE_SCENARIOS = ("hover", "figure8-slow", "figure8-fast")
+#: Scenario variant suffixes (after ``+``) in report order.
+VARIANTS = ("highfi", "payload", "wind", "noise", "delay")
+#: Controllers in report order.
+CONTROLLERS = ("nmpc", "ltv", "lqr")
+#: Display names of the controllers.
+CONTROLLER_LABELS = {"nmpc": "NMPC", "ltv": "LTV-MPC", "lqr": "LQR"}
+#: The model name of the true (simulator) equations.
+ORACLE = "oracle"
+#: Control period, s (DESIGN section 3); the deadline of one controller solve.
+DT_S = 0.01
+
+
+def base_scenario(name: str) -> str:
+    """The base scenario of ``name`` (the part before the first ``+``)."""
+    return str(name).split("+", 1)[0]
+
+
+def scenario_key(name: str) -> tuple:
+    """Sort key of a scenario name (see the module docstring)."""
+    parts = str(name).split("+")
+    base, variants = parts[0], parts[1:]
+    v = tuple((VARIANTS.index(s), "") if s in VARIANTS else (len(VARIANTS), s) for s in variants)
+    if base not in BASE_SCENARIOS:
+        return (2, 0, base, v)
+    return (1 if variants else 0, BASE_SCENARIOS.index(base), "", v)
+
+
+def controller_key(name: str) -> tuple:
+    """Sort key of a controller name."""
+    name = str(name)
+    return (CONTROLLERS.index(name), "") if name in CONTROLLERS else (len(CONTROLLERS), name)
+
+
+def controller_label(name: str) -> str:
+    """Display name of a controller (``"ltv"`` -> ``"LTV-MPC"``)."""
+    return CONTROLLER_LABELS.get(str(name), str(name))
+
+
+def model_key(name: str) -> tuple:
+    """Sort key of a model name: the oracle first, then alphabetically."""
+    name = str(name)
+    return (0, "") if name == ORACLE else (1, name)
+
+
+def run_key(run: dict) -> tuple:
+    """Sort key of a closed-loop result: scenario, controller, model, run id."""
+    return (scenario_key(run.get("scenario", "")), controller_key(run.get("controller", "")),
+            model_key(run.get("model", "")), str(run.get("run_id", "")))
+
+
+def sorted_unique(values, key) -> list:
+    """The distinct ``values`` sorted with ``key``."""
+    return sorted(set(values), key=key)

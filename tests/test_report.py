@@ -1,0 +1,252 @@
+"""The report (reports.build_report) from a small synthetic results folder.
+
+The folder is written here with known numbers in the layout ``pinnmpc run``
+saves (results.json, traces/*.npz, evaluation.json, fisher.json,
+provenance.json; no ablation.json), then report.md and report.html are parsed.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+
+import numpy as np
+import pytest
+
+from reports import ReportError, build_report
+
+# ---- constants of this module ----------------------------------------------------------------
+#: Section headings the report must have, in order (DESIGN section 11).
+HEADINGS = (
+    "Summary",
+    "Table I: one-step and 100-step accuracy",
+    "Table II: parameter identification and Cramér-Rao bounds",
+    "Table III: ablation",
+    "Closed-loop results",
+    "Headline: open-loop error against closed-loop error",
+    "Trajectories and tracking error",
+    "Rollout error growth",
+    "Fisher information spectrum",
+    "Solve time",
+    "Provenance",
+)
+#: How the closed-loop table writes an RMSE (m) and a missing number.
+RMSE_FORMAT = "{:.4f}"
+MISSING = "–"
+#: The closed-loop table's header starts with these cells.
+TABLE_HEAD = ("scenario", "controller", "model", "RMSE (m)")
+#: Control period (s) and trace lengths (periods) of the synthetic runs.
+DT = 0.01
+STEPS = 200
+CRASH_STEP = 123
+#: PNG file signature.
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+#: Inline base64 image tag of the HTML, and the relative reference it must not contain.
+HTML_IMG = '<img src="data:image/png;base64,'
+HTML_REL = 'src="figures/'
+#: Required input files (a missing one raises ReportError naming it).
+REQUIRED = ("results.json", "evaluation.json", "fisher.json")
+#: The synthetic runs: (scenario, controller, model, rmse m, crashed, error).
+RUNS = (
+    ("hover", "ltv", "oracle", 0.0123, False, None),
+    ("hover", "ltv", "alpha", 0.0456, False, None),
+    ("hover", "ltv", "beta", 0.0789, False, None),
+    ("hover", "nmpc", "oracle", 0.0111, False, None),
+    ("hover", "nmpc", "alpha", 0.0222, False, None),
+    ("hover", "nmpc", "beta", None, False, "ValueError: model beta | has no hover trim"),
+    ("figure8-slow", "ltv", "oracle", 0.0333, False, None),
+    ("figure8-slow", "ltv", "alpha", 0.0555, False, None),
+    ("figure8-slow", "ltv", "beta", 1.2345, True, None),
+    ("figure8-slow", "nmpc", "oracle", 0.0444, False, None),
+    ("figure8-slow", "nmpc", "alpha", 0.0666, False, None),
+    ("hover+wind", "ltv", "alpha", 0.0777, False, None),
+)
+#: 100-step open-loop position MAE of the learned models, m.
+OPEN_LOOP = {"alpha": 0.004, "beta": 0.03}
+#: Order of the rows in the closed-loop table (scenario, controller, model).
+ROW_ORDER = [(s, c, m) for s in ("hover", "figure8-slow", "hover+wind") for c in ("nmpc", "ltv")
+             for m in ("oracle", "alpha", "beta")]
+CONTROLLER_LABELS = {"nmpc": "NMPC", "ltv": "LTV-MPC"}
+
+
+# ---- synthetic results folder ----------------------------------------------------------------
+def _trace(scenario: str, rmse: float, steps: int, rng) -> dict:
+    t = DT * np.arange(steps + 1)
+    x_ref = np.zeros((steps + 1, 12))
+    x_ref[:, 2] = -1.0
+    if scenario.startswith("figure8"):
+        w = 2 * np.pi / 6.0
+        x_ref[:, 0] = 0.75 * np.sin(w * t)
+        x_ref[:, 1] = 0.75 * np.sin(w * t) * np.cos(w * t)
+    x = x_ref.copy()
+    x[:, 0:3] += rmse * rng.standard_normal((steps + 1, 3)) / np.sqrt(3.0)
+    return {"t": t, "x": x, "x_ref": x_ref, "x_measured": x[:-1], "u": np.zeros((steps, 4)),
+            "u_command": np.zeros((steps, 4)), "solve_s": np.full(steps, 0.004),
+            "iterations": np.ones(steps, dtype=np.int64), "status": np.full(steps, "optimal", dtype="<U24"),
+            "solver_failed": np.zeros(steps, dtype=bool), "lqr_fallback": np.zeros(steps, dtype=bool)}
+
+
+def _result(scenario, controller, model, rmse, crashed, error) -> dict:
+    run_id = f"{scenario}__{controller}__{model}"
+    r = {"run_id": run_id, "scenario": scenario, "controller": controller, "model": model, "error": error,
+         "crashed": crashed, "crash_time_s": CRASH_STEP * DT if crashed else None,
+         "crash_reason": "tilt > 80 deg" if crashed else None, "rmse_position_m": rmse,
+         "max_position_error_m": None if rmse is None else 3 * rmse,
+         "solve_ms": None if error else {"median": 4.0, "p95": 7.5, "max": 12.0},
+         "deadline_misses": 0 if error else 2, "solver_failures": 0, "fallbacks": 0, "shifted_plan": 0,
+         "steps": 0 if error else (CRASH_STEP if crashed else STEPS), "wall_time_s": 1.0, "scenario_spec": {}}
+    if not error:
+        r["trace"] = f"traces/{run_id}.npz"
+    return r
+
+
+def _evaluation() -> dict:
+    models = []
+    for name, pos in OPEN_LOOP.items():
+        by_step = list(pos * np.linspace(0.05, 2.0, 100))
+        states = ("x", "y", "z", "phi", "theta", "psi", "p", "q", "r", "vx", "vy", "vz")
+        theta_true = {"m": 0.068, "Jxx": 6.86e-5, "Jyy": 9.2e-5, "Jzz": 1.366e-4, "kt": 0.01, "kq": 7.83e-4}
+        models.append({
+            "name": name, "architecture": "proposed" if name == "alpha" else "baseline", "recipe": name,
+            "regime": "small",
+            "one_step": {**{s: 1e-3 for s in states}, "position": 1e-3},
+            "rollout_100": {**{s: pos for s in states}, "position": pos, "n_rollouts": 20, "n_diverged": 0,
+                            "position_by_step": by_step, "horizon": 100},
+            "theta": theta_true, "theta_true": theta_true,
+            "theta_err_pct": {k: 0.1 for k in theta_true}, "crlb_std": {k: 1e-3 * v for k, v in theta_true.items()},
+            "err_over_crlb": {k: 1.0 for k in theta_true}})
+    paper = {"table1": {"proposed": {"z_1": 0.026, "phi_1": 0.0002, "z_100": 0.029, "phi_100": 0.001}},
+             "table2_err_pct": {"m": 0.0, "kt": 0.0, "kq": 0.0, "Jxx": 5.0, "Jyy": 5.0, "Jzz": 5.0},
+             "table3_position_mae_m": {"proposed": 0.029}}
+    return {"models": models, "paper": paper}
+
+
+def _fisher() -> dict:
+    names = ["m", "Jxx", "Jyy", "Jzz", "kt", "kq"]
+    full = {"regime": "small", "inputs": "wrench", "n_samples": 1000, "rank": 6, "parameters": names,
+            "eigenvalues": [1e3, 1e4, 1e5, 1e5, 1e6, 1e7], "condition_number": 1e4,
+            "crlb_pct": {n: 0.1 for n in names}}
+    deficient = {"regime": "small", "inputs": "motor", "n_samples": 1000, "rank": 5, "parameters": names,
+                 "eigenvalues": [0.0, 1e4, 1e5, 1e5, 1e6, 1e7], "condition_number": 1e20,
+                 "crlb_pct": {n: None for n in names}}
+    return {"settings": {"n_traj": 2, "duration_s": 5.0, "seed": 0, "noise": {"position": 0.001}},
+            "cases": [full, deficient]}
+
+
+@pytest.fixture
+def results_dir(tmp_path):
+    """A small results folder: 12 runs (one crashed, one that could not start), 3 scenarios."""
+    rng = np.random.default_rng(7)
+    d = tmp_path / "results"
+    (d / "traces").mkdir(parents=True)
+    runs = []
+    for spec in RUNS:
+        r = _result(*spec)
+        runs.append(r)
+        if "trace" in r:
+            steps = CRASH_STEP if r["crashed"] else STEPS
+            np.savez_compressed(d / r["trace"], **_trace(r["scenario"], r["rmse_position_m"], steps, rng))
+    rng.shuffle(runs)   # the report must sort them itself
+    (d / "results.json").write_text(json.dumps({"plan": {"full": False}, "runs": runs}))
+    (d / "evaluation.json").write_text(json.dumps(_evaluation()))
+    (d / "fisher.json").write_text(json.dumps(_fisher()))
+    (d / "provenance.json").write_text(json.dumps({"git_commit": "0123456789abcdef", "model_sha256": {
+        "alpha": "a" * 64}, "stage_seconds": {"report": 1.5}}))
+    return d
+
+
+# ---- parsing helpers ---------------------------------------------------------------------------
+def _section(md: str, heading: str) -> str:
+    body = md.split(f"\n## {heading}\n", 1)[1]
+    return body.split("\n## ", 1)[0]
+
+
+def _cells(line: str) -> list[str]:
+    return [c.strip().replace("\\|", "|") for c in re.split(r"(?<!\\)\|", line.strip()[1:-1])]
+
+
+def _closed_loop_rows(md: str) -> list[list[str]]:
+    lines = [ln for ln in _section(md, "Closed-loop results").splitlines() if ln.startswith("|")]
+    head = _cells(lines[0])
+    assert tuple(head[:len(TABLE_HEAD)]) == TABLE_HEAD
+    return [_cells(ln) for ln in lines[2:]]
+
+
+# ---- tests -------------------------------------------------------------------------------------
+def test_report_contents(results_dir):
+    out = build_report(results_dir)
+    assert out == results_dir / "report.md"
+    md = out.read_text(encoding="utf-8")
+    page = (results_dir / "report.html").read_text(encoding="utf-8")
+
+    for h in HEADINGS:
+        assert f"\n## {h}\n" in md, h
+        assert f"<h2>{h}</h2>" in page, h
+
+    # one row per run, in report order, RMSE as saved, the crash and the error visible
+    rows = _closed_loop_rows(md)
+    assert len(rows) == len(RUNS)
+    by_key = {(s, c, m): (rmse, crashed, err) for s, c, m, rmse, crashed, err in RUNS}
+    expected_order = [k for k in ROW_ORDER if k in by_key]
+    got_order = [(r[0], next(c for c, lab in CONTROLLER_LABELS.items() if lab == r[1]), r[2]) for r in rows]
+    assert got_order == expected_order
+    for key, row in zip(got_order, rows):
+        rmse, crashed, err = by_key[key]
+        assert row[3] == (MISSING if rmse is None else RMSE_FORMAT.format(rmse)), key
+        if crashed:
+            assert row[5].startswith("crashed"), row
+            assert f"{CRASH_STEP * DT:.2f} s" in row[5]
+        elif err:
+            assert err in row[5], row
+        else:
+            assert row[5] == "no", row
+
+    # summary counts equal the input's
+    summary = _section(md, "Summary")
+    n_crashed = sum(1 for *_, crashed, err in RUNS if crashed and not err)
+    n_error = sum(1 for *_, err in RUNS if err)
+    assert int(re.search(r"Runs: (\d+)", summary).group(1)) == len(RUNS)
+    assert int(re.search(r"crashed: (\d+)", summary).group(1)) == n_crashed
+    assert int(re.search(r"could not start: (\d+)", summary).group(1)) == n_error
+
+    # figures: every referenced PNG exists; the HTML embeds the same number, none by path
+    refs = re.findall(r"!\[[^\]]*\]\((figures/[^)]+\.png)\)", md)
+    assert len(refs) == md.count("![")
+    assert "figures/headline.png" in refs
+    for rel in refs:
+        p = results_dir / rel
+        assert p.is_file(), rel
+        assert p.read_bytes()[:8] == PNG_MAGIC, rel
+    assert page.count(HTML_IMG) == len(refs)
+    assert HTML_REL not in page
+    assert "Table III is not shown" in _section(md, "Table III: ablation")
+
+
+def test_report_is_deterministic(results_dir):
+    build_report(results_dir)
+    first = {p.name: p.read_bytes() for p in [results_dir / "report.md", results_dir / "report.html"]}
+    build_report(results_dir)
+    assert first == {p.name: p.read_bytes() for p in [results_dir / "report.md", results_dir / "report.html"]}
+
+
+def test_missing_optional_pieces(results_dir):
+    """One scenario, no NMPC, no traces, no provenance: the report still builds."""
+    data = json.loads((results_dir / "results.json").read_text())
+    data["runs"] = [r for r in data["runs"] if r["scenario"] == "hover" and r["controller"] == "ltv"]
+    (results_dir / "results.json").write_text(json.dumps(data))
+    shutil.rmtree(results_dir / "traces")
+    (results_dir / "provenance.json").unlink()
+    md = build_report(results_dir).read_text(encoding="utf-8")
+    for h in HEADINGS:
+        assert f"\n## {h}\n" in md, h
+    assert len(_closed_loop_rows(md)) == len(data["runs"])
+    assert "not found" in _section(md, "Trajectories and tracking error")
+
+
+@pytest.mark.parametrize("name", REQUIRED)
+def test_missing_required_file_names_it(results_dir, name):
+    (results_dir / name).unlink()
+    with pytest.raises(ReportError, match=re.escape(name)) as info:
+        build_report(results_dir)
+    assert isinstance(info.value, ValueError)
