@@ -53,12 +53,17 @@ class Headline:
         over the non-crashed points of that controller.
     unmatched : list of str
         Models flown in closed loop that ``evaluation.json`` does not list.
+    per_scenario : dict
+        Controller -> {scenario: Spearman correlation across models}, for the
+        scenarios with at least 3 non-crashed learned models (scenario
+        difficulty then cancels out of the comparison).
     """
 
     points: list
     oracle_median_m: dict
     correlation: dict
     unmatched: list
+    per_scenario: dict
 
 
 def headline_data(runs: list[dict], models_by_name: dict) -> Headline:
@@ -84,7 +89,14 @@ def headline_data(runs: list[dict], models_by_name: dict) -> Headline:
     for c in sorted({p.controller for p in points}, key=controller_key):
         ok = [p for p in points if p.controller == c and not p.crashed]
         corr[c] = (spearman([p.open_loop_m for p in ok], [p.rmse_m for p in ok]), len(ok))
-    return Headline(points, oracle_median, corr, sorted(unmatched))
+    per_scenario: dict[str, dict] = {}
+    for c in corr:
+        for sc in sorted({p.scenario for p in points if p.controller == c}):
+            ok = [p for p in points if p.controller == c and p.scenario == sc and not p.crashed]
+            rho = spearman([p.open_loop_m for p in ok], [p.rmse_m for p in ok]) if len(ok) >= 3 else None
+            if rho is not None:
+                per_scenario.setdefault(c, {})[sc] = rho
+    return Headline(points, oracle_median, corr, sorted(unmatched), per_scenario)
 
 
 def correlation_text(h: Headline) -> str:
@@ -95,5 +107,14 @@ def correlation_text(h: Headline) -> str:
     for c, (rho, n) in h.correlation.items():
         parts.append(f"{controller_label(c)} {rho:+.2f} (n = {n})" if rho is not None
                      else f"{controller_label(c)} undefined (n = {n}; fewer than 3 runs or no spread)")
-    return ("Spearman rank correlation between 100-step open-loop position MAE and closed-loop position RMSE, "
+    text = ("Spearman rank correlation between 100-step open-loop position MAE and closed-loop position RMSE, "
             "over the non-crashed runs of the learned models, all scenarios pooled: " + "; ".join(parts) + ".")
+    per = []
+    for c, rhos in h.per_scenario.items():
+        v = sorted(rhos.values())
+        med = v[len(v) // 2] if len(v) % 2 else 0.5 * (v[len(v) // 2 - 1] + v[len(v) // 2])
+        per.append(f"{controller_label(c)}: median {med:+.2f} over {len(v)} scenarios, "
+                   f"positive in {sum(x > 0 for x in v)}, from {v[0]:+.2f} to {v[-1]:+.2f}")
+    if per:
+        text += (" Within one scenario (across models, so that scenario difficulty cancels): " + "; ".join(per) + ".")
+    return text

@@ -35,9 +35,9 @@ def register(sub) -> None:
     p = sub.add_parser("run", help="the main job: Tables I-III, every closed-loop run, the report",
                        description="Evaluates the shipped models (Tables I-III, Fisher bounds), flies every "
                                    "scenario with the LTV-MPC (oracle and every shipped model) and the LQR, and "
-                                   "the three base scenarios with the NMPC (every scenario with --full), then "
-                                   "writes DIR/report.md and DIR/report.html. About 7 minutes on 2 cores "
-                                   "(--full: about 25).")
+                                   "hover and figure8-fast with the NMPC (every scenario with --full), then "
+                                   "writes DIR/report.md and DIR/report.html. About 8 minutes on 2 cores "
+                                   "(--full: about an hour).")
     p.add_argument("--out", type=Path, default=Path("results/main"), help="results folder (default results/main)")
     p.add_argument("--jobs", type=int, default=None, help="worker processes (default: number of CPUs)")
     p.add_argument("--models", type=Path, default=Path("models"), help="folder of ONNX models (default models)")

@@ -275,3 +275,21 @@ def test_fly_bad_input_is_a_one_line_error(tmp_path, capsys):
     assert "unknown scenario 'circle'" in err and "Traceback" not in err
     assert main(["fly", "--model", str(tmp_path / "m.onnx"), "--controller", "ltv", "--scenario", "hover"]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
+    from scenarios.campaign import main_plan
+    from scenarios.cli import main
+
+    assert main(["report", str(tmp_path / "nothing")]) == 2
+    assert "not a folder" in capsys.readouterr().err
+    assert main(["run", "--out", str(tmp_path / "r"), "--jobs", "0"]) == 2
+    assert "--jobs" in capsys.readouterr().err
+    assert main(["run", "--out", str(tmp_path / "r"), "--models", str(tmp_path / "none")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+    specs = main_plan(MODELS)
+    nmpc = {s.scenario for s in specs if s.controller == "nmpc"}
+    assert nmpc == {"hover", "figure8-fast"}
+    assert {s.scenario for s in specs if s.controller == "ltv"} == set(scenario_names())
+    assert len({s.model_name for s in specs if s.controller == "ltv"}) == 1 + len(list(MODELS.glob("*.jac.onnx")))

@@ -1,0 +1,153 @@
+"""The main job (``pinnmpc run``): open-loop tables, Fisher bounds, the closed-loop sweep, the report.
+
+Layout of a results folder ``DIR``::
+
+    DIR/provenance.json     versions, machine, git commit, model hashes, seeds, command, wall times
+    DIR/fisher.json         Fisher information / CRLB table (as ``pinnmpc fisher --json``)
+    DIR/evaluation.json     Tables I and II of the shipped models (as ``pinnmpc evaluate --json``)
+    DIR/ablation.json       Table III (copied from models/ablation.json, produced by ``pinnmpc ablation``)
+    DIR/results.json        {"plan": ..., "runs": [one result per closed-loop run, as ``fly --json``]}
+    DIR/runs/<id>.json      the same results, one file per run
+    DIR/traces/<id>.npz     the trace of each run (t, x, x_ref, x_measured, u, u_command, solve_s, ...)
+    DIR/report.md, DIR/report.html, DIR/figures/*.png
+
+Which runs (``main_plan``): every scenario with the LTV-MPC on the oracle and
+on every shipped model, and with the LQR (oracle); the NMPC with the oracle
+and every shipped model on ``hover`` and ``figure8-fast`` only
+(:data:`NMPC_SCENARIOS`). An IPOPT solve takes 30-70 ms per control period
+on these machines, so the NMPC on all 18 scenarios would take about an hour
+on 2 cores; ``full=True`` (``pinnmpc run --full``) does it anyway.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from .errors import ScenarioError
+from .library import scenario_names
+from .runner import RunSpec, spec_dict, sweep
+
+#: Scenarios the NMPC flies in the main job (every scenario with ``full=True``).
+NMPC_SCENARIOS = ("hover", "figure8-fast")
+#: Time-dependent provenance fields (excluded when two runs are compared).
+PROVENANCE_TIMING = ("started", "finished", "wall_time_s", "stage_seconds")
+
+
+def shipped_models(models_dir) -> list[str]:
+    """Paths of the model files ``*.onnx`` (not ``*.jac.onnx``) in ``models_dir``, sorted."""
+    d = Path(models_dir)
+    if not d.is_dir():
+        raise ScenarioError(f"models folder {str(d)!r} does not exist")
+    files = sorted(str(p) for p in d.glob("*.onnx") if not p.name.endswith(".jac.onnx"))
+    if not files:
+        raise ScenarioError(f"no .onnx models in {str(d)!r}")
+    return files
+
+
+def main_plan(models_dir="models", full: bool = False, scenarios: list[str] | None = None) -> list[RunSpec]:
+    """The closed-loop runs of the main job (see the module docstring)."""
+    models = ["oracle"] + shipped_models(models_dir)
+    names = scenario_names() if scenarios is None else list(scenarios)
+    specs = []
+    for sc in names:
+        for m in models:
+            if full or sc in NMPC_SCENARIOS:
+                specs.append(RunSpec(sc, "nmpc", m))
+            specs.append(RunSpec(sc, "ltv", m))
+        specs.append(RunSpec(sc, "lqr", "oracle"))
+    return specs
+
+
+def _versions() -> dict:
+    from importlib import metadata
+
+    out = {"python": platform.python_version()}
+    for pkg in ("numpy", "scipy", "casadi", "onnx", "onnxruntime", "osqp", "control", "matplotlib"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            out[pkg] = None
+    return out
+
+
+def _git_commit() -> str | None:
+    try:
+        r = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
+                           cwd=Path(__file__).resolve().parent)
+        return r.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def provenance(models_dir) -> dict:
+    """Versions, machine, commit, model hashes and the manifest's training seeds."""
+    from .runner import _sha256
+
+    models = {Path(m).stem: _sha256(m) for m in shipped_models(models_dir)}
+    manifest = Path(models_dir) / "manifest.json"
+    seeds = {}
+    if manifest.is_file():
+        for name, entry in json.loads(manifest.read_text()).items():
+            if isinstance(entry, dict):
+                seeds[name] = {"seed": entry.get("seed"), "command": entry.get("command"),
+                               "data_seed": (entry.get("data") or {}).get("seed")}
+    return {"versions": _versions(), "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
+                                                 "processor": platform.processor() or platform.machine()},
+            "git_commit": _git_commit(), "model_sha256": models, "training": seeds,
+            "command": " ".join(["pinnmpc"] + sys.argv[1:]) if sys.argv else None}
+
+
+def _write(path: Path, obj) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(obj, indent=2) + "\n")
+
+
+def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bool = False,
+                 progress: bool = True, scenarios: list[str] | None = None) -> dict:
+    """Run everything and build the report; returns ``{"results": [...], "report": path}``."""
+    from reports import build_report
+
+    out = Path(out_dir)
+    jobs = max(1, os.cpu_count() or 1) if jobs is None else jobs
+    specs = main_plan(models_dir, full, scenarios)   # validates names and files before anything runs
+    out.mkdir(parents=True, exist_ok=True)
+    stages: dict[str, float] = {}
+    t_start = time.time()
+    prov = {"started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t_start)), "jobs": jobs, "full": full,
+            **provenance(models_dir)}
+
+    def stage(name):
+        if progress:
+            print(f"[{time.time() - t_start:6.0f} s] {name}", file=sys.stderr, flush=True)
+        stages[name] = time.time()
+
+    stage("Fisher information and Cramer-Rao bounds")
+    from sim.fisher import fisher_table
+    _write(out / "fisher.json", fisher_table(20, 10.0, 0, progress=False))
+    stage("open-loop evaluation of the shipped models (Tables I, II)")
+    from pinn.evaluate import evaluate_dir
+    _write(out / "evaluation.json", evaluate_dir(models_dir, progress=progress))
+    ablation = Path(models_dir) / "ablation.json"
+    if ablation.is_file():
+        shutil.copyfile(ablation, out / "ablation.json")
+    stage(f"closed-loop sweep: {len(specs)} runs on {jobs} processes")
+    results = sweep(specs, out, jobs=jobs, progress=progress)
+    _write(out / "results.json", {"plan": {"full": full, "models_dir": str(models_dir),
+                                           "specs": [spec_dict(s) for s in specs]}, "runs": results})
+    stage("report")
+    report = build_report(out)
+    t_end = time.time()
+    names = list(stages)
+    prov.update({"finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t_end)), "wall_time_s": t_end - t_start,
+                 "stage_seconds": {n: (stages[names[i + 1]] if i + 1 < len(names) else t_end) - stages[n]
+                                   for i, n in enumerate(names)}})
+    _write(out / "provenance.json", prov)
+    build_report(out)   # again, now with the wall times in the provenance section
+    return {"results": results, "report": report}
