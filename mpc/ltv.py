@@ -97,6 +97,8 @@ class LTVMPC(MPCBase):
         if self.s.time_limit_s > 0:
             settings_["time_limit"] = self.s.time_limit_s
         self._solver.setup(self._H, np.zeros(self._H.shape[0]), self._A0, self._l0, self._u0, **settings_)
+        self._q_u = -np.tile(self.R @ self.u_hover, N)        # constant part of the linear cost
+        self._Minv = np.linalg.inv(mixer_matrix(self.p))     # wrench -> rotor speeds squared
         self._plan_x: np.ndarray | None = None
         self._plan_u: np.ndarray | None = None
         self._z: np.ndarray | None = None
@@ -179,24 +181,17 @@ class LTVMPC(MPCBase):
         N = self.N
         with Timer() as tm:
             xb, ub = self._nominal(x)
-            fx, A, B = self.model.linearize(xb, ub)
-            c = fx - np.einsum("kij,kj->ki", A, xb) - np.einsum("kij,kj->ki", B, ub)
-            vals = self._vals.copy()
-            vals[self._idx_A] = A.ravel()
-            vals[self._idx_B] = B.ravel()
-            lo, hi = self._l0.copy(), self._u0.copy()
-            lo[:NX] = hi[:NX] = x
-            lo[NX:self._n_eq] = hi[NX:self._n_eq] = -c.ravel()
             ref = self.reference(t + DT * np.arange(N + 1))
-            q = np.concatenate([-(ref[:N] @ self.Q).ravel(), -(self.P @ ref[N]),
-                                -np.tile(self.R @ self.u_hover, N)])
-            self._solver.update(q=q, l=lo, u=hi, Ax=vals[self._perm])
-            if self._z is not None:
-                self._solver.warm_start(x=self._shifted(self._z))
-            res = self._solver.solve(raise_error=False)  # failure is data: handled below
-            status = res.info.status
-            solved = (self._status.OSQP_SOLVED, self._status.OSQP_SOLVED_INACCURATE)
-            ok = res.info.status_val in solved and res.x is not None and np.all(np.isfinite(res.x))
+            with np.errstate(all="ignore"):
+                fx, A, B = self.model.linearize(xb, ub)
+            finite = np.all(np.isfinite(fx)) and np.all(np.isfinite(A)) and np.all(np.isfinite(B))
+            if finite:
+                res = self._solve_qp(x, ref, xb, ub, fx, A, B)
+                status, iterations = res.info.status, int(res.info.iter)
+                solved = (self._status.OSQP_SOLVED, self._status.OSQP_SOLVED_INACCURATE)
+                ok = res.info.status_val in solved and res.x is not None and np.all(np.isfinite(res.x))
+            else:  # a model that returns NaN/inf along the plan: a failed period, OSQP never sees it
+                status, iterations, ok = "non-finite model output", 0, False
             if ok:
                 z = res.x
                 self._z = z
@@ -216,10 +211,28 @@ class LTVMPC(MPCBase):
                     self._plan_u = np.vstack([self._plan_u[1:], self._plan_u[-1:]])
                     u = self._plan_u[0]
                 info_status = status
-            u = realize(u, self.p).wrench  # exact projection onto the rotor-feasible set
-        return u, ControlInfo(solve_time_s=tm.elapsed, status=info_status, iterations=int(res.info.iter),
+            n_sq = self._Minv @ u
+            if not (np.all(n_sq >= 0.0) and np.all(n_sq <= self.p.n_max_sq)):
+                u = realize(u, self.p).wrench  # exact projection onto the rotor-feasible set
+        return u, ControlInfo(solve_time_s=tm.elapsed, status=info_status, iterations=iterations,
                               predicted=None if self._plan_x is None else self._plan_x.copy(), fallback=fallback,
                               extra={"counts": dict(self.counts)})
+
+    def _solve_qp(self, x, ref, xb, ub, fx, A, B):
+        """Update the QP's values for this period and solve it (warm-started); OSQP's result."""
+        N = self.N
+        c = fx - (A @ xb[:, :, None])[:, :, 0] - (B @ ub[:, :, None])[:, :, 0]
+        vals = self._vals.copy()
+        vals[self._idx_A] = A.ravel()
+        vals[self._idx_B] = B.ravel()
+        lo, hi = self._l0.copy(), self._u0.copy()
+        lo[:NX] = hi[:NX] = x
+        lo[NX:self._n_eq] = hi[NX:self._n_eq] = -c.ravel()
+        q = np.concatenate([-(ref[:N] @ self.Q).ravel(), -(self.P @ ref[N]), self._q_u])
+        self._solver.update(q=q, l=lo, u=hi, Ax=vals[self._perm])
+        if self._z is not None:
+            self._solver.warm_start(x=self._shifted(self._z))
+        return self._solver.solve(raise_error=False)  # failure is data: the caller handles it
 
     def update_settings(self, **settings) -> None:
         """Change OSQP settings between periods (for example ``max_iter`` or ``time_limit``)."""

@@ -116,7 +116,7 @@ def fly(spec: RunSpec, progress: bool = False) -> tuple[dict, dict]:
     Ucmd = np.full((K, NU), np.nan)
     solve_s = np.zeros(K)
     iters = np.zeros(K, dtype=np.int64)
-    status = np.full(K, "", dtype="<U24")
+    status = np.full(K, "", dtype="<U40")
     failed = np.zeros(K, dtype=bool)
     lqr_fb = np.zeros(K, dtype=bool)
     crash_step, why, error = None, None, None
@@ -188,8 +188,10 @@ def save_run(result: dict, trace: dict, out_dir: Path) -> dict:
     out_dir = Path(out_dir)
     (out_dir / "runs").mkdir(parents=True, exist_ok=True)
     (out_dir / "traces").mkdir(parents=True, exist_ok=True)
-    rel = f"traces/{result['run_id']}.npz"
-    np.savez_compressed(out_dir / rel, **trace)
+    rel = None
+    if trace:
+        rel = f"traces/{result['run_id']}.npz"
+        np.savez_compressed(out_dir / rel, **trace)
     result = {**result, "trace": rel}
     (out_dir / "runs" / f"{result['run_id']}.json").write_text(json.dumps(result, indent=2, sort_keys=True) + "\n")
     return result
@@ -203,7 +205,7 @@ def _worker_init() -> None:
 def _run_and_save(spec: RunSpec, out_dir: str) -> dict:
     try:
         result, trace = fly(spec)
-    except ValueError as e:  # bad model file etc.: recorded, the sweep goes on
+    except Exception as e:  # noqa: BLE001 - a run that cannot fly is recorded and the sweep goes on
         result = {"run_id": spec.run_id, "scenario": spec.scenario, "controller": spec.controller,
                   "model": spec.model_name, "error": f"{type(e).__name__}: {e}", "crashed": False,
                   "crash_time_s": None, "rmse_position_m": None, "max_position_error_m": None, "solve_ms": None,

@@ -118,3 +118,35 @@ def test_bad_model_and_state_are_clear_errors():
         LTVMPC("models/baseline.onnx")
     with pytest.raises(ValueError, match="x must be finite"):
         LTVMPC(AnalyticModel())(np.full(12, np.inf), 0.0)
+
+
+class _NaNAfter(LinearModel):
+    """The linear hover model that starts returning NaN after ``n`` linearizations."""
+
+    def __init__(self, n):
+        from mpc.lqr import hover_linearization
+        A, B = hover_linearization()
+        x0, u0 = hover_point()
+        super().__init__(A, B, x0, u0)
+        self.left = n
+
+    def linearize(self, x, u):
+        xn, A, B = super().linearize(x, u)
+        self.left -= 1
+        if self.left < 0:
+            A = A.copy()
+            A[:, 0, 0] = np.nan
+        return xn, A, B
+
+
+def test_a_model_returning_nan_is_a_counted_failure_not_an_exception():
+    model = _NaNAfter(2)
+    mpc = LTVMPC(AnalyticModel())
+    mpc.model = model            # the LQR fallback keeps the analytic gain; only the prediction breaks
+    x = hover_point()[0].copy()
+    x[0] = 0.3
+    statuses = [mpc(x, 0.01 * k)[1] for k in range(5)]
+    assert [i.status for i in statuses[:2]] == ["optimal", "optimal"]
+    assert all(i.status == "non-finite model output" for i in statuses[2:])
+    assert [i.fallback for i in statuses[2:]] == ["shifted_plan", "shifted_plan", "lqr"]
+    assert mpc.counts == {"solver_failures": 3, "shifted_plan": 2, "lqr_fallback": 1}
