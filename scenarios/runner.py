@@ -94,17 +94,22 @@ def make_controller(kind: str, model, reference, p: QuadParams | None = None, ho
     raise ScenarioError(f"controller must be one of {', '.join(CONTROLLERS)}; found {kind!r}")
 
 
-def fly(spec: RunSpec, progress: bool = False) -> tuple[dict, dict]:
+def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tuple[dict, dict]:
     """Fly one closed-loop run; ``(result, trace)``.
 
     Raises only for bad input (unknown names, a model that fails the
     contract); everything that happens in flight is recorded.
+
+    ``scenario`` (a :class:`scenarios.library.Scenario`) replaces the named
+    scenario's data, for example with a perturbed initial state; ``model`` (a
+    loaded :class:`mpc.models.PredictionModel`) saves loading ``spec.model`` again.
     """
     from mpc.models import load_model
     from sim import Simulator
 
-    sc = get_scenario(spec.scenario, spec.seed)
-    model = load_model(spec.model)          # contract errors raise here, before anything flies
+    sc = get_scenario(spec.scenario, spec.seed) if scenario is None else scenario
+    if model is None:
+        model = load_model(spec.model)      # contract errors raise here, before anything flies
     ref = sc.reference()
     p = QuadParams()
     K = sc.steps

@@ -293,3 +293,14 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     assert nmpc == {"hover", "figure8-fast"}
     assert {s.scenario for s in specs if s.controller == "ltv"} == set(scenario_names())
     assert len({s.model_name for s in specs if s.controller == "ltv"}) == 1 + len(list(MODELS.glob("*.jac.onnx")))
+
+
+def test_perturbed_starts_of_a_well_posed_case_agree():
+    from scenarios.sensitivity import perturbed_rmse
+
+    rows = perturbed_rmse(RunSpec("figure8-fast", "lqr", "oracle"), trials=3, step_m=1e-9)
+    assert [r["offset_m"] for r in rows] == [0.0, 1e-9, 2e-9]
+    rm = [r["rmse_position_m"] for r in rows]
+    assert max(rm) - min(rm) < 1e-8 and not any(r["crashed"] for r in rows)
+    base, _ = fly(RunSpec("figure8-fast", "lqr", "oracle"))
+    assert rm[0] == base["rmse_position_m"]          # trial 0 is the scenario itself
