@@ -18,6 +18,8 @@ import numpy as np  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter  # noqa: E402
 
+from scenarios.metrics import position_errors  # noqa: E402
+
 from .headline import Headline  # noqa: E402
 from .labels import (BASE_SCENARIOS, DT_S, ORACLE, base_scenario, controller_key,  # noqa: E402
                      controller_label, model_key, sorted_unique)
@@ -166,7 +168,8 @@ def headline_figure(h: Headline, run_dir: Path) -> FigureOut | None:
 
 
 def _position_error(tr: dict) -> np.ndarray:
-    e = np.linalg.norm(tr["x"][:, 0:3] - tr["x_ref"][:, 0:3], axis=1)
+    with np.errstate(invalid="ignore"):
+        e = position_errors(tr["x"], tr["x_ref"])
     return np.where(np.isfinite(e), np.maximum(e, LOG_FLOOR_M), np.nan)
 
 

@@ -9,18 +9,18 @@ oracle first, then alphabetically).
 
 from __future__ import annotations
 
-#: Base scenarios in report order.
-BASE_SCENARIOS = ("hover", "figure8-slow", "figure8-fast")
-#: Scenario variant suffixes (after ``+``) in report order.
-VARIANTS = ("highfi", "payload", "wind", "noise", "delay")
-#: Controllers in report order.
-CONTROLLERS = ("nmpc", "ltv", "lqr")
+from scenarios.library import BASE, VARIANTS  # noqa: F401  (VARIANTS: the variant order, re-exported)
+from scenarios.runner import CONTROLLERS
+from sim.params import DT
+
+#: Base scenarios in report order (the order of :data:`scenarios.library.BASE`).
+BASE_SCENARIOS = tuple(BASE)
 #: Display names of the controllers.
 CONTROLLER_LABELS = {"nmpc": "NMPC", "ltv": "LTV-MPC", "lqr": "LQR"}
 #: The model name of the true (simulator) equations.
 ORACLE = "oracle"
 #: Control period, s (DESIGN section 3); the deadline of one controller solve.
-DT_S = 0.01
+DT_S = DT
 
 
 def base_scenario(name: str) -> str:
