@@ -13,7 +13,6 @@ Nothing is asserted; the figures are written as JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
@@ -22,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from sim import Simulator
+from sim.files import write_json
 from sim.params import DT, NX
 
 from .controller import figure8_reference, hover_reference
@@ -109,7 +109,7 @@ def main(argv=None) -> int:
                 print(f"{kind:<6}{name:<22}{case:<10}{s['median']:>8.2f}{s['p95']:>8.2f}{s['max']:>8.1f}   "
                       f"{r['deadline_misses']:>8}{r['solver_failures']:>6}{r['fallbacks']:>6}"
                       f"{r['rmse_position_m']:>9.4f}{fl:>10.0f}")
-    args.json.write_text(json.dumps(out, indent=2) + "\n")
+    write_json(args.json, out)
     print(f"wrote {args.json}")
     return 0
 

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
+
+from sim.files import write_json
 
 
 def register(sub) -> None:
@@ -17,11 +18,6 @@ def register(sub) -> None:
     p.add_argument("file", metavar="FILE", type=Path, help="the .onnx model file")
     p.add_argument("--json", metavar="FILE", type=Path, default=None, help="write what the model declares as JSON")
     p.set_defaults(handler=cmd_check_model)
-
-
-def _write_json(path: Path, obj) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(obj, indent=2) + "\n")
 
 
 def format_model_info(info) -> str:
@@ -48,6 +44,6 @@ def cmd_check_model(args: argparse.Namespace) -> int:
     info = check_model(args.file)
     print(format_model_info(info))
     if args.json:
-        _write_json(args.json, info.to_dict())
+        write_json(args.json, info.to_dict())
         print(f"wrote {args.json}")
     return 0

@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.files import write_json
+
 ARCHS = ("baseline", "modular", "fourier", "proposed")
 
 
@@ -115,7 +117,7 @@ def main(argv=None) -> int:
     ratio = paths["casadi_symbolic_import_jac_us"] / paths["ort_jac_graph_batch1_us"]
     print(f"derivative graph vs CasADi symbolic import, one stage: {ratio:.1f}x faster; a 30-stage horizon in one "
           f"ORT call costs {paths['ort_jac_graph_batch30_us'] / 30:.0f} us per stage")
-    args.json.write_text(json.dumps(out, indent=2) + "\n")
+    write_json(args.json, out)
     print(f"wrote {args.json}")
     return 0
 

@@ -11,6 +11,8 @@ import os
 import sys
 from pathlib import Path
 
+from sim.files import write_json
+
 ARCHS = ("baseline", "modular", "fourier", "proposed")
 
 
@@ -177,8 +179,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     result = evaluate_dir(args.folder, args.data, progress=sys.stderr.isatty())
     print(format_tables(result))
     out = args.json or args.folder / "evaluation.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(out, result)
     print(f"\nwrote {out}")
     return 0
 
@@ -257,9 +258,7 @@ def cmd_ablation(args: argparse.Namespace) -> int:
                      "one_step_mae": metrics["one_step_mae"], "theta_err_pct": th_err,
                      "training_seconds": round(secs, 1), "config": cfg, "reused_from_models": reused})
     out = {"profile": args.profile, "seed": args.seed, "data": spec, "rows": rows}
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "ablation.json"
-    path.write_text(json.dumps(out, indent=2) + "\n")
+    path = write_json(args.out / "ablation.json", out)
     print("Table III: 100-step position MAE on the test split (ours | paper)\n")
     print(f"{'configuration':<34}{'MAE (m)':>10}{'improvement':>13} | {'paper MAE':>9}{'paper impr.':>12}")
     for r in rows:

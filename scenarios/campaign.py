@@ -30,6 +30,8 @@ import sys
 import time
 from pathlib import Path
 
+from sim.files import write_json
+
 from .errors import ScenarioError
 from .library import scenario_names
 from .runner import RunSpec, spec_dict, sweep
@@ -104,11 +106,6 @@ def provenance(models_dir) -> dict:
             "command": " ".join(["pinnmpc"] + sys.argv[1:]) if sys.argv else None}
 
 
-def _write(path: Path, obj) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(obj, indent=2) + "\n")
-
-
 def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bool = False,
                  progress: bool = True, scenarios: list[str] | None = None) -> dict:
     """Run everything and build the report; returns ``{"results": [...], "report": path}``."""
@@ -130,16 +127,16 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
 
     stage("Fisher information and Cramer-Rao bounds")
     from sim.fisher import fisher_table
-    _write(out / "fisher.json", fisher_table(20, 10.0, 0, progress=False))
+    write_json(out / "fisher.json", fisher_table(progress=False))
     stage("open-loop evaluation of the shipped models (Tables I, II)")
     from pinn.evaluate import evaluate_dir
-    _write(out / "evaluation.json", evaluate_dir(models_dir, progress=progress))
+    write_json(out / "evaluation.json", evaluate_dir(models_dir, progress=progress))
     ablation = Path(models_dir) / "ablation.json"
     if ablation.is_file():
         shutil.copyfile(ablation, out / "ablation.json")
     stage(f"closed-loop sweep: {len(specs)} runs on {jobs} processes")
     results = sweep(specs, out, jobs=jobs, progress=progress)
-    _write(out / "results.json", {"plan": {"full": full, "models_dir": str(models_dir),
+    write_json(out / "results.json", {"plan": {"full": full, "models_dir": str(models_dir),
                                            "specs": [spec_dict(s) for s in specs]}, "runs": results})
     stage("report")
     report = build_report(out)
@@ -148,6 +145,6 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
     prov.update({"finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t_end)), "wall_time_s": t_end - t_start,
                  "stage_seconds": {n: (stages[names[i + 1]] if i + 1 < len(names) else t_end) - stages[n]
                                    for i, n in enumerate(names)}})
-    _write(out / "provenance.json", prov)
+    write_json(out / "provenance.json", prov)
     build_report(out)   # again, now with the wall times in the provenance section
     return {"results": results, "report": report}

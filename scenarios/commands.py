@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
+
+from sim.files import write_json
 
 #: Fields printed by ``pinnmpc fly`` (DESIGN section 13), in order.
 FLY_FIELDS = ("scenario", "controller", "model", "rmse_position_m", "max_position_error_m", "crashed",
@@ -80,8 +81,7 @@ def cmd_fly(args: argparse.Namespace) -> int:
     if result["error"]:
         print(f"{'error':<22}{result['error']}")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=2) + "\n")
+        write_json(args.json, result)
         print(f"wrote {args.json}")
     if args.trace:
         args.trace.parent.mkdir(parents=True, exist_ok=True)

@@ -13,10 +13,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 from pathlib import Path
 
-import numpy as np
+from sim.files import write_json
 
 from .runner import CONTROLLERS, HORIZON, RunSpec, fly
 
@@ -65,7 +64,7 @@ def main(argv=None) -> int:
     print(f"{spec.run_id}: RMSE {min(rm):.4f}-{max(rm):.4f} m over {len(rows)} starts "
           f"(spread {max(rm) - min(rm):.2g} m), crashes {sum(r['crashed'] for r in rows)}")
     if args.json:
-        args.json.write_text(json.dumps({"spec": dataclasses.asdict(spec), "trials": rows}, indent=2) + "\n")
+        write_json(args.json, {"spec": dataclasses.asdict(spec), "trials": rows})
         print(f"wrote {args.json}")
     return 0
 

@@ -10,7 +10,6 @@ the target (default dataset under 10 s on 2 cores) is compared and printed.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
@@ -20,6 +19,7 @@ import numpy as np
 
 from . import HIGH_FIDELITY, NOMINAL, QuadParams, Simulator, __version__
 from .excitation import make_dataset
+from .files import write_json
 
 DATASET_TARGET_S = 10.0
 
@@ -67,7 +67,7 @@ def main(argv=None) -> int:
         out[f"default_dataset_seconds_{regime}"] = best
         verdict = "meets" if best < DATASET_TARGET_S else "MISSES"
         print(f"default dataset {regime:<10} (100 x 10 s): {best:6.2f} s  ({verdict} the {DATASET_TARGET_S:g} s target)")
-    args.json.write_text(json.dumps(out, indent=2) + "\n")
+    write_json(args.json, out)
     print(f"wrote {args.json}")
     return 0
 

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
+from .files import write_json
 from .params import THETA_NAMES
 
 
@@ -37,11 +37,6 @@ def register(sub) -> None:
     p.set_defaults(handler=cmd_fisher)
 
 
-def _write_json(path: Path, obj) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(obj, indent=2, sort_keys=False) + "\n")
-
-
 def cmd_data(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc data``."""
     from .excitation import make_dataset
@@ -65,7 +60,7 @@ def cmd_data(args: argparse.Namespace) -> int:
     print(f"  max |body rate| {s['max_abs_body_rate_rad_s']:.2f} rad/s, max speed {s['max_speed_m_s']:.2f} m/s, "
           f"samples with a saturated rotor {100 * s['saturation_fraction']:.2f} %")
     if args.json:
-        _write_json(args.json, {"out": str(args.out), **s})
+        write_json(args.json, {"out": str(args.out), **s})
     return 0
 
 
@@ -106,6 +101,6 @@ def cmd_fisher(args: argparse.Namespace) -> int:
     table = fisher_table(args.n_traj, args.duration, args.seed, progress=sys.stderr.isatty())
     print(format_fisher_table(table))
     if args.json:
-        _write_json(args.json, table)
+        write_json(args.json, table)
         print(f"\nwrote {args.json}")
     return 0
