@@ -88,6 +88,7 @@ class LTVMPC(MPCBase):
         N = self.s.horizon
         self.N = N
         self.nx_var = (N + 1) * NX
+        self._Minv = np.linalg.inv(mixer_matrix(self.p))     # wrench -> rotor speeds squared
         self._build_pattern()
         self._status = osqp.SolverStatus
         self._solver = osqp.OSQP()
@@ -98,7 +99,6 @@ class LTVMPC(MPCBase):
             settings_["time_limit"] = self.s.time_limit_s
         self._solver.setup(self._H, np.zeros(self._H.shape[0]), self._A0, self._l0, self._u0, **settings_)
         self._q_u = -np.tile(self.R @ self.u_hover, N)        # constant part of the linear cost
-        self._Minv = np.linalg.inv(mixer_matrix(self.p))     # wrench -> rotor speeds squared
         self._plan_x: np.ndarray | None = None
         self._plan_u: np.ndarray | None = None
         self._z: np.ndarray | None = None
@@ -138,9 +138,8 @@ class LTVMPC(MPCBase):
         self._n_eq = r
         lo, hi = [np.zeros(r)], [np.zeros(r)]
         if self.s.constraints:
-            Minv = np.linalg.inv(mixer_matrix(self.p))
             for k in range(N):
-                add(r, self._ui(k), Minv)
+                add(r, self._ui(k), self._Minv)
                 r += NU
             lo.append(np.zeros(N * NU))
             hi.append(np.full(N * NU, self.p.n_max_sq))

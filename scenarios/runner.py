@@ -36,6 +36,10 @@ from .library import get_scenario
 from .metrics import closed_loop_metrics, crash_reason
 
 CONTROLLERS = ("nmpc", "ltv", "lqr")
+#: Metrics of a run that never flew (its controller could not be built, or the run raised).
+NOT_FLOWN = {"rmse_position_m": None, "max_position_error_m": None, "crashed": False, "crash_time_s": None,
+             "crash_reason": None, "solve_ms": None, "deadline_misses": 0, "solver_failures": 0, "fallbacks": 0,
+             "steps": 0}
 #: MPC horizon of every run unless stated, steps of DT.
 HORIZON = 30
 
@@ -177,9 +181,7 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
         metrics = closed_loop_metrics(X[:k_end + 1], X_ref[:k_end + 1], solve_s[:k_end], failed[:k_end],
                                       lqr_fb[:k_end], crash_step, why)
     else:
-        metrics = {"rmse_position_m": None, "max_position_error_m": None, "crashed": False, "crash_time_s": None,
-                   "crash_reason": None, "solve_ms": None, "deadline_misses": 0, "solver_failures": 0,
-                   "fallbacks": 0, "steps": 0}
+        metrics = dict(NOT_FLOWN)
     result = {**base, **metrics, "shifted_plan": int(np.sum(failed[:k_end] & ~lqr_fb[:k_end])),
               "error": error, "wall_time_s": wall, "scenario_spec": sc.to_dict()}
     trace = {"t": t_all[:k_end + 1], "x": X[:k_end + 1], "x_ref": X_ref[:k_end + 1], "x_measured": Xm[:k_end],
@@ -212,9 +214,7 @@ def _run_and_save(spec: RunSpec, out_dir: str) -> dict:
         result, trace = fly(spec)
     except Exception as e:  # noqa: BLE001 - a run that cannot fly is recorded and the sweep goes on
         result = {"run_id": spec.run_id, "scenario": spec.scenario, "controller": spec.controller,
-                  "model": spec.model_name, "error": f"{type(e).__name__}: {e}", "crashed": False,
-                  "crash_time_s": None, "rmse_position_m": None, "max_position_error_m": None, "solve_ms": None,
-                  "deadline_misses": 0, "solver_failures": 0, "fallbacks": 0, "steps": 0}
+                  "model": spec.model_name, **NOT_FLOWN, "error": f"{type(e).__name__}: {e}"}
         trace = {}
     return save_run(result, trace, Path(out_dir))
 
