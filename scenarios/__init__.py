@@ -1,4 +1,6 @@
-"""Closed-loop scenarios, the runner, metrics and the ``pinnmpc`` command line (DESIGN section 10)."""
+"""Closed-loop scenarios, the runner, metrics and the ``pinnmpc`` command line."""
+
+import sim  # noqa: F401  (first: it pins the BLAS kernel before numpy loads)
 
 from .library import Scenario, get_scenario, scenario_names
 

@@ -1,5 +1,6 @@
 """Shared fixtures: small seeded datasets, built once per test session."""
 
+import sim  # noqa: F401  (first: it pins the BLAS kernel before numpy loads, as every entry point does)
 import numpy as np
 import pytest
 
