@@ -1,4 +1,4 @@
-"""The ONNX model contract (DESIGN section 8) and its checker.
+"""The ONNX model contract and its checker.
 
 A model file maps one control period of the quadrotor::
 

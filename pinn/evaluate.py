@@ -20,7 +20,7 @@ from sim.params import THETA_NAMES, NoiseModel, QuadParams
 
 from .metrics import one_step_mae, rollout_mae
 
-#: The paper's claims (its Tables I-III); numbers to compare with, not ground truth (DESIGN section 12).
+#: The paper's claims (its Tables I-III); numbers to compare with, not ground truth (the paper's public code had known defects).
 PAPER_TABLE1 = {  # 1-step and 100-step MAE: z (m), phi (rad)
     "baseline": {"z_1": 0.087, "phi_1": 0.0008, "z_100": 1.49, "phi_100": 0.018},
     "modular": {"z_1": 0.041, "phi_1": 0.0005, "z_100": 30.0, "phi_100": 0.24},

@@ -1,7 +1,7 @@
-"""ONNX export of trained models (DESIGN section 8).
+"""ONNX export of trained models.
 
 ``export_model`` writes, in float64 (IPOPT needs exact derivatives; a float32
-model made it fail, DESIGN section 9):
+model made it fail):
 
 * ``<name>.onnx``: ``x`` [B, 12], ``u`` [B, 4] -> ``x_next`` [B, 12] with the
   normalization inside, a dynamic batch and the metadata of the contract;

@@ -1,4 +1,4 @@
-"""Accuracy metrics of a one-step model (DESIGN section 6), always on the test split.
+"""Accuracy metrics of a one-step model, always on the test split.
 
 A model is any ``step(x, u) -> x_next`` on numpy arrays (B, 12), (B, 4) ->
 (B, 12): a torch model wrapped by :func:`torch_step`, or an ONNX file through

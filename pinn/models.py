@@ -1,4 +1,4 @@
-"""The four PINN architectures (DESIGN section 6).
+"""The four PINN architectures.
 
 All predict the next state in the residual form
 

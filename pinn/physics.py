@@ -1,7 +1,7 @@
-"""Quadrotor dynamics, torch backend (DESIGN section 4), for the physics losses.
+"""Quadrotor dynamics, torch backend, for the physics losses.
 
 The third backend of the nominal model, beside :mod:`sim.dynamics` (numpy)
-and :mod:`sim.dynamics_casadi`; ``tests/test_pinn_physics.py`` holds it equal
+and :mod:`sim.dynamics_casadi`; ``tests/test_pinn.py`` (``test_torch_dynamics_equals_numpy``) holds it equal
 to the numpy one. Parameters ``theta = (m, Jxx, Jyy, Jzz, kt, kq)`` are
 tensors so that the physics residual can be differentiated with respect to
 them.

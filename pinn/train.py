@@ -1,4 +1,4 @@
-"""Physics-informed training with parameter identification (DESIGN section 6).
+"""Physics-informed training with parameter identification.
 
 Loss per optimizer step::
 

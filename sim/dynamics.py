@@ -1,4 +1,4 @@
-"""Rigid-body quadrotor dynamics, numpy backend (DESIGN section 4).
+"""Rigid-body quadrotor dynamics, numpy backend.
 
 ``dynamics(x, u, p)`` is the nominal model shared by the simulator, the data
 and the physics checks; :mod:`sim.dynamics_casadi` is the same model written

@@ -1,4 +1,4 @@
-"""Rigid-body quadrotor dynamics, CasADi backend (DESIGN section 4).
+"""Rigid-body quadrotor dynamics, CasADi backend.
 
 The same nominal model as :func:`sim.dynamics.dynamics`, written with CasADi
 operations so that it can be differentiated (Fisher information, MPC).

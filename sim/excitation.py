@@ -1,6 +1,6 @@
 """Excitation data: a stabilizing controller flies seeded random references.
 
-DESIGN section 5. Each trajectory has its own random generator spawned from
+Each trajectory has its own random generator spawned from
 the dataset seed, so trajectory ``i`` is the same whatever ``n_traj`` is.
 The closed loop runs on the true state; the logged states and rotor speeds
 then get measurement noise from an independent stream, so a noise-free

@@ -1,6 +1,6 @@
 """Fisher information and Cramer-Rao bounds for (m, Jxx, Jyy, Jzz, kt, kq).
 
-DESIGN section 7. The measurement model is the one a one-step identifier
+The measurement model is the one a one-step identifier
 (the PINN's data loss) uses: each logged transition gives
 
     y_k = x_{k+1} = F(x_k, u_k; theta) + e_k,

@@ -2,7 +2,7 @@
 
 All three are frozen dataclasses: build a variant with
 ``dataclasses.replace(p, m=0.08)`` or ``QuadParams(m=0.08)``.
-Reference values are the Parrot Rolling Spider values of DESIGN section 3.
+Reference values are those of the Parrot Rolling Spider.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from ._validate import nonnegative_finite, positive_finite
 #: (Fisher information, PINN theta-hat, ONNX metadata).
 THETA_NAMES = ("m", "Jxx", "Jyy", "Jzz", "kt", "kq")
 
-#: State and input names (DESIGN section 3): NED world frame, ZYX Euler angles.
+#: State and input names: NED world frame, ZYX Euler angles.
 STATE_NAMES = ("x", "y", "z", "phi", "theta", "psi", "p", "q", "r", "vx", "vy", "vz")
 INPUT_NAMES = ("T", "tau_x", "tau_y", "tau_z")
 NX = 12

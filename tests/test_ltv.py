@@ -1,4 +1,4 @@
-"""LTV-MPC with OSQP (issue 4, second part)."""
+"""LTV-MPC with OSQP."""
 
 from pathlib import Path
 

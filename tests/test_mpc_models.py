@@ -1,4 +1,4 @@
-"""Prediction models and LQR of mpc/ (issue 4, first part)."""
+"""Prediction models and LQR of mpc/."""
 
 import shutil
 import subprocess

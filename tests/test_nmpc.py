@@ -1,4 +1,4 @@
-"""NMPC with CasADi + IPOPT (issue 4, third part)."""
+"""NMPC with CasADi + IPOPT."""
 
 from pathlib import Path
 

@@ -1,4 +1,4 @@
-"""PINN models, physics losses, schedules, training and metrics (issue 3)."""
+"""PINN models, physics losses, schedules, training and metrics."""
 
 import numpy as np
 import pytest
