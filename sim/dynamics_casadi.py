@@ -19,7 +19,7 @@ def _get(p, name):
     return p[name] if isinstance(p, Mapping) else getattr(p, name)
 
 
-def dynamics_casadi(x, u, p=None):
+def dynamics_casadi(x, u, p=None, accel=None):
     """Symbolic ``dx/dt`` of the nominal model.
 
     Parameters
@@ -31,6 +31,8 @@ def dynamics_casadi(x, u, p=None):
     p : QuadParams or mapping, optional
         Parameters; a mapping may hold CasADi symbols for any of ``m, Jxx,
         Jyy, Jzz, kt, kq, g, c_d, d``. Reference values when omitted.
+    accel : casadi expression, shape (3, 1), optional
+        Extra world-frame acceleration (wind), m/s^2.
 
     Returns
     -------
@@ -61,6 +63,8 @@ def dynamics_casadi(x, u, p=None):
     ax = -tm * (cpsi * sth * cphi + spsi * sphi) - c_d * vx * ca.fabs(vx)
     ay = -tm * (spsi * sth * cphi - cpsi * sphi) - c_d * vy * ca.fabs(vy)
     az = g - tm * (cth * cphi) - c_d * vz * ca.fabs(vz)
+    if accel is not None:
+        ax, ay, az = ax + accel[0], ay + accel[1], az + accel[2]
     return ca.vertcat(vx, vy, vz, phid, thd, psid, pd, qd, rd, ax, ay, az)
 
 
@@ -84,7 +88,8 @@ def rk4_casadi(f, x, h, n):
 
 
 def step_function(p: QuadParams | None = None, *, symbolic_theta: bool = False,
-                  inputs: str = "wrench", dt: float = DT, substeps: int = SUBSTEPS) -> ca.Function:
+                  inputs: str = "wrench", dt: float = DT, substeps: int = SUBSTEPS,
+                  accel_input: bool = False) -> ca.Function:
     """CasADi function for one control period of the nominal model.
 
     Parameters
@@ -101,11 +106,14 @@ def step_function(p: QuadParams | None = None, *, symbolic_theta: bool = False,
         Control period, s (input held constant over it).
     substeps : int
         RK4 substeps per period.
+    accel_input : bool
+        If True the function takes a last argument ``accel`` (3,): a world-frame
+        acceleration (wind), m/s^2, held over the period.
 
     Returns
     -------
     casadi.Function
-        ``F(x, u[, theta]) -> x_next``.
+        ``F(x, u[, theta][, accel]) -> x_next``.
     """
     p = QuadParams() if p is None else p
     x = ca.SX.sym("x", NX)
@@ -122,6 +130,11 @@ def step_function(p: QuadParams | None = None, *, symbolic_theta: bool = False,
         w = u
     else:
         raise ValueError(f"inputs must be 'wrench' or 'motor'; found {inputs!r}")
-    x_next = rk4_casadi(lambda s: dynamics_casadi(s, w, vals), x, dt / substeps, substeps)
     names = ["x", "u", "theta"][:len(args)]
+    a = None
+    if accel_input:
+        a = ca.SX.sym("accel", 3)
+        args.append(a)
+        names.append("accel")
+    x_next = rk4_casadi(lambda s: dynamics_casadi(s, w, vals, a), x, dt / substeps, substeps)
     return ca.Function("step", args, [x_next], names, ["x_next"])

@@ -141,6 +141,12 @@ class Simulator:
         body = self._body
         w = rot.wrench
 
+        if fid.is_nominal and x.ndim == 1 and w.ndim == 1:
+            # One vehicle (a closed-loop flight): the compiled CasADi form of the same RK4 step is about
+            # ten times faster than numpy on a single state. Both forms are held equal by the tests.
+            a = np.zeros(3) if wind is None else np.broadcast_to(wind, (3,))
+            x1 = np.asarray(self._single_step()(x, w, a)).reshape(NX)
+            return StepResult(x1, n_cmd.copy(), w, rot.saturated)
         if fid.is_nominal:
             x1 = rk4_step(lambda s: rates(s, w, body, accel=wind), x, h, self.substeps)
             return StepResult(x1, np.broadcast_to(n_cmd, x1.shape[:-1] + (4,)).copy(), w, rot.saturated)
@@ -158,6 +164,17 @@ class Simulator:
 
         x1 = rk4_step(lambda s: self._rates_hifi(s, w, n_cmd, wind), x, h, self.substeps)
         return StepResult(x1, np.broadcast_to(n_cmd, x1.shape[:-1] + (4,)).copy(), w, rot.saturated)
+
+    def _single_step(self):
+        """CasADi ``F(x, u, accel) -> x_next`` of one period for one vehicle (built once per simulator)."""
+        if getattr(self, "_single", None) is None:
+            import dataclasses
+
+            from .dynamics_casadi import step_function
+
+            p = dataclasses.replace(self.p, m=self.p.m + self.payload_kg) if self.payload_kg else self.p
+            self._single = step_function(p, dt=self.dt, substeps=self.substeps, accel_input=True)
+        return self._single
 
     def _rates_hifi(self, s, w, n, wind):
         """Nominal rates plus rotor drag and rotor gyroscopic torque."""

@@ -15,6 +15,7 @@ TOL = {
     "noise_std": 0.03,        # sample std of 20,000 draws vs the stated std
     "motor_lag_settled": 1e-4,  # after 10 time constants, exp(-10) = 4.5e-5
     "rotor_drag": 0.05,       # one period, force changes with speed and attitude
+    "single_vs_batch": 1e-12,  # one state (CasADi form of the RK4 step) vs a batch of one (numpy), per state
 }
 
 
@@ -96,3 +97,18 @@ def test_bad_input_raises_value_error_naming_the_argument(call, arg):
 def test_high_fidelity_preset_has_every_effect():
     assert HIGH_FIDELITY.motor_tau > 0 and HIGH_FIDELITY.rotor_drag > 0 and HIGH_FIDELITY.rotor_gyro > 0
     assert Fidelity().is_nominal and not HIGH_FIDELITY.is_nominal
+
+
+@pytest.mark.parametrize("payload, wind", [(0.0, None), (0.013, lambda t: np.array([0.4, -0.2, 0.1]) * (1 + t))])
+def test_one_vehicle_steps_like_a_batch_of_one(payload, wind):
+    # A single state takes the compiled CasADi form of the RK4 step; it must equal the numpy batch path.
+    rng = np.random.default_rng(5)
+    sim = Simulator(payload_kg=payload, wind=wind)
+    for _ in range(20):
+        x = rng.normal(size=12) * np.array([1, 1, 1, 0.5, 0.5, 1, 2, 2, 2, 2, 2, 2])
+        u = np.array([0.6, 1e-3, -1e-3, 5e-4]) + rng.normal(size=4) * np.array([0.1, 1e-3, 1e-3, 5e-4])
+        one = sim.step_full(x, u, t=0.37)
+        batch = sim.step_full(x[None], u[None], t=0.37)
+        np.testing.assert_allclose(one.x, batch.x[0], rtol=0, atol=TOL["single_vs_batch"])
+        np.testing.assert_array_equal(one.wrench, batch.wrench[0])
+        np.testing.assert_array_equal(one.rotor_speed, batch.rotor_speed[0])
