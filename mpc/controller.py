@@ -43,40 +43,26 @@ class ControlInfo:
         return self.status in ("optimal", "lqr") and self.fallback is None
 
 
-def hover_reference(position=(0.0, 0.0, -1.0), yaw: float = 0.0) -> Reference:
-    """Constant hover reference at ``position`` (m, NED; default 1 m height) and ``yaw`` (rad)."""
-    x_ref = np.zeros(NX)
-    x_ref[0:3] = as_batch(position, "position", 3)
-    x_ref[5] = float(yaw)
+def hover_reference(position=(0.0, 0.0, -1.0), yaw: float = 0.0):
+    """Constant hover reference at ``position`` (m, NED; default 1 m height) and ``yaw`` (rad).
 
-    def ref(times):
-        return np.tile(x_ref, (np.size(times), 1))
-    return ref
+    A :class:`mpc.trajectory.Hover`: callable as ``ref(times) -> (K, 12)``.
+    """
+    from .trajectory import Hover
+
+    return Hover(as_batch(position, "position", 3).reshape(3), float(yaw))
 
 
-def figure8_reference(amplitude: float = 0.75, period: float = 6.0, height: float = 1.0,
-                      center=(0.0, 0.0)) -> Reference:
+def figure8_reference(amplitude: float = 0.75, period: float = 6.0, height: float = 1.0, center=(0.0, 0.0)):
     """Lemniscate ``x = A sin(wt), y = A sin(wt) cos(wt)`` at ``height`` (m; NED z = -height), w = 2 pi / period.
 
-    Velocities are the analytic derivatives ``vx = A w cos(wt)``, ``vy = A w cos(2wt)``;
-    attitude, rates and yaw are zero. ``amplitude`` in m, ``period`` in s.
+    A :class:`mpc.trajectory.Figure8`: callable as ``ref(times) -> (K, 12)``
+    with the full dynamically feasible state (velocity, attitude and body
+    rates from the flatness map of the nominal model).
     """
-    for name, v in (("amplitude", amplitude), ("period", period), ("height", height)):
-        if not (np.isfinite(v) and v > 0):
-            raise ConfigurationError(f"{name} must be finite and > 0; found {v}")
-    cx, cy = (float(c) for c in as_batch(center, "center", 2))
-    w = 2 * np.pi / period
+    from .trajectory import Figure8
 
-    def ref(times):
-        t = np.asarray(times, dtype=float).ravel()
-        out = np.zeros((t.size, NX))
-        out[:, 0] = cx + amplitude * np.sin(w * t)
-        out[:, 1] = cy + amplitude * np.sin(w * t) * np.cos(w * t)
-        out[:, 2] = -height
-        out[:, 9] = amplitude * w * np.cos(w * t)
-        out[:, 10] = amplitude * w * np.cos(2 * w * t)
-        return out
-    return ref
+    return Figure8(amplitude, period, height, center)
 
 
 def check_state(x, name: str = "x") -> np.ndarray:
@@ -108,22 +94,19 @@ class MPCBase:
     else ``"lqr"`` (the hover LQR). Both are counted in ``counts``.
     """
 
-    def _setup(self, model, reference, p, Q, R) -> None:
-        from sim.params import QuadParams
-
-        from .lqr import LQRController, default_weights, hover_point
+    def _setup(self, model, reference, spec, Q, R) -> None:
+        from .lqr import LQRController
         from .models import PredictionModel
 
         if not isinstance(model, PredictionModel):
             raise ConfigurationError(f"model must be a PredictionModel; found {type(model).__name__}")
         self.model = model
-        self.p = QuadParams() if p is None else p
-        self.reference = hover_reference() if reference is None else reference
-        Qd, Rd = default_weights(self.p)
-        self.lqr = LQRController(self.reference, self.p, Qd if Q is None else Q, Rd if R is None else R,
-                                 model=model)
+        # The LQR (terminal cost, fallback) and the MPC share the spec, the trim and the feed-forward.
+        self.lqr = LQRController(reference, model, Q, R, spec)
+        self.spec, self.ff = self.lqr.spec, self.lqr.ff
+        self.reference = self.ff.states
         self.Q, self.R, self.P = self.lqr.Q, self.lqr.R, self.lqr.P
-        self.u_hover = hover_point(self.p)[1]
+        self.u_hover = self.lqr.u_hover
         self.failures_in_a_row = 0
         self.counts = {"solver_failures": 0, "shifted_plan": 0, "lqr_fallback": 0}
 

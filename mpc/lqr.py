@@ -1,22 +1,25 @@
-"""LQR about hover (DESIGN section 9): baseline controller, MPC terminal cost, fallback.
+"""LQR about hover: baseline controller, MPC terminal cost, fallback.
 
 The hover linearization comes from a prediction model (the analytic one
-unless another is given: exact derivatives of one RK4 control period); the gain and the Riccati solution from
-python-control's ``dlqr``. The applied input is projected onto the
-rotor-feasible wrench set (allocation, per-rotor clipping, realized wrench),
-so every input the controller returns can be flown.
+unless another is given) at that model's own hover trim; the gain and the
+Riccati solution from python-control's ``dlqr``. The applied input is the
+model's feed-forward minus the state feedback, projected onto the
+rotor-feasible wrench set of the vehicle spec (allocation, per-rotor
+clipping, realized wrench), so every input the controller returns can be flown.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from sim.params import NU, NX, QuadParams
+from sim.params import NU, NX
 from sim.rotors import realize
 
-from .controller import ControlInfo, Reference, Timer, check_state, hover_reference
+from .controller import ControlInfo, Timer, check_state
 from .errors import ConfigurationError
+from .feedforward import FeedForward
 from .models import AnalyticModel, PredictionModel
+from .spec import VehicleSpec
 
 #: Default weights as 1 / (acceptable deviation)^2: position 0.1 m, roll/pitch 0.2 rad,
 #: yaw 0.3 rad, body rates 1 rad/s, velocity 0.5 m/s; thrust 0.2 m g, torques 2e-3 N m.
@@ -25,26 +28,38 @@ DEFAULT_INPUT_SCALE_FRAC_T = 0.2
 DEFAULT_TORQUE_SCALE = 2e-3
 
 
-def default_weights(p: QuadParams | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Diagonal state and input weights ``Q`` (12, 12), ``R`` (4, 4)."""
-    p = QuadParams() if p is None else p
+def default_weights(spec=None) -> tuple[np.ndarray, np.ndarray]:
+    """Diagonal state and input weights ``Q`` (12, 12), ``R`` (4, 4); the thrust scale is 0.2 m g of ``spec``."""
+    spec = VehicleSpec() if spec is None else spec
     Q = np.diag(1.0 / DEFAULT_STATE_SCALE ** 2)
-    R = np.diag(1.0 / np.array([DEFAULT_INPUT_SCALE_FRAC_T * p.m * p.g] + [DEFAULT_TORQUE_SCALE] * 3) ** 2)
+    R = np.diag(1.0 / input_scale(spec) ** 2)
     return Q, R
 
 
-def hover_point(p: QuadParams | None = None, position=(0.0, 0.0, -1.0)) -> tuple[np.ndarray, np.ndarray]:
-    """Hover state (12,) at ``position`` and hover input (4,) = (m g, 0, 0, 0)."""
-    p = QuadParams() if p is None else p
+def input_scale(spec=None) -> np.ndarray:
+    """Acceptable input deviations (4,): thrust 0.2 m g (N), torques 2e-3 N m."""
+    spec = VehicleSpec() if spec is None else spec
+    return np.array([DEFAULT_INPUT_SCALE_FRAC_T * spec.m * spec.g] + [DEFAULT_TORQUE_SCALE] * 3)
+
+
+def hover_point(spec=None, position=(0.0, 0.0, -1.0)) -> tuple[np.ndarray, np.ndarray]:
+    """Hover state (12,) at ``position`` and the spec's nominal hover input (4,) = (m g, 0, 0, 0).
+
+    A convenience for building test models; the controllers use their
+    model's own trim (:class:`mpc.feedforward.FeedForward`) instead.
+    """
+    spec = VehicleSpec() if spec is None else spec
     x = np.zeros(NX)
     x[0:3] = position
-    return x, np.array([p.m * p.g, 0.0, 0.0, 0.0])
+    return x, np.array([spec.m * spec.g, 0.0, 0.0, 0.0])
 
 
-def hover_linearization(model: PredictionModel | None = None, p: QuadParams | None = None):
-    """Discrete ``(A (12, 12), B (12, 4))`` of one control period at hover."""
-    model = AnalyticModel(p) if model is None else model
-    x, u = hover_point(p)
+def hover_linearization(model: PredictionModel | None = None, spec=None):
+    """Discrete ``(A (12, 12), B (12, 4))`` of one control period at the model's own hover trim."""
+    model = AnalyticModel() if model is None else model
+    spec = VehicleSpec.from_model(model) if spec is None else spec
+    ff = FeedForward(model, None, spec, 1.0 / DEFAULT_STATE_SCALE ** 2, input_scale(spec))
+    x, u = ff.linearization_point()
     _, A, B = model.linearize(x, u)
     return A[0], B[0]
 
@@ -78,44 +93,51 @@ def lqr(A, B, Q, R) -> tuple[np.ndarray, np.ndarray]:
 
 
 class LQRController:
-    """Hover LQR on the analytic model, input projected onto the rotor-feasible set.
+    """LQR about the prediction model's own hover trim, with the model's feed-forward along the reference.
+
+    ``u = u_ff(t) - K (x - x_ref(t))``, projected onto the rotor-feasible set
+    of the vehicle spec. The gain comes from the model's hover linearization.
 
     Parameters
     ----------
-    reference : callable, optional
-        ``reference(times) -> (K, 12)`` desired states; hover at 1 m when omitted.
-    p : QuadParams, optional
-        Parameters of the analytic model (reference values when omitted).
-    Q, R : array_like, optional
-        Weights (:func:`default_weights` when omitted).
+    reference : FlatTrajectory or callable, optional
+        Flat trajectory or ``reference(times) -> (K, 12)``; hover at 1 m when omitted.
     model : PredictionModel, optional
-        Model whose hover linearization gives the gain (the analytic model
-        with ``p`` when omitted). The MPCs pass their own prediction model, so
-        a PINN-based controller never uses the true equations.
+        Prediction model (the analytic oracle when omitted). Its hover
+        linearization gives the gain, its trim and feed-forward the input.
+    Q, R : array_like, optional
+        Weights (:func:`default_weights` of the spec when omitted).
+    spec : VehicleSpec, optional
+        What the controller knows (:meth:`VehicleSpec.from_model` when omitted).
     """
 
-    def __init__(self, reference: Reference | None = None, p: QuadParams | None = None, Q=None, R=None,
-                 model: PredictionModel | None = None):
-        self.p = QuadParams() if p is None else p
+    def __init__(self, reference=None, model: PredictionModel | None = None, Q=None, R=None, spec=None):
         if model is not None and not isinstance(model, PredictionModel):
             raise ConfigurationError(f"model must be a PredictionModel; found {type(model).__name__}")
-        Qd, Rd = default_weights(self.p)
+        self.model = AnalyticModel() if model is None else model
+        self.spec = VehicleSpec.from_model(self.model) if spec is None else spec
+        if not isinstance(self.spec, VehicleSpec):
+            raise ConfigurationError(f"spec must be a VehicleSpec; found {type(self.spec).__name__}")
+        Qd, Rd = default_weights(self.spec)
         self.Q, self.R = _check_weights(Qd if Q is None else Q, Rd if R is None else R)
-        self.A, self.B = hover_linearization(AnalyticModel(self.p) if model is None else model, self.p)
-        if not (np.all(np.isfinite(self.A)) and np.all(np.isfinite(self.B))):
+        self.ff = FeedForward(self.model, reference, self.spec, np.diag(self.Q), input_scale(self.spec))
+        x_h, self.u_hover = self.ff.linearization_point()
+        _, A, B = self.model.linearize(x_h, self.u_hover)
+        self.A, self.B = A[0], B[0]
+        if not (np.all(np.isfinite(self.A)) and np.all(np.isfinite(self.B)) and np.all(np.isfinite(self.u_hover))):
             raise ConfigurationError("the model's hover linearization is not finite; cannot compute an LQR gain")
         self.K, self.P = lqr(self.A, self.B, self.Q, self.R)
-        self.u_hover = hover_point(self.p)[1]
-        self.reference = hover_reference() if reference is None else reference
+        self.reference = self.ff.states
 
-    def input(self, x: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
-        """Feasible input (4,) for state ``x`` and desired state ``x_ref`` (no checks; used as fallback)."""
-        u = self.u_hover - self.K @ (x - x_ref)
-        return realize(u, self.p).wrench
+    def input(self, x: np.ndarray, x_ref: np.ndarray, u_ff: np.ndarray | None = None) -> np.ndarray:
+        """Feasible input (4,) for state ``x``, desired state ``x_ref`` and feed-forward ``u_ff`` (no checks)."""
+        u = (self.u_hover if u_ff is None else u_ff) - self.K @ (x - x_ref)
+        return realize(u, self.spec).wrench
 
     def __call__(self, x, t: float):
         """Input (4,) and :class:`ControlInfo` for the measured state ``x`` at time ``t`` (s)."""
         x = check_state(x)
         with Timer() as tm:
-            u = self.input(x, self.reference(np.array([t]))[0])
+            tt = np.array([t])
+            u = self.input(x, self.ff.states(tt)[0], self.ff.inputs(tt)[0])
         return u, ControlInfo(solve_time_s=tm.elapsed, status="lqr")

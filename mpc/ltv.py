@@ -1,15 +1,17 @@
-"""LTV-MPC with OSQP (DESIGN section 9).
+"""LTV-MPC with OSQP.
 
 Each control period the prediction model is linearized along the shifted
 previous plan in one batched call, ``x_{k+1} = A_k x_k + B_k u_k + c_k``,
 and one sparse QP is solved::
 
-    min  sum_k (x_k - r_k)' Q (x_k - r_k) + (u_k - u_h)' R (u_k - u_h) + (x_N - r_N)' P (x_N - r_N)
+    min  sum_k (x_k - r_k)' Q (x_k - r_k) + (u_k - f_k)' R (u_k - f_k) + (x_N - r_N)' P (x_N - r_N)
     s.t. x_0 = measured state, the linearized dynamics,
          0 <= M^-1 u_k <= n_max^2      (rotor-feasible wrench set, linear in u)
          |phi_k|, |theta_k| <= attitude limit,   k = 1 .. N
 
-with ``P`` the discrete Riccati solution of the hover LQR. The sparsity
+with ``r_k`` the reference states, ``f_k`` the model's own feed-forward
+along them (:mod:`mpc.feedforward`), ``P`` the discrete Riccati solution of
+the hover LQR and ``M``, ``n_max`` from the vehicle spec. The sparsity
 pattern is built once; each period only its values, the linear cost and the
 bounds are updated (``OSQP.update``) and the solver is warm-started with the
 shifted previous solution.
@@ -26,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from sim.params import DT, NU, NX, QuadParams
+from sim.params import DT, NU, NX
 from sim.rotors import mixer_matrix, realize
 
 from .controller import ControlInfo, MPCBase, Reference, Timer, check_common_settings, check_state
@@ -69,26 +71,28 @@ class LTVMPC(MPCBase):
     ----------
     model : PredictionModel
         Prediction model (analytic or ONNX).
-    reference : callable, optional
-        ``reference(times) -> (K, 12)``; hover at 1 m when omitted.
+    reference : FlatTrajectory or callable, optional
+        A flat trajectory (:mod:`mpc.trajectory`) or ``reference(times) -> (K, 12)``;
+        hover at 1 m when omitted.
     settings : LTVSettings, optional
-    p : QuadParams, optional
-        Vehicle parameters for the rotor limits, the hover input and the LQR
-        terminal cost and fallback (reference values when omitted).
+    spec : VehicleSpec, optional
+        What the controller knows of the vehicle: rotor limits and mixer
+        (:meth:`mpc.spec.VehicleSpec.from_model` when omitted). The hover
+        trim, feed-forward, terminal cost and fallback come from the model.
     Q, R : array_like, optional
         Weights (:func:`mpc.lqr.default_weights` when omitted).
     """
 
     def __init__(self, model: PredictionModel, reference: Reference | None = None,
-                 settings: LTVSettings | None = None, p: QuadParams | None = None, Q=None, R=None):
+                 settings: LTVSettings | None = None, spec=None, Q=None, R=None):
         import osqp
 
-        self._setup(model, reference, p, Q, R)
+        self._setup(model, reference, spec, Q, R)
         self.s = LTVSettings() if settings is None else settings
         N = self.s.horizon
         self.N = N
         self.nx_var = (N + 1) * NX
-        self._Minv = np.linalg.inv(mixer_matrix(self.p))     # wrench -> rotor speeds squared
+        self._Minv = np.linalg.inv(mixer_matrix(self.spec))     # wrench -> rotor speeds squared
         self._build_pattern()
         self._status = osqp.SolverStatus
         self._solver = osqp.OSQP()
@@ -98,7 +102,6 @@ class LTVMPC(MPCBase):
         if self.s.time_limit_s > 0:
             settings_["time_limit"] = self.s.time_limit_s
         self._solver.setup(self._H, np.zeros(self._H.shape[0]), self._A0, self._l0, self._u0, **settings_)
-        self._q_u = -np.tile(self.R @ self.u_hover, N)        # constant part of the linear cost
         self._plan_x: np.ndarray | None = None
         self._plan_u: np.ndarray | None = None
         self._z: np.ndarray | None = None
@@ -142,7 +145,7 @@ class LTVMPC(MPCBase):
                 add(r, self._ui(k), self._Minv)
                 r += NU
             lo.append(np.zeros(N * NU))
-            hi.append(np.full(N * NU, self.p.n_max_sq))
+            hi.append(np.full(N * NU, self.spec.n_max_sq))
             sel = np.zeros((2, NX))
             sel[0, 3] = sel[1, 4] = 1.0
             for k in range(1, N + 1):
@@ -164,11 +167,11 @@ class LTVMPC(MPCBase):
         self._l0, self._u0 = np.concatenate(lo), np.concatenate(hi)
 
     # ------------------------------------------------------------- control
-    def _nominal(self, x: np.ndarray):
-        """Linearization trajectory: the shifted previous plan, or the state held at hover input."""
+    def _nominal(self, x: np.ndarray, u_ref: np.ndarray):
+        """Linearization trajectory: the shifted previous plan, or the state held under the feed-forward."""
         N = self.N
         if self._plan_x is None:
-            return np.tile(x, (N, 1)), np.tile(self.u_hover, (N, 1))
+            return np.tile(x, (N, 1)), u_ref.copy()
         xs = np.vstack([self._plan_x[1:N], self._plan_x[N:N + 1]])
         us = np.vstack([self._plan_u[1:], self._plan_u[-1:]])
         xs[0] = x
@@ -179,13 +182,15 @@ class LTVMPC(MPCBase):
         x = check_state(x)
         N = self.N
         with Timer() as tm:
-            xb, ub = self._nominal(x)
-            ref = self.reference(t + DT * np.arange(N + 1))
+            times = t + DT * np.arange(N + 1)
+            ref = self.ff.states(times)
+            u_ref = self.ff.inputs(times[:N])
+            xb, ub = self._nominal(x, u_ref)
             with np.errstate(all="ignore"):
                 fx, A, B = self.model.linearize(xb, ub)
             finite = np.all(np.isfinite(fx)) and np.all(np.isfinite(A)) and np.all(np.isfinite(B))
             if finite:
-                res = self._solve_qp(x, ref, xb, ub, fx, A, B)
+                res = self._solve_qp(x, ref, u_ref, xb, ub, fx, A, B)
                 status, iterations = res.info.status, int(res.info.iter)
                 solved = (self._status.OSQP_SOLVED, self._status.OSQP_SOLVED_INACCURATE)
                 ok = res.info.status_val in solved and res.x is not None and np.all(np.isfinite(res.x))
@@ -203,7 +208,7 @@ class LTVMPC(MPCBase):
             else:
                 fallback = self._failure(self._plan_u is not None)
                 if fallback == "lqr":
-                    u = self.lqr.input(x, ref[0])
+                    u = self.lqr.input(x, ref[0], u_ref[0])
                     self._plan_x = self._plan_u = self._z = None
                 else:
                     self._plan_x = np.vstack([self._plan_x[1:], self._plan_x[-1:]])
@@ -211,13 +216,13 @@ class LTVMPC(MPCBase):
                     u = self._plan_u[0]
                 info_status = status
             n_sq = self._Minv @ u
-            if not (np.all(n_sq >= 0.0) and np.all(n_sq <= self.p.n_max_sq)):
-                u = realize(u, self.p).wrench  # exact projection onto the rotor-feasible set
+            if not (np.all(n_sq >= 0.0) and np.all(n_sq <= self.spec.n_max_sq)):
+                u = realize(u, self.spec).wrench  # exact projection onto the rotor-feasible set
         return u, ControlInfo(solve_time_s=tm.elapsed, status=info_status, iterations=iterations,
                               predicted=None if self._plan_x is None else self._plan_x.copy(), fallback=fallback,
                               extra={"counts": dict(self.counts)})
 
-    def _solve_qp(self, x, ref, xb, ub, fx, A, B):
+    def _solve_qp(self, x, ref, u_ref, xb, ub, fx, A, B):
         """Update the QP's values for this period and solve it (warm-started); OSQP's result."""
         N = self.N
         c = fx - (A @ xb[:, :, None])[:, :, 0] - (B @ ub[:, :, None])[:, :, 0]
@@ -227,7 +232,7 @@ class LTVMPC(MPCBase):
         lo, hi = self._l0.copy(), self._u0.copy()
         lo[:NX] = hi[:NX] = x
         lo[NX:self._n_eq] = hi[NX:self._n_eq] = -c.ravel()
-        q = np.concatenate([-(ref[:N] @ self.Q).ravel(), -(self.P @ ref[N]), self._q_u])
+        q = np.concatenate([-(ref[:N] @ self.Q).ravel(), -(self.P @ ref[N]), -(u_ref @ self.R).ravel()])
         self._solver.update(q=q, l=lo, u=hi, Ax=vals[self._perm])
         if self._z is not None:
             self._solver.warm_start(x=self._shifted(self._z))

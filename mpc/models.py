@@ -1,4 +1,4 @@
-"""Prediction models behind one small interface (DESIGN section 9).
+"""Prediction models behind one small interface.
 
 A prediction model maps one control period, batched over samples::
 
@@ -152,10 +152,47 @@ class OnnxModel(PredictionModel):
         return xn.astype(float), A.astype(float), B.astype(float)
 
 
+def parse_analytic(spec: str) -> dict[str, float]:
+    """Scale factors of ``"analytic:NAME*F,NAME*F,..."`` (NAME one of m, Jxx, Jyy, Jzz, kt, kq; F > 0).
+
+    ``"analytic:Jxx*1.3,Jyy*1.3,Jzz*1.3"`` is the nominal equations with every
+    inertia 30 % too high: a deliberately wrong prediction model.
+    """
+    import re
+
+    body = spec[len("analytic:"):]
+    factors: dict[str, float] = {}
+    for part in body.split(","):
+        m = re.fullmatch(r"\s*(m|Jxx|Jyy|Jzz|kt|kq)\s*\*\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*", part)
+        if m is None:
+            raise ModelContractError(f"model {spec!r}: each part must be NAME*FACTOR with NAME in {', '.join(THETA_NAMES)} "
+                                     f"and FACTOR > 0; found {part!r}")
+        name, f = m.group(1), float(m.group(2))
+        if not f > 0 or name in factors:
+            raise ModelContractError(f"model {spec!r}: {name} needs one factor > 0; found {part!r}")
+        factors[name] = f
+    return factors
+
+
+def analytic_name(factors: dict[str, float]) -> str:
+    """File-name-safe name of a scaled analytic model, e.g. ``analytic-Jxx1.3-Jyy1.3``."""
+    return "analytic-" + "-".join(f"{k}{v:g}" for k, v in factors.items())
+
+
 def load_model(spec: str, threads: int = 1) -> PredictionModel:
-    """``"oracle"`` for the analytic model with reference parameters, else an ONNX file path."""
+    """A prediction model from its name.
+
+    ``"oracle"``: the nominal equations with the reference parameters;
+    ``"analytic:NAME*F,..."``: the nominal equations with parameters scaled
+    (:func:`parse_analytic`); anything else: the path of an ONNX file.
+    """
     if spec == "oracle":
         return AnalyticModel()
+    if spec.startswith("analytic:"):
+        factors = parse_analytic(spec)
+        p = QuadParams()
+        theta = [getattr(p, n) * factors.get(n, 1.0) for n in THETA_NAMES]
+        return AnalyticModel(p.with_theta(theta), name=analytic_name(factors))
     return OnnxModel(spec, threads)
 
 

@@ -1,10 +1,11 @@
-"""Nonlinear MPC with CasADi + IPOPT, multiple shooting (DESIGN section 9).
+"""Nonlinear MPC with CasADi + IPOPT, multiple shooting.
 
 Decision variables ``X`` (12, N + 1) and ``U`` (4, N); constraints
 ``X[:, k + 1] = F(X[:, k], U[:, k])``, ``X[:, 0] = measured state``, the
 rotor-feasible wrench set ``0 <= M^-1 U[:, k] <= n_max^2`` and attitude
-bounds on ``X[3:5, 1:]``; cost as the LTV-MPC (tracking ``Q``, ``R`` on
-``u - u_hover``, Riccati terminal cost ``P``).
+bounds on ``X[3:5, 1:]``; cost as the LTV-MPC (tracking ``Q`` against the
+reference states, ``R`` on ``u - u_ff`` with ``u_ff`` the model's own
+feed-forward, Riccati terminal cost ``P``).
 
 ``F`` over the whole horizon is one CasADi function of ``(X[:, :N], U)``:
 
@@ -27,7 +28,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from sim.params import DT, NU, NX, QuadParams
+from sim.params import DT, NU, NX
 from sim.rotors import mixer_matrix, realize
 
 from .controller import ControlInfo, MPCBase, Reference, Timer, check_common_settings, check_state
@@ -138,8 +139,8 @@ class NMPC(MPCBase):
     """Nonlinear MPC on any :class:`mpc.models.PredictionModel` (parameters as in :class:`mpc.ltv.LTVMPC`)."""
 
     def __init__(self, model: PredictionModel, reference: Reference | None = None,
-                 settings: NMPCSettings | None = None, p: QuadParams | None = None, Q=None, R=None):
-        self._setup(model, reference, p, Q, R)
+                 settings: NMPCSettings | None = None, spec=None, Q=None, R=None):
+        self._setup(model, reference, spec, Q, R)
         self.s = NMPCSettings() if settings is None else settings
         self.N = N = self.s.horizon
         self._build(N)
@@ -149,16 +150,17 @@ class NMPC(MPCBase):
         # IPOPT works on scaled variables: X = sx * Xs, U = u_hover + su * Us, with sx and su the
         # acceptable deviations of the default weights (torques are ~1e-3 N m; unscaled, the
         # limited-memory Hessian needed ~50 iterations per period).
-        from .lqr import DEFAULT_INPUT_SCALE_FRAC_T, DEFAULT_STATE_SCALE, DEFAULT_TORQUE_SCALE
+        from .lqr import DEFAULT_STATE_SCALE, input_scale
 
         self._sx = DEFAULT_STATE_SCALE.copy()
-        self._su = np.array([DEFAULT_INPUT_SCALE_FRAC_T * self.p.m * self.p.g] + [DEFAULT_TORQUE_SCALE] * 3)
+        self._su = input_scale(self.spec)
         Xs = ca.MX.sym("Xs", NX, N + 1)
         Us = ca.MX.sym("Us", NU, N)
         X = ca.mtimes(ca.diag(ca.DM(self._sx)), Xs)
         U = ca.repmat(ca.DM(self.u_hover), 1, N) + ca.mtimes(ca.diag(ca.DM(self._su)), Us)
         x0 = ca.MX.sym("x0", NX)
         ref = ca.MX.sym("ref", NX, N + 1)
+        uref = ca.MX.sym("uref", NU, N)
         if isinstance(self.model, AnalyticModel):
             F = self.model.casadi_step.map(N, "serial")
             self._horizon = None
@@ -167,16 +169,16 @@ class NMPC(MPCBase):
         Xn = F(X[:, :N], U)
         Q, R, P = ca.DM(self.Q), ca.DM(self.R), ca.DM(self.P)
         E = X - ref
-        D = U - ca.repmat(ca.DM(self.u_hover), 1, N)
+        D = U - uref
         cost = (ca.sum2(ca.sum1(E[:, :N] * ca.mtimes(Q, E[:, :N]))) + ca.sum2(ca.sum1(D * ca.mtimes(R, D)))
                 + ca.mtimes([E[:, N].T, P, E[:, N]]))
-        Minv = ca.DM(np.linalg.inv(mixer_matrix(self.p)))
+        Minv = ca.DM(np.linalg.inv(mixer_matrix(self.spec)))
         inv_sx = ca.DM(1.0 / self._sx)
         g = ca.vertcat(ca.vec((Xn - X[:, 1:]) * ca.repmat(inv_sx, 1, N)), (X[:, 0] - x0) * inv_sx,
-                       ca.vec(ca.mtimes(Minv, U)) / self.p.n_max_sq)
+                       ca.vec(ca.mtimes(Minv, U)) / self.spec.n_max_sq)
         self._n_dyn = NX * N + NX
         w = ca.vertcat(ca.vec(Xs), ca.vec(Us))
-        nlp = {"x": w, "f": cost, "g": g, "p": ca.vertcat(x0, ca.vec(ref))}
+        nlp = {"x": w, "f": cost, "g": g, "p": ca.vertcat(x0, ca.vec(ref), ca.vec(uref))}
         opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
                 "ipopt.hessian_approximation": "limited-memory", "ipopt.max_iter": self.s.max_iter,
                 "ipopt.max_cpu_time": self.s.time_limit_s, "ipopt.tol": self.s.tol, "error_on_fail": False}
@@ -217,10 +219,10 @@ class NMPC(MPCBase):
     def _pack(self, X, U):
         return np.concatenate([(X / self._sx).ravel(), ((U - self.u_hover) / self._su).ravel()])
 
-    def _guess(self, x, ref):
+    def _guess(self, x, u_ref):
         N = self.N
         if self._w is None:
-            return self._pack(np.tile(x, (N + 1, 1)), np.tile(self.u_hover, (N, 1)))
+            return self._pack(np.tile(x, (N + 1, 1)), u_ref)
         X, U = self._unpack(self._w)
         X = np.vstack([X[1:], X[-1:]])
         U = np.vstack([U[1:], U[-1:]])
@@ -232,8 +234,11 @@ class NMPC(MPCBase):
         x = check_state(x)
         N = self.N
         with Timer() as tm:
-            ref = self.reference(t + DT * np.arange(N + 1))
-            args = dict(x0=self._guess(x, ref), p=np.concatenate([x, ref.ravel()]), lbx=self._lbw, ubx=self._ubw,
+            times = t + DT * np.arange(N + 1)
+            ref = self.ff.states(times)
+            u_ref = self.ff.inputs(times[:N])
+            args = dict(x0=self._guess(x, u_ref), p=np.concatenate([x, ref.ravel(), u_ref.ravel()]),
+                        lbx=self._lbw, ubx=self._ubw,
                         lbg=self._lbg, ubg=self._ubg)
             if self._lam is not None:
                 args.update(lam_x0=self._lam[0], lam_g0=self._lam[1])
@@ -252,13 +257,13 @@ class NMPC(MPCBase):
                 self._lam = None
                 fallback = self._failure(self._w is not None)
                 if fallback == "lqr":
-                    u = self.lqr.input(x, ref[0])
+                    u = self.lqr.input(x, ref[0], u_ref[0])
                     self._w = None
                 else:
                     X, U = self._unpack(self._w)
                     self._w = self._pack(np.vstack([X[1:], X[-1:]]), np.vstack([U[1:], U[-1:]]))
                     u = U[1]
-            u = realize(u, self.p).wrench
+            u = realize(u, self.spec).wrench
         predicted = None if self._w is None else self._unpack(self._w)[0].copy()
         return u, ControlInfo(solve_time_s=tm.elapsed, status="optimal" if ok else status,
                               iterations=int(st.get("iter_count", 0)), predicted=predicted, fallback=fallback,

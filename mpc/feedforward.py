@@ -1,0 +1,158 @@
+"""The prediction model's own trim and feed-forward along a reference.
+
+A controller follows a reference trajectory (:mod:`mpc.trajectory`) with the
+input its *own* model says flies it, not the plant's. :class:`FeedForward`
+gives, for any times on the control grid,
+
+* the reference states: the flatness map of the trajectory with the
+  vehicle spec's ``g`` and ``c_d`` (or the states of a plain state function);
+* the feed-forward input: for each control period the wrench ``u_k`` that
+  best carries the model from ``x_ref(t_k)`` to ``x_ref(t_k + dt)``, a
+  weighted least-squares fit through the model::
+
+      u_k = argmin_u || W^(1/2) (f(x_ref(t_k), u) - x_ref(t_k + dt)) ||^2
+
+  solved by Gauss-Newton with the model's own input Jacobian (one batched
+  call per iteration), started from the flatness wrench of the spec.
+
+The hover trim is the same fit at a constant hover state (the model's own
+equilibrium input). For the true equations the fit reproduces the plant's
+inverse; for a learned model it is whatever that model believes.
+Fitted inputs are cached by time, so a controller that slides its horizon
+by one period fits one new input per period.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim.params import DT, NU, NX
+
+from .errors import ConfigurationError
+from .trajectory import FlatTrajectory, Hover, StateReference, flat_state, held_wrench
+
+#: Gauss-Newton iterations of the fit (it stops earlier when the step is below STEP_TOL, in input scales).
+FIT_ITERATIONS = 2
+TRIM_ITERATIONS = 12
+STEP_TOL = 1e-7
+#: Levenberg damping of the fit, relative to the input scales (keeps the 4x4 normal equations regular).
+DAMPING = 1e-9
+
+
+def fit_inputs(model, x0: np.ndarray, x1: np.ndarray, u_guess: np.ndarray, w: np.ndarray, u_scale: np.ndarray,
+               iterations: int = FIT_ITERATIONS) -> np.ndarray:
+    """Least-squares inputs (K, 4) with ``model.step(x0, u) ~ x1`` in the weighted norm ``w`` (12,).
+
+    Parameters
+    ----------
+    model : PredictionModel
+    x0, x1 : ndarray, shape (K, 12)
+        States at the start and end of each control period.
+    u_guess : ndarray, shape (K, 4)
+        Starting inputs (N, N m).
+    w : ndarray, shape (12,)
+        Residual weights (1 / scale^2).
+    u_scale : ndarray, shape (4,)
+        Input scales for the damping and the stopping test.
+    """
+    u = np.array(u_guess, dtype=float, copy=True)
+    D = np.diag(DAMPING / u_scale ** 2)
+    for _ in range(iterations):
+        with np.errstate(all="ignore"):
+            fx, _, B = model.linearize(x0, u)
+        r = fx - x1
+        if not (np.all(np.isfinite(r)) and np.all(np.isfinite(B))):
+            raise ConfigurationError("the prediction model returned non-finite values along the reference; "
+                                     "no feed-forward input can be fitted")
+        BtW = B.transpose(0, 2, 1) * w[None, None, :]
+        H = BtW @ B + D
+        step = -np.linalg.solve(H, (BtW @ r[:, :, None]))[:, :, 0]
+        u += step
+        if np.max(np.abs(step / u_scale)) < STEP_TOL:
+            break
+    return u
+
+
+class FeedForward:
+    """Reference states and the model's feed-forward inputs along a trajectory.
+
+    Parameters
+    ----------
+    model : PredictionModel
+    reference : FlatTrajectory or callable, optional
+        A flat trajectory, or a plain ``ref(times) -> (K, 12)``; hover at 1 m when omitted.
+    spec : VehicleSpec
+        What the controller knows (``g``, ``c_d`` for the states; ``m``, ``J`` for the first guess).
+    weights : ndarray, shape (12,)
+        Residual weights of the fit (1 / scale^2).
+    u_scale : ndarray, shape (4,)
+        Input scales (N, N m).
+    """
+
+    def __init__(self, model, reference, spec, weights, u_scale, dt: float = DT):
+        if reference is None:
+            reference = Hover()
+        if not isinstance(reference, FlatTrajectory):
+            reference = StateReference(reference)
+        self.trajectory = reference
+        self.model, self.spec, self.dt = model, spec, dt
+        self.w = np.asarray(weights, dtype=float)
+        self.u_scale = np.asarray(u_scale, dtype=float)
+        self._states: dict[int, np.ndarray] = {}
+        self._inputs: dict[int, np.ndarray] = {}
+        self.trim = self.hover_trim()
+
+    @property
+    def is_flat(self) -> bool:
+        """True when the reference has flat outputs (states and first guess from the flatness map)."""
+        return not isinstance(self.trajectory, StateReference)
+
+    def _keys(self, t: np.ndarray) -> np.ndarray:
+        return np.round(t * 1e9).astype(np.int64)   # cache keys: times in ns
+
+    def _cached(self, cache: dict, times, compute) -> np.ndarray:
+        """Values at ``times`` from ``cache``, computing the missing ones in one batched call."""
+        t = np.asarray(times, dtype=float).ravel()
+        keys = self._keys(t)
+        missing = [i for i, k in enumerate(keys) if int(k) not in cache]
+        if missing:
+            for i, v in zip(missing, compute(t[missing])):
+                cache[int(keys[i])] = v
+        return np.array([cache[int(k)] for k in keys])
+
+    def states(self, times) -> np.ndarray:
+        """Reference states (K, 12) at ``times`` (K,), s (computed once per time, cached)."""
+        return self._cached(self._states, times, self._compute_states).reshape(-1, NX)
+
+    def _compute_states(self, t: np.ndarray) -> np.ndarray:
+        if self.is_flat:
+            return flat_state(self.trajectory.flat(t), self.spec)[0]
+        return self.trajectory(t)
+
+    __call__ = states
+
+    def hover_trim(self, position=(0.0, 0.0, -1.0), yaw: float = 0.0) -> np.ndarray:
+        """The model's own hover input (4,): the fit at a constant hover state."""
+        x = np.zeros((1, NX))
+        x[0, 0:3] = position
+        x[0, 5] = yaw
+        guess = np.array([[self.spec.m * self.spec.g, 0.0, 0.0, 0.0]])
+        return fit_inputs(self.model, x, x, guess, self.w, self.u_scale, TRIM_ITERATIONS)[0]
+
+    def inputs(self, times) -> np.ndarray:
+        """Feed-forward inputs (K, 4) for the periods starting at ``times`` (K,), s (fitted once, cached)."""
+        return self._cached(self._inputs, times, self._compute_inputs).reshape(-1, NU)
+
+    def _compute_inputs(self, t: np.ndarray) -> np.ndarray:
+        x0, x1 = self.states(t), self.states(t + self.dt)
+        if self.is_flat:
+            guess = held_wrench(self.trajectory, t, self.spec, self.dt)
+        else:
+            guess = np.tile(self.trim, (len(t), 1))
+        return fit_inputs(self.model, x0, x1, guess, self.w, self.u_scale)
+
+    def linearization_point(self) -> tuple[np.ndarray, np.ndarray]:
+        """Hover state (12,) at 1 m and the model's trim (4,)."""
+        x = np.zeros(NX)
+        x[2] = -1.0
+        return x, self.trim.copy()
