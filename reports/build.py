@@ -10,8 +10,8 @@ from .headline import correlation_text, headline_data
 from .html import markdown_to_html
 from .inputs import load_inputs
 from .summary import summary_text
-from .tables import (closed_loop_table, fisher_table, provenance_section, solve_time_table, table_one,
-                     table_three, table_two)
+from .tables import (closed_loop_table, fisher_table, hover_table, ladder_table, provenance_section,
+                     solve_time_table, table_one, table_three, table_two)
 
 #: Title of the report (the Markdown ``#`` heading and the HTML title).
 TITLE = "pinn-mpc report"
@@ -22,6 +22,8 @@ SECTIONS = (
     "Table II: parameter identification and Cramér-Rao bounds",
     "Table III: ablation",
     "Closed-loop results",
+    "Hover: settled error and gust recovery",
+    "Speed ladder: maximum trackable speed",
     "Headline: open-loop error against closed-loop error",
     "Trajectories and tracking error",
     "Rollout error growth",
@@ -68,6 +70,8 @@ def report_markdown(run_dir) -> str:
         table_two(inp.evaluation) + "\n\n" + fisher_table(inp.fisher))
     body["Table III: ablation"] = table_three(inp.ablation)
     body["Closed-loop results"] = closed_loop_table(inp.runs)
+    body["Hover: settled error and gust recovery"] = hover_table(inp.runs)
+    body["Speed ladder: maximum trackable speed"] = ladder_table(inp.runs)
     f = headline_figure(head, d)
     body["Headline: open-loop error against closed-loop error"] = (
         _figure_md(f) + "\n\n" + corr if f is not None else

@@ -1,25 +1,25 @@
 """Names, display labels and the fixed ordering of scenarios, controllers and models.
 
 Every table and figure of the report lists runs in the same order: scenario
-(``hover``, ``figure8-slow``, ``figure8-fast``, then the variants of each in the
-order ``+highfi +payload +wind +noise +delay``, then any other name
-alphabetically), controller (NMPC, LTV-MPC, LQR, then others), model (the
+(``hover``, ``figure8-slow``, ``figure8-fast``, the speed ladder, the random
+paths and the yaw turn, then the variants of each base in the order
+``+highfi +payload +wind +noise +delay``, then any other name alphabetically), controller (NMPC, LTV-MPC, LQR, then others), model (the
 oracle first, then alphabetically).
 """
 
 from __future__ import annotations
 
-from scenarios.library import BASE, VARIANTS  # noqa: F401  (VARIANTS: the variant order, re-exported)
+from scenarios.library import BASE, VARIANTS, scenario_names  # noqa: F401  (VARIANTS: the variant order)
 from scenarios.runner import CONTROLLERS
 from sim.params import DT
 
-#: Base scenarios in report order (the order of :data:`scenarios.library.BASE`).
-BASE_SCENARIOS = tuple(BASE)
+#: Scenarios without a variant in report order: the bases, the speed ladder, the random paths, the yaw turn.
+BASE_SCENARIOS = tuple(n for n in scenario_names() if "+" not in n)
 #: Display names of the controllers.
 CONTROLLER_LABELS = {"nmpc": "NMPC", "ltv": "LTV-MPC", "lqr": "LQR"}
 #: The model name of the true (simulator) equations.
 ORACLE = "oracle"
-#: Control period, s (DESIGN section 3); the deadline of one controller solve.
+#: Control period, s; the deadline of one controller solve.
 DT_S = DT
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from sim.files import write_json
 
-#: Fields printed by ``pinnmpc fly`` (DESIGN section 13), in order.
+#: Fields printed by ``pinnmpc fly``, in order (names other tools rely on).
 FLY_FIELDS = ("scenario", "controller", "model", "rmse_position_m", "max_position_error_m", "crashed",
               "crash_time_s", "solve_ms", "deadline_misses", "solver_failures", "fallbacks")
 
@@ -35,15 +35,27 @@ def register(sub) -> None:
 
     p = sub.add_parser("run", help="the main job: Tables I-III, every closed-loop run, the report",
                        description="Evaluates the shipped models (Tables I-III, Fisher bounds), flies every "
-                                   "scenario with the LTV-MPC (oracle and every shipped model) and the LQR, and "
-                                   "hover and figure8-fast with the NMPC (every scenario with --full), then "
-                                   "writes DIR/report.md and DIR/report.html. About 8 minutes on 2 cores "
-                                   "(--full: about an hour).")
+                                   "scenario (hover, the figure-8 speed ladder, random paths, the yaw turn, and the "
+                                   "variants of hover and figure8-fast) with the LTV-MPC (oracle and every shipped "
+                                   "model) and the LQR, and figure8-fast with the NMPC on the oracle, then writes "
+                                   "DIR/report.md and DIR/report.html. About 7 minutes on 2 cores (--full: hours).")
     p.add_argument("--out", type=Path, default=Path("results/main"), help="results folder (default results/main)")
     p.add_argument("--jobs", type=int, default=None, help="worker processes (default: number of CPUs)")
     p.add_argument("--models", type=Path, default=Path("models"), help="folder of ONNX models (default models)")
-    p.add_argument("--full", action="store_true", help="fly the NMPC on every scenario too")
+    p.add_argument("--full", action="store_true",
+                   help="fly the figure8-slow variants too, and the NMPC on every scenario with every model")
     p.set_defaults(handler=cmd_run)
+
+    p = sub.add_parser("bounds", help="write the CI bounds file from the results of pinnmpc run",
+                       description="Write the closed-loop CI bounds (scenarios/bounds.toml) from a results folder of "
+                                   "pinnmpc run: the oracle's cases bounded by its measured error, every shipped "
+                                   "model's cases by its measured excess over the oracle, crashed cases as known "
+                                   "failures. Nothing is flown.")
+    p.add_argument("dir", metavar="DIR", type=Path, help="results folder of pinnmpc run")
+    p.add_argument("--out", type=Path, default=None, help="bounds file to write (default: scenarios/bounds.toml)")
+    p.add_argument("--models", type=Path, default=Path("models"),
+                   help="folder of the shipped models that get bounds (default models)")
+    p.set_defaults(handler=cmd_bounds)
 
     p = sub.add_parser("report", help="rebuild report.md and report.html from a saved results folder",
                        description="Rebuild DIR/report.md, DIR/report.html and DIR/figures from the files "
@@ -121,4 +133,26 @@ def cmd_report(args: argparse.Namespace) -> int:
         raise ValueError(f"DIR {str(args.dir)!r} is not a folder of saved results")
     path = build_report(args.dir)
     print(f"wrote {path} and {Path(path).with_suffix('.html')}")
+    return 0
+
+
+def cmd_bounds(args: argparse.Namespace) -> int:
+    """Handler of ``pinnmpc bounds``."""
+    import json
+
+    from .bounds import BOUNDS_FILE, generate, load_bounds
+    from .campaign import shipped_models
+
+    results = args.dir / "results.json"
+    if not results.is_file():
+        raise ValueError(f"DIR {str(args.dir)!r} has no results.json; give the results folder of pinnmpc run")
+    runs = json.loads(results.read_text())["runs"]
+    models = [Path(m).stem for m in shipped_models(args.models)]
+    out = BOUNDS_FILE if args.out is None else args.out
+    out.write_text(generate(runs, models, f"`pinnmpc run` ({args.dir.name}/results.json)"))
+    _, bounds = load_bounds(out)
+    known = [b for b in bounds if b.known_failure]
+    print(f"wrote {out}: {len(bounds)} cases, {len(known)} known failures")
+    for b in known:
+        print(f"  known failure: {b.scenario} / {b.controller} / {b.model}")
     return 0

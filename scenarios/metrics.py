@@ -1,4 +1,4 @@
-"""Closed-loop metrics of one run (DESIGN section 10).
+"""Closed-loop metrics of one run.
 
 Definitions (``K`` control periods flown, state ``x_k`` at time ``k dt``):
 
@@ -9,6 +9,12 @@ Definitions (``K`` control periods flown, state ``x_k`` at time ``k dt``):
 * crash: the first ``k`` with ``e_k > 2 m``, ``|phi|`` or ``|theta| > 80 deg``,
   a non-finite state, or below ground (``z > 0``, NED). The run ends there;
   ``crash_time_s = k dt`` and the error metrics cover ``1 .. k``;
+* ``rmse_yaw_rad``: RMSE of the heading error (wrapped to [0, pi]);
+* ``settled_error_m``: the largest position error over the last
+  :data:`SETTLE_WINDOW_S` of a run that flew to its end (None after a crash);
+* after a gust impulse at ``t_g``: ``gust_peak_error_m``, the largest error
+  from ``t_g`` on, and ``recovery_time_s``, the time from ``t_g`` until the
+  error is back within ``settled_error_m + RECOVERY_BAND_M`` for good;
 * solve time median / p95 / max over the periods flown (ms), deadline misses
   = periods whose solve took longer than ``dt``;
 * ``solver_failures`` = periods whose solve failed (then the shifted plan or
@@ -22,6 +28,10 @@ import numpy as np
 from sim.params import DT
 
 CRASH_POSITION_ERROR_M = 2.0
+#: Window of the settled error at the end of a run, s.
+SETTLE_WINDOW_S = 2.0
+#: A gust is recovered when the error is back within the settled error plus this band, m.
+RECOVERY_BAND_M = 0.005
 CRASH_TILT_RAD = np.deg2rad(80.0)
 
 #: Fields that measure this machine's wall time; everything else in a result is reproducible exactly.
@@ -50,7 +60,8 @@ def position_errors(x: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
 
 def closed_loop_metrics(x: np.ndarray, x_ref: np.ndarray, solve_s: np.ndarray, failed: np.ndarray,
                         lqr_fallback: np.ndarray, crash_step: int | None, crash_why: str | None = None,
-                        dt: float = DT) -> dict:
+                        dt: float = DT, impulse_start_s: float | None = None,
+                        planned_steps: int | None = None) -> dict:
     """Metrics of one run from its trace.
 
     Parameters
@@ -63,6 +74,10 @@ def closed_loop_metrics(x: np.ndarray, x_ref: np.ndarray, solve_s: np.ndarray, f
         Failed solve / LQR fallback flew, per period.
     crash_step : int or None
         Index ``k`` of the crash state in ``x``, if the run crashed.
+    impulse_start_s : float, optional
+        Start of a gust impulse, s (adds the gust peak error and recovery time).
+    planned_steps : int, optional
+        Control periods the run was planned for; a run that stopped earlier has no settled error.
     """
     x, x_ref = np.asarray(x, dtype=float), np.asarray(x_ref, dtype=float)
     solve_ms = 1e3 * np.asarray(solve_s, dtype=float)
@@ -72,7 +87,26 @@ def closed_loop_metrics(x: np.ndarray, x_ref: np.ndarray, solve_s: np.ndarray, f
         e = position_errors(x[1:], x_ref[1:])
     finite = np.isfinite(e)
     e_ok = e[finite]
-    return {
+    K = solve_ms.shape[0]
+    complete = crash_step is None and (planned_steps is None or K >= planned_steps) and bool(np.all(finite))
+    n_settle = int(round(SETTLE_WINDOW_S / dt))
+    settled = float(np.max(e[-n_settle:])) if complete and K >= n_settle else None
+    gust = {}
+    if impulse_start_s is not None:
+        k_g = int(round(impulse_start_s / dt))          # e[i] is the error at t = (i + 1) dt
+        after = e[k_g - 1:] if K >= k_g else np.array([])
+        gust["gust_peak_error_m"] = float(np.max(after)) if after.size and complete else None
+        rec = None
+        if settled is not None and after.size:
+            outside = np.nonzero(after > settled + RECOVERY_BAND_M)[0]
+            rec = 0.0 if outside.size == 0 else round(float(outside[-1] + 1) * dt, 10)
+        gust["recovery_time_s"] = rec
+    with np.errstate(invalid="ignore"):
+        e_yaw = np.abs(np.angle(np.exp(1j * (x[1:, 5] - x_ref[1:, 5]))))   # heading error, wrapped to [0, pi]
+    e_yaw = e_yaw[np.isfinite(e_yaw)]
+    return {**gust,
+        "settled_error_m": settled,
+        "rmse_yaw_rad": float(np.sqrt(np.mean(e_yaw ** 2))) if e_yaw.size else None,
         "rmse_position_m": float(np.sqrt(np.mean(e_ok ** 2))) if e_ok.size else None,
         "max_position_error_m": float(np.max(e_ok)) if e_ok.size else None,
         "crashed": crash_step is not None,
@@ -85,3 +119,42 @@ def closed_loop_metrics(x: np.ndarray, x_ref: np.ndarray, solve_s: np.ndarray, f
         "fallbacks": int(np.sum(lqr_fallback)),
         "steps": int(solve_ms.size),
     }
+
+
+#: A speed-ladder rung counts as tracked when the run did not crash and its position RMSE is at most this, m.
+LADDER_RMSE_BOUND_M = 0.10
+
+
+def max_trackable_speed(runs: list[dict], ladder: list[str], speeds: dict[str, float]) -> dict:
+    """The fastest figure-8 rung one model/controller pair tracks, climbing the ladder from the slowest.
+
+    Parameters
+    ----------
+    runs : list of dict
+        Results of one model with one controller (``scenario``, ``crashed``, ``rmse_position_m``).
+    ladder : list of str
+        Rung scenario names from slowest to fastest.
+    speeds : dict
+        Mean speed of each rung, m/s.
+
+    Returns
+    -------
+    dict
+        ``speed_mps`` (None if even the slowest rung fails), ``scenario`` of that rung, ``failed_at`` (the
+        first rung that failed, or None) and ``complete`` (False when a rung was not flown).
+    """
+    by = {r["scenario"]: r for r in runs}
+    best, failed_at, complete = None, None, True
+    for name in ladder:
+        r = by.get(name)
+        if r is None:
+            complete = False
+            break
+        ok = not r.get("crashed") and not r.get("error") and r.get("rmse_position_m") is not None \
+            and r["rmse_position_m"] <= LADDER_RMSE_BOUND_M
+        if not ok:
+            failed_at = name
+            break
+        best = name
+    return {"speed_mps": None if best is None else speeds[best], "scenario": best, "failed_at": failed_at,
+            "complete": complete}

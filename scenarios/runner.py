@@ -1,12 +1,11 @@
-"""Closed-loop runs: scenario x controller x prediction model (DESIGN section 10).
+"""Closed-loop runs: scenario x controller x prediction model.
 
 One run flies the reference simulator at 1 kHz with control at 100 Hz::
 
     from scenarios.runner import RunSpec, fly
     result, trace = fly(RunSpec("figure8-slow", "ltv", "models/proposed.onnx"))
 
-``result`` is a JSON-ready dict with the fields of ``pinnmpc fly --json``
-(DESIGN section 13) and ``trace`` a dict of arrays (saved as ``.npz``). A
+``result`` is a JSON-ready dict with the fields of ``pinnmpc fly --json`` and ``trace`` a dict of arrays (saved as ``.npz``). A
 crash ends the run and is recorded; a run that cannot start (for example a
 model whose hover linearization has no LQR gain) is recorded with its
 ``error``. :func:`sweep` runs many specs in a process pool.
@@ -37,7 +36,8 @@ from .metrics import closed_loop_metrics, crash_reason
 
 CONTROLLERS = ("nmpc", "ltv", "lqr")
 #: Metrics of a run that never flew (its controller could not be built, or the run raised).
-NOT_FLOWN = {"rmse_position_m": None, "max_position_error_m": None, "crashed": False, "crash_time_s": None,
+NOT_FLOWN = {"rmse_position_m": None, "max_position_error_m": None, "settled_error_m": None, "rmse_yaw_rad": None,
+             "crashed": False, "crash_time_s": None,
              "crash_reason": None, "solve_ms": None, "deadline_misses": 0, "solver_failures": 0, "fallbacks": 0,
              "steps": 0}
 #: MPC horizon of every run unless stated, steps of DT.
@@ -60,7 +60,10 @@ class RunSpec:
         get_scenario(self.scenario)  # raises for an unknown name
         if not isinstance(self.model, str) or not self.model:
             raise ScenarioError(f"model must be 'oracle' or the path of an .onnx file; found {self.model!r}")
-        if self.model != "oracle":
+        if self.model.startswith("analytic:"):
+            from mpc.models import parse_analytic
+            parse_analytic(self.model)
+        elif self.model != "oracle":
             path = Path(self.model)
             if path.suffix != ".onnx":
                 raise ScenarioError(f"model must be 'oracle' or the path of an .onnx file; found {self.model!r}")
@@ -69,6 +72,9 @@ class RunSpec:
 
     @property
     def model_name(self) -> str:
+        if self.model.startswith("analytic:"):
+            from mpc.models import analytic_name, parse_analytic
+            return analytic_name(parse_analytic(self.model))
         return "oracle" if self.model == "oracle" else Path(self.model).stem
 
     @property
@@ -78,24 +84,39 @@ class RunSpec:
 
 
 def _sha256(path: str) -> str | None:
-    if path == "oracle":
+    if path == "oracle" or path.startswith("analytic:"):
         return None
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def make_controller(kind: str, model, reference, p: QuadParams | None = None, horizon: int = HORIZON):
-    """The controller ``kind`` (``nmpc``, ``ltv``, ``lqr``) on prediction ``model`` following ``reference``."""
+def make_controller(kind: str, model, reference, horizon: int = HORIZON):
+    """The controller ``kind`` (``nmpc``, ``ltv``, ``lqr``) on prediction ``model`` following ``reference``.
+
+    The controller gets the model and the reference only: its vehicle spec
+    comes from the model (:meth:`mpc.spec.VehicleSpec.from_model`), never from
+    the plant's parameters.
+    """
     from mpc.lqr import LQRController
     from mpc.ltv import LTVMPC, LTVSettings
     from mpc.nmpc import NMPC, NMPCSettings
 
     if kind == "nmpc":
-        return NMPC(model, reference, NMPCSettings(horizon=horizon), p=p)
+        return NMPC(model, reference, NMPCSettings(horizon=horizon))
     if kind == "ltv":
-        return LTVMPC(model, reference, LTVSettings(horizon=horizon), p=p)
+        return LTVMPC(model, reference, LTVSettings(horizon=horizon))
     if kind == "lqr":
-        return LQRController(reference, p, model=model)
+        return LQRController(reference, model)
     raise ScenarioError(f"controller must be one of {', '.join(CONTROLLERS)}; found {kind!r}")
+
+
+def _wind(sc):
+    """The scenario's wind and gust impulse as one acceleration function (or None)."""
+    parts = [w for w in (sc.wind, sc.impulse) if w is not None]
+    if not parts:
+        return None
+    if len(parts) == 1:
+        return parts[0]
+    return lambda t: parts[0](t) + parts[1](t)
 
 
 def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tuple[dict, dict]:
@@ -115,7 +136,7 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
     if model is None:
         model = load_model(spec.model)      # contract errors raise here, before anything flies
     ref = sc.reference()
-    p = QuadParams()
+    plant = QuadParams()     # the plant's parameters reach the simulator only
     K = sc.steps
     t_all = DT * np.arange(K + 1)
     X_ref = ref(t_all)
@@ -130,22 +151,23 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
     lqr_fb = np.zeros(K, dtype=bool)
     crash_step, why, error = None, None, None
     base = {"run_id": spec.run_id, "scenario": spec.scenario, "controller": spec.controller,
-            "model": spec.model_name, "model_file": None if spec.model == "oracle" else str(spec.model),
+            "model": spec.model_name, "model_file": None if spec.model == "oracle" or spec.model.startswith("analytic:") else str(spec.model),
             "model_sha256": _sha256(spec.model), "seed": sc.seed, "horizon": spec.horizon}
     t0 = time.perf_counter()
     k_end = 0
     try:
-        ctrl = make_controller(spec.controller, model, ref, p, spec.horizon)
+        ctrl = make_controller(spec.controller, model, ref, spec.horizon)
     except ValueError as e:  # e.g. no LQR gain for this model's hover linearization
         error = f"{type(e).__name__}: {e}"
         ctrl = None
     if ctrl is not None:
-        sim = Simulator(p, sc.fidelity, payload_kg=sc.payload_kg, wind=sc.wind)
+        sim = Simulator(plant, sc.fidelity, payload_kg=sc.payload_kg, wind=_wind(sc))
         rng = np.random.default_rng([sc.seed, 0x5EED])
         x = np.array(sc.x0, dtype=float)
         X[0] = x
         n = None
-        pending = [np.array([p.m * p.g, 0.0, 0.0, 0.0])] * sc.delay_steps
+        # Before the first delayed command arrives, the vehicle's own hover thrust holds it (plant side).
+        pending = [np.array([plant.m * plant.g, 0.0, 0.0, 0.0])] * sc.delay_steps
         steps = range(K)
         if progress:
             from tqdm import tqdm
@@ -179,7 +201,9 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
     wall = time.perf_counter() - t0
     if error is None:
         metrics = closed_loop_metrics(X[:k_end + 1], X_ref[:k_end + 1], solve_s[:k_end], failed[:k_end],
-                                      lqr_fb[:k_end], crash_step, why)
+                                      lqr_fb[:k_end], crash_step, why,
+                                      impulse_start_s=None if sc.impulse is None else sc.impulse.start_s,
+                                      planned_steps=K)
     else:
         metrics = dict(NOT_FLOWN)
     result = {**base, **metrics, "shifted_plan": int(np.sum(failed[:k_end] & ~lqr_fb[:k_end])),

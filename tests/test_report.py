@@ -17,13 +17,15 @@ import pytest
 from reports import ReportError, build_report
 
 # ---- constants of this module ----------------------------------------------------------------
-#: Section headings the report must have, in order (DESIGN section 11).
+#: Section headings the report must have, in order.
 HEADINGS = (
     "Summary",
     "Table I: one-step and 100-step accuracy",
     "Table II: parameter identification and Cramér-Rao bounds",
     "Table III: ablation",
     "Closed-loop results",
+    "Hover: settled error and gust recovery",
+    "Speed ladder: maximum trackable speed",
     "Headline: open-loop error against closed-loop error",
     "Trajectories and tracking error",
     "Rollout error growth",
@@ -195,12 +197,12 @@ def test_report_contents(results_dir):
         rmse, crashed, err = by_key[key]
         assert row[3] == (MISSING if rmse is None else RMSE_FORMAT.format(rmse)), key
         if crashed:
-            assert row[5].startswith("crashed"), row
-            assert f"{CRASH_STEP * DT:.2f} s" in row[5]
+            assert row[6].startswith("crashed"), row
+            assert f"{CRASH_STEP * DT:.2f} s" in row[6]
         elif err:
-            assert err in row[5], row
+            assert err in row[6], row
         else:
-            assert row[5] == "no", row
+            assert row[6] == "no", row
 
     # summary counts equal the input's
     summary = _section(md, "Summary")

@@ -1,4 +1,4 @@
-"""Scenarios, closed-loop metrics, the runner and ``pinnmpc fly`` (issue 5)."""
+"""Scenarios, closed-loop metrics, the runner and ``pinnmpc fly``."""
 
 from __future__ import annotations
 
@@ -13,10 +13,11 @@ from onnx import helper, numpy_helper
 from mpc.contract import jacobian_path
 from scenarios import get_scenario, scenario_names
 from scenarios.errors import ScenarioError
-from scenarios.library import PAYLOAD_FRACTION, WindGusts
-from scenarios.metrics import TIMING_FIELDS, TRACE_TIMING_FIELDS, closed_loop_metrics, crash_reason
+from scenarios.library import DELAY_STEPS, NOISE, PAYLOAD_FRACTION, GustImpulse, WindGusts
+from scenarios.metrics import (LADDER_RMSE_BOUND_M, TIMING_FIELDS, TRACE_TIMING_FIELDS, closed_loop_metrics,
+                               crash_reason, max_trackable_speed)
 from scenarios.runner import RunSpec, fly, sweep
-from sim.params import DT, NX, NoiseModel, QuadParams
+from sim.params import DT, NX, QuadParams
 
 REPO = Path(__file__).resolve().parents[1]
 MODELS = REPO / "models"
@@ -33,9 +34,14 @@ TOL = {
 def test_scenario_names_are_the_designs():
     names = scenario_names()
     assert names[:3] == ["hover", "figure8-slow", "figure8-fast"]
-    assert len(names) == 3 + 3 * 5
+    assert names[3:7] == ["figure8-2.7s", "figure8-2.4s", "figure8-2.2s", "figure8-2.0s"]
+    assert names[7:11] == ["random-0", "random-1", "random-2", "yaw-turn"]
+    assert len(names) == 11 + 3 * 5
     for v in ("highfi", "payload", "wind", "noise", "delay"):
         assert f"figure8-fast+{v}" in names
+    assert get_scenario("random-17").path_seed == 17          # any waypoint seed
+    with pytest.raises(ScenarioError, match="unknown scenario"):
+        get_scenario("figure8-2.0s+wind")
 
 
 def test_unknown_names_raise_a_value_error_naming_them():
@@ -54,8 +60,8 @@ def test_variants_change_only_their_field():
     base = get_scenario("figure8-slow")
     assert base.duration_s == 12.0 and base.period_s == 6.0
     assert get_scenario("figure8-slow+payload").payload_kg == pytest.approx(PAYLOAD_FRACTION * QuadParams().m)
-    assert get_scenario("figure8-slow+delay").delay_steps == 1
-    assert get_scenario("figure8-slow+noise").noise == NoiseModel()
+    assert get_scenario("figure8-slow+delay").delay_steps == DELAY_STEPS
+    assert get_scenario("figure8-slow+noise").noise == NOISE
     assert not get_scenario("figure8-slow+highfi").fidelity.is_nominal
     assert get_scenario("figure8-slow+wind").wind is not None
     for v in ("payload", "delay", "noise", "highfi", "wind"):
@@ -67,8 +73,21 @@ def test_hover_starts_off_the_setpoint_as_designed():
     s = get_scenario("hover")
     x0 = np.array(s.x0)
     offset = np.linalg.norm(x0[:3] - np.array([0.0, 0.0, -1.0]))
-    assert 0.3 <= offset <= 0.5
-    assert 0 < np.max(np.abs(np.rad2deg(x0[3:6]))) <= 6
+    assert 0.02 <= offset <= 0.06                                # a few cm
+    assert 2 <= np.max(np.abs(np.rad2deg(x0[3:6]))) <= 6          # and a few degrees
+    assert np.all(x0[6:] == 0.0)
+    imp = s.impulse
+    assert imp is not None and 0 < imp.start_s < s.duration_s - 2.0 - 1.0   # a settled window after it
+
+
+def test_gust_impulse_has_its_designed_shape():
+    g = GustImpulse(start_s=1.5, duration_s=0.2, peak_mps2=3.0, direction=(0.6, 0.8, 0.0))
+    np.testing.assert_array_equal(g(1.49), 0.0)
+    np.testing.assert_array_equal(g(1.7), 0.0)
+    np.testing.assert_allclose(g(1.6), [1.8, 2.4, 0.0], rtol=0, atol=1e-12)   # midpoint: the full peak
+    t = np.arange(1.5, 1.7, 1e-5)
+    impulse = np.sum([g(ti) for ti in t], axis=0) * 1e-5
+    np.testing.assert_allclose(impulse, 0.5 * 3.0 * 0.2 * np.array([0.6, 0.8, 0.0]), rtol=1e-4)
 
 
 @pytest.mark.parametrize("name", ["figure8-slow", "figure8-fast"])
@@ -102,6 +121,54 @@ def test_wind_gusts_have_their_designed_shape():
 
 
 # --------------------------------------------------------------------------- metrics
+
+def test_settled_error_recovery_and_heading_on_a_synthetic_trace():
+    # 600 periods (6 s): a gust at 1.5 s pushes the error to 0.05 m, which decays linearly to 2 mm at 3.0 s,
+    # then stays at 2 mm except one 3 mm sample at 5.5 s. Heading off by 0.1 rad in the first half.
+    K = 600
+    t = DT * np.arange(1, K + 1)
+    e = np.full(K, 0.002)
+    gust = (t >= 1.5) & (t < 3.0)
+    e[gust] = 0.05 - (0.05 - 0.002) * (t[gust] - 1.5) / 1.5
+    e[np.argmin(np.abs(t - 5.5))] = 0.003
+    x_ref = np.zeros((K + 1, NX))
+    x_ref[:, 2] = -1.0
+    x_ref[:, 5] = np.pi - 0.05          # heading error wraps: pi - 0.05 vs -pi + 0.05 is 0.1 rad apart
+    x = x_ref.copy()
+    x[1:, 0] += e
+    x[1:301, 5] = -np.pi + 0.05
+    m = closed_loop_metrics(x, x_ref, np.zeros(K), np.zeros(K, bool), np.zeros(K, bool), None,
+                            impulse_start_s=1.5, planned_steps=K)
+    assert m["settled_error_m"] == pytest.approx(0.003, abs=TOL["metric_abs"])       # max over 4-6 s
+    assert m["gust_peak_error_m"] == pytest.approx(0.05, abs=TOL["metric_abs"])
+    # back within settled + 5 mm = 8 mm for good once 0.05 - 0.048 (t - 1.5) / 1.5 <= 0.008: t >= 2.8125 s
+    t_rec = t[np.nonzero(e > 0.008)[0][-1] + 1] - 1.5
+    assert m["recovery_time_s"] == pytest.approx(t_rec, abs=TOL["metric_abs"])
+    assert 1.3 - DT <= m["recovery_time_s"] <= 1.32
+    assert m["rmse_yaw_rad"] == pytest.approx(np.sqrt(300 * 0.1 ** 2 / K), abs=1e-9)
+    crashed = closed_loop_metrics(x[:101], x_ref[:101], np.zeros(100), np.zeros(100, bool), np.zeros(100, bool),
+                                  100, "below ground", impulse_start_s=1.5, planned_steps=K)
+    assert crashed["settled_error_m"] is None and crashed["recovery_time_s"] is None
+
+
+def test_max_trackable_speed_climbs_the_ladder_until_the_first_failure():
+    ladder = ["a", "b", "c", "d"]
+    speeds = {"a": 1.0, "b": 2.0, "c": 3.0, "d": 4.0}
+
+    def run(name, rmse, crashed=False):
+        return {"scenario": name, "rmse_position_m": rmse, "crashed": crashed, "error": None}
+
+    good, bad = 0.5 * LADDER_RMSE_BOUND_M, 1.5 * LADDER_RMSE_BOUND_M
+    r = max_trackable_speed([run("a", good), run("b", good), run("c", bad), run("d", good)], ladder, speeds)
+    assert (r["speed_mps"], r["scenario"], r["failed_at"]) == (2.0, "b", "c")      # d does not count after c
+    r = max_trackable_speed([run("a", good), run("b", good, crashed=True)], ladder, speeds)
+    assert (r["speed_mps"], r["failed_at"]) == (1.0, "b")
+    r = max_trackable_speed([run(n, good) for n in ladder], ladder, speeds)
+    assert (r["speed_mps"], r["failed_at"], r["complete"]) == (4.0, None, True)
+    r = max_trackable_speed([run("a", bad)], ladder, speeds)
+    assert r["speed_mps"] is None and r["failed_at"] == "a"
+    assert max_trackable_speed([run("a", good)], ladder, speeds)["complete"] is False
+
 
 def test_metrics_on_a_synthetic_trace_with_known_answer():
     K = 100
@@ -231,12 +298,14 @@ def test_a_two_process_sweep_equals_the_serial_one(tmp_path):
 
 def test_delay_applies_the_previous_command_and_noise_has_its_std():
     r, tr = fly(RunSpec("hover+delay", "lqr", "oracle"))
-    np.testing.assert_array_equal(tr["u"][1:], tr["u_command"][:-1])
+    d = DELAY_STEPS
+    np.testing.assert_array_equal(tr["u"][d:], tr["u_command"][:-d])
     p = QuadParams()
-    np.testing.assert_array_equal(tr["u"][0], [p.m * p.g, 0, 0, 0])
+    for k in range(d):
+        np.testing.assert_array_equal(tr["u"][k], [p.m * p.g, 0, 0, 0])
     r, tr = fly(RunSpec("hover+noise", "lqr", "oracle"))
     dev = tr["x_measured"] - tr["x"][:-1]
-    np.testing.assert_allclose(dev.std(axis=0), NoiseModel().state_std, rtol=TOL["noise_std_rel"])
+    np.testing.assert_allclose(dev.std(axis=0), NOISE.state_std, rtol=TOL["noise_std_rel"])
 
 
 def test_sweep_rejects_duplicates_and_bad_jobs(tmp_path):
@@ -289,9 +358,11 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
     specs = main_plan(MODELS)
-    nmpc = {s.scenario for s in specs if s.controller == "nmpc"}
-    assert nmpc == {"hover", "figure8-fast"}
-    assert {s.scenario for s in specs if s.controller == "ltv"} == set(scenario_names())
+    nmpc = {(s.scenario, s.model_name) for s in specs if s.controller == "nmpc"}
+    assert nmpc == {("figure8-fast", "oracle")}
+    ltv = {s.scenario for s in specs if s.controller == "ltv"}
+    assert ltv == {n for n in scenario_names() if not n.startswith("figure8-slow+")}
+    assert {s.scenario for s in main_plan(MODELS, full=True) if s.controller == "nmpc"} == set(scenario_names())
     assert len({s.model_name for s in specs if s.controller == "ltv"}) == 1 + len(list(MODELS.glob("*.jac.onnx")))
 
 
