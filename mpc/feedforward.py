@@ -35,6 +35,9 @@ from .trajectory import FlatTrajectory, Hover, StateReference, flat_state, held_
 FIT_ITERATIONS = 2
 TRIM_ITERATIONS = 12
 STEP_TOL = 1e-7
+#: The hover state of the trim and the hover linearization: 1 m high (NED z = -1), level, at rest.
+HOVER_STATE = np.zeros(NX)
+HOVER_STATE[2] = -1.0
 #: Levenberg damping of the fit, relative to the input scales (keeps the 4x4 normal equations regular).
 DAMPING = 1e-9
 
@@ -131,11 +134,9 @@ class FeedForward:
 
     __call__ = states
 
-    def hover_trim(self, position=(0.0, 0.0, -1.0), yaw: float = 0.0) -> np.ndarray:
-        """The model's own hover input (4,): the fit at a constant hover state."""
-        x = np.zeros((1, NX))
-        x[0, 0:3] = position
-        x[0, 5] = yaw
+    def hover_trim(self) -> np.ndarray:
+        """The model's own hover input (4,): the fit at the constant hover state :data:`HOVER_STATE`."""
+        x = HOVER_STATE[None, :]
         guess = np.array([[self.spec.m * self.spec.g, 0.0, 0.0, 0.0]])
         return fit_inputs(self.model, x, x, guess, self.w, self.u_scale, TRIM_ITERATIONS)[0]
 
@@ -153,6 +154,10 @@ class FeedForward:
 
     def linearization_point(self) -> tuple[np.ndarray, np.ndarray]:
         """Hover state (12,) at 1 m and the model's trim (4,)."""
-        x = np.zeros(NX)
-        x[2] = -1.0
-        return x, self.trim.copy()
+        return HOVER_STATE.copy(), self.trim.copy()
+
+    def hover_linearization(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(u_trim (4,), A (12, 12), B (12, 4))``: the model linearized at its own hover trim."""
+        x, u = self.linearization_point()
+        _, A, B = self.model.linearize(x, u)
+        return u, A[0], B[0]

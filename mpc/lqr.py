@@ -58,10 +58,7 @@ def hover_linearization(model: PredictionModel | None = None, spec=None):
     """Discrete ``(A (12, 12), B (12, 4))`` of one control period at the model's own hover trim."""
     model = AnalyticModel() if model is None else model
     spec = VehicleSpec.from_model(model) if spec is None else spec
-    ff = FeedForward(model, None, spec, 1.0 / DEFAULT_STATE_SCALE ** 2, input_scale(spec))
-    x, u = ff.linearization_point()
-    _, A, B = model.linearize(x, u)
-    return A[0], B[0]
+    return FeedForward(model, None, spec, 1.0 / DEFAULT_STATE_SCALE ** 2, input_scale(spec)).hover_linearization()[1:]
 
 
 def _check_weights(Q, R):
@@ -121,9 +118,7 @@ class LQRController:
         Qd, Rd = default_weights(self.spec)
         self.Q, self.R = _check_weights(Qd if Q is None else Q, Rd if R is None else R)
         self.ff = FeedForward(self.model, reference, self.spec, np.diag(self.Q), input_scale(self.spec))
-        x_h, self.u_hover = self.ff.linearization_point()
-        _, A, B = self.model.linearize(x_h, self.u_hover)
-        self.A, self.B = A[0], B[0]
+        self.u_hover, self.A, self.B = self.ff.hover_linearization()
         if not (np.all(np.isfinite(self.A)) and np.all(np.isfinite(self.B)) and np.all(np.isfinite(self.u_hover))):
             raise ConfigurationError("the model's hover linearization is not finite; cannot compute an LQR gain")
         self.K, self.P = lqr(self.A, self.B, self.Q, self.R)

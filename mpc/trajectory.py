@@ -38,11 +38,7 @@ import numpy as np
 from sim.params import DT, NU, NX
 
 from .errors import ConfigurationError
-
-#: Gravity (m/s^2) and quadratic drag (1/m) of the nominal model; the defaults of the flatness map.
-G = 9.81
-C_D = 0.05
-
+from .spec import VehicleSpec
 
 class FlatOutputs(NamedTuple):
     """Flat outputs and their derivatives at K times (NED, SI units)."""
@@ -68,7 +64,7 @@ class FlatTrajectory:
     """A reference given by its flat outputs. Subclasses implement :meth:`flat`.
 
     Calling the trajectory gives the reference states ``(K, 12)`` of the
-    nominal model (``g = 9.81``, ``c_d = 0.05``); :func:`flat_state` gives
+    nominal model (the datasheet's ``g`` and ``c_d``); :func:`flat_state` gives
     states and wrench for other parameters.
     """
 
@@ -260,7 +256,7 @@ def flat_state(f: FlatOutputs, spec=None) -> tuple[np.ndarray, np.ndarray]:
     f : FlatOutputs
     spec : object with ``m, Jxx, Jyy, Jzz, g, c_d``, optional
         Parameters of the map (for example a :class:`mpc.spec.VehicleSpec`);
-        the nominal ``g``, ``c_d`` and reference mass and inertias when omitted.
+        the datasheet's (``VehicleSpec()``) when omitted.
         The states depend on ``g`` and ``c_d`` only.
 
     Returns
@@ -269,8 +265,8 @@ def flat_state(f: FlatOutputs, spec=None) -> tuple[np.ndarray, np.ndarray]:
     u : ndarray, shape (K, 4)
         Wrench ``[T, tau_x, tau_y, tau_z]`` (N, N m) at each instant.
     """
-    g = G if spec is None else spec.g
-    c_d = C_D if spec is None else spec.c_d
+    spec = VehicleSpec() if spec is None else spec
+    g, c_d = spec.g, spec.c_d
     v, a, j, s = f.vel, f.acc, f.jerk, f.snap
     av = np.abs(v)
     sv = np.sign(v)
@@ -294,10 +290,7 @@ def flat_state(f: FlatOutputs, spec=None) -> tuple[np.ndarray, np.ndarray]:
     x[:, 3], x[:, 4], x[:, 5] = phi, th, psi
     x[:, 6], x[:, 7], x[:, 8] = p, q, r
     x[:, 9:12] = v
-    if spec is None:
-        m, Jxx, Jyy, Jzz = 0.068, 6.86e-5, 9.20e-5, 1.366e-4
-    else:
-        m, Jxx, Jyy, Jzz = spec.m, spec.Jxx, spec.Jyy, spec.Jzz
+    m, Jxx, Jyy, Jzz = spec.m, spec.Jxx, spec.Jyy, spec.Jzz
     u = np.empty((K, NU))
     u[:, 0] = m * n
     u[:, 1] = Jxx * p1 - (Jyy - Jzz) * q * r

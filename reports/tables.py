@@ -327,11 +327,15 @@ def hover_table(runs: list[dict]) -> str:
             return fmt(None if v is None else 1e3 * v, ".2f")
         rows.append([controller_label(r["controller"]), r["model"], mm("settled_error_m"), mm("gust_peak_error_m"),
                      fmt(r.get("recovery_time_s"), ".2f"), mm("rmse_position_m"), crash_text(r)])
-    text = ("The hover starts a few cm and degrees off the set point and takes a gust impulse at 1.5 s. The "
-            "settled error (the largest error over the last 2 s) measures the model: the true equations hold "
-            "hover to a fraction of a millimetre, so a learned model's settled error is its own bias. Recovery is "
-            "the time from the gust until the error stays within the settled error plus 5 mm. The RMSE is "
-            "dominated by the gust and ranks models poorly.")
+    from scenarios.library import get_scenario
+    from scenarios.metrics import RECOVERY_BAND_M, SETTLE_WINDOW_S
+
+    gust = get_scenario("hover").impulse
+    text = (f"The hover starts a few cm and degrees off the set point and takes a gust impulse at {gust.start_s:g} s. "
+            f"The settled error (the largest error over the last {SETTLE_WINDOW_S:g} s) measures the model: the true "
+            f"equations hold hover to a fraction of a millimetre, so a learned model's settled error is its own bias. "
+            f"Recovery is the time from the gust until the error stays within the settled error plus "
+            f"{RECOVERY_BAND_M * 1e3:g} mm. The RMSE is dominated by the gust and ranks models poorly.")
     return text + "\n\n" + md_table(header, rows)
 
 
@@ -361,7 +365,7 @@ def ladder_table(runs: list[dict]) -> str:
         speed = fmt(res["speed_mps"], ".2f") if res["complete"] or res["failed_at"] else MISSING
         rows.append([controller_label(c), m, speed, res["scenario"] or "none", res["failed_at"] or "none", *cells])
     text = (f"Two laps of the figure-8 at shorter and shorter periods (mean speeds "
-            f"{', '.join(f'{speeds[n]:.2f}' for n in ladder)} m/s; the last needs 97 % of the rotors' top speed). "
+            f"{', '.join(f'{speeds[n]:.2f}' for n in ladder)} m/s; the last is close to the rotor limits). "
             f"A rung is tracked when the run does not crash and its RMSE is at most {LADDER_RMSE_BOUND_M:g} m; the "
             f"maximum trackable speed is the mean speed of the fastest rung below the first one that is not "
             f"(a dash: the ladder was not flown completely).")

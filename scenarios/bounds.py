@@ -31,7 +31,7 @@ from pathlib import Path
 
 from .errors import BoundsError
 from .library import get_scenario
-from .runner import CONTROLLERS, RunSpec
+from .runner import CONTROLLERS, RunSpec, model_name
 
 BOUNDS_FILE = Path(__file__).with_name("bounds.toml")
 METRICS = ("rmse_position_m", "settled_error_m", "rmse_yaw_rad")
@@ -161,10 +161,7 @@ def check(bounds: list[Bound], results: list[dict]) -> list[dict]:
     by_key = {_key(r): r for r in results}
     rows = []
     for b in bounds:
-        from mpc.models import analytic_name, parse_analytic
-
-        name = analytic_name(parse_analytic(b.model)) if b.model.startswith("analytic:") else b.model
-        r = by_key.get((b.scenario, b.controller, name))
+        r = by_key.get((b.scenario, b.controller, model_name(b.model)))
         o = by_key.get((b.scenario, b.controller, "oracle"))
         row = {"bound": b, "value": None, "limit": None, "crashed": None, "ok": False, "why": ""}
         if r is None or (b.relative and o is None):

@@ -15,7 +15,7 @@ Names:
   lemniscate, starting on the reference;
 * the speed ladder ``figure8-2.7s``, ``figure8-2.4s``, ``figure8-2.2s``,
   ``figure8-2.0s``: shorter periods up to the rotor limits (the 2.0 s lap
-  needs 97 % of the rotors' top speed);
+  drives a rotor to 97 % of its maximum thrust);
 * ``yaw-turn``: hover and turn 180 deg in 0.2 s, beyond the rotors' yaw
   torque, so the yaw torque limit binds (heading error is its measure);
 * ``random-<k>``: a minimum-snap path through seeded random waypoints
@@ -44,7 +44,7 @@ HOVER_HEIGHT_M = 1.0
 FIGURE8_AMPLITUDE_M = 0.75
 #: Relative payload of the ``+payload`` variant (fraction of the vehicle mass).
 PAYLOAD_FRACTION = 0.2
-#: Periods of the figure-8 speed ladder beyond figure8-fast, s (2.0 s needs 97 % of the rotor speed limit).
+#: Periods of the figure-8 speed ladder beyond figure8-fast, s (2.0 s drives a rotor to 97 % of its maximum thrust).
 LADDER_PERIODS_S = (2.7, 2.4, 2.2, 2.0)
 #: Random minimum-snap paths flown by the main job (waypoint seeds).
 RANDOM_SEEDS = (0, 1, 2)
@@ -232,9 +232,7 @@ def _hover() -> Scenario:
 
 
 def _figure8(name: str, period: float) -> Scenario:
-    from mpc.trajectory import Figure8
-
-    mean, peak = Figure8(FIGURE8_AMPLITUDE_M, period, HOVER_HEIGHT_M).speeds()
+    mean, peak = _trajectory("figure8", HOVER_HEIGHT_M, period, FIGURE8_AMPLITUDE_M, None).speeds()
     return Scenario(name, "figure8", 2 * period, _start("figure8", period=period), period_s=period,
                     description=f"two laps of a figure-8 (A = {FIGURE8_AMPLITUDE_M} m, period {period:g} s, "
                                 f"mean speed {mean:.2f} m/s, peak {peak:.2f} m/s), starting on the reference")
@@ -258,8 +256,9 @@ def _yaw_turn() -> Scenario:
 
 
 BASE = {s.name: s for s in (_hover(), _figure8("figure8-slow", 6.0), _figure8("figure8-fast", 3.0))}
-EXTRA = {s.name: s for s in (_yaw_turn(),)}
 LADDER = {f"figure8-{p:.1f}s": p for p in LADDER_PERIODS_S}
+#: Scenarios without variants: the speed ladder and the yaw turn (the random paths are built on demand).
+EXTRA = {s.name: s for s in (*(_figure8(n, p) for n, p in LADDER.items()), _yaw_turn())}
 
 
 def _variant(base: Scenario, suffix: str) -> Scenario:
@@ -296,7 +295,7 @@ def scenario_names() -> list[str]:
 
     ``random-<k>`` exists for every integer ``k >= 0``; the list names those of :data:`RANDOM_SEEDS`.
     """
-    return (list(BASE) + list(LADDER) + [f"random-{k}" for k in RANDOM_SEEDS] + list(EXTRA)
+    return (list(BASE) + list(LADDER) + [f"random-{k}" for k in RANDOM_SEEDS] + ["yaw-turn"]
             + [f"{b}+{v}" for b in BASE for v in VARIANTS])
 
 
@@ -307,10 +306,7 @@ def ladder_names() -> list[str]:
 
 def ladder_speeds() -> dict[str, float]:
     """Mean speed (lap length / period, m/s) of each rung of :func:`ladder_names`."""
-    from mpc.trajectory import Figure8
-
-    periods = {"figure8-slow": 6.0, "figure8-fast": 3.0, **LADDER}
-    return {n: Figure8(FIGURE8_AMPLITUDE_M, periods[n], HOVER_HEIGHT_M).speeds()[0] for n in ladder_names()}
+    return {n: get_scenario(n).reference().speeds()[0] for n in ladder_names()}
 
 
 def get_scenario(name: str, seed: int | None = None) -> Scenario:
@@ -318,9 +314,7 @@ def get_scenario(name: str, seed: int | None = None) -> Scenario:
     if not isinstance(name, str):
         raise ScenarioError(f"scenario name must be a string; found {type(name).__name__}")
     base, _, suffix = name.partition("+")
-    if base in LADDER and not suffix:
-        s = _figure8(base, LADDER[base])
-    elif base.startswith("random-") and base[7:].isdigit() and not suffix:
+    if base.startswith("random-") and base[7:].isdigit() and not suffix:
         s = _random(int(base[7:]))
     elif base in EXTRA and not suffix:
         s = EXTRA[base]

@@ -44,6 +44,14 @@ NOT_FLOWN = {"rmse_position_m": None, "max_position_error_m": None, "settled_err
 HORIZON = 30
 
 
+def model_name(model: str) -> str:
+    """The name a model has in results: ``oracle``, ``analytic-<factors>``, or a file's stem."""
+    if model.startswith("analytic:"):
+        from mpc.models import analytic_name, parse_analytic
+        return analytic_name(parse_analytic(model))
+    return "oracle" if model == "oracle" else Path(model).stem
+
+
 @dataclass(frozen=True)
 class RunSpec:
     """What to fly: a scenario name, a controller, a prediction model (``"oracle"`` or an ONNX path)."""
@@ -72,10 +80,7 @@ class RunSpec:
 
     @property
     def model_name(self) -> str:
-        if self.model.startswith("analytic:"):
-            from mpc.models import analytic_name, parse_analytic
-            return analytic_name(parse_analytic(self.model))
-        return "oracle" if self.model == "oracle" else Path(self.model).stem
+        return model_name(self.model)
 
     @property
     def run_id(self) -> str:

@@ -75,6 +75,7 @@ class Simulator:
         self.payload_kg = nonnegative_finite(payload_kg, "payload_kg")
         self.wind = wind
         self._body = _MassParams(self.p, self.payload_kg) if self.payload_kg else self.p
+        self._single = None   # CasADi step of one vehicle, built on first use
 
     # ------------------------------------------------------------------ API
     def step(self, x, u, t: float = 0.0) -> np.ndarray:
@@ -167,7 +168,7 @@ class Simulator:
 
     def _single_step(self):
         """CasADi ``F(x, u, accel) -> x_next`` of one period for one vehicle (built once per simulator)."""
-        if getattr(self, "_single", None) is None:
+        if self._single is None:
             import dataclasses
 
             from .dynamics_casadi import step_function
