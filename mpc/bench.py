@@ -1,13 +1,20 @@
-"""Benchmark of the controllers: per-step solve time for each controller x prediction model.
+"""Benchmark of the controllers: per-period solve time for each controller x prediction model.
 
-Run ``python -m mpc.bench [--models models] [--controllers nmpc,ltv,lqr] [--json FILE]``.
+Run ``python -m mpc.bench [--models models] [--controllers nmpc,sqp,ltv,lqr] [--cases hover,figure8-fast]
+[--json FILE]``.
+
 For the oracle and each shipped ONNX model, each controller flies a 5 s
-hover (from a 0.3 m offset) and one slow figure-8 lap (period 6 s, A =
-0.75 m) on the nominal simulator; the solve time of every call is recorded
-(median / p95 / max, ms) with the deadline misses (> 10 ms), solver failures
-and fallbacks, and the position RMSE of the run. It also prints the floor:
-one batched model + Jacobian evaluation over the whole horizon (one call).
-Nothing is asserted; the figures are written as JSON.
+hover (from a 0.3 m offset) and two laps of ``figure8-fast`` (period 3 s,
+A = 0.75 m) on the nominal simulator, with the input applied at once. The
+SQP runs with its default 8 ms budget. The solve time of every call is
+recorded (median / p95 / max, ms; the max also without the SQP's counted
+cold-start periods) with the deadline misses (> 10 ms), solver failures and
+fallbacks and the position RMSE of the run; for the SQP also the SQP
+iterations per period and the split of its time: derivative graph, QP
+assembly (including OSQP's matrix update), OSQP's solve, line search, and
+the rest (Python). It also prints the floor: one batched model + Jacobian
+evaluation over the whole horizon (one call). Nothing is asserted; the
+figures are written as JSON.
 """
 
 from __future__ import annotations
@@ -24,45 +31,69 @@ from sim import Simulator
 from sim.files import write_json
 from sim.params import DT, NX
 
-from .controller import figure8_reference, hover_reference
+from .controller import hover_reference
 from .lqr import LQRController
 from .ltv import LTVMPC, LTVSettings
 from .models import AnalyticModel, OnnxModel
 from .nmpc import NMPC, NMPCSettings
+from .sqp import SQPMPC, SQPSettings
+from .trajectory import Figure8
 
 HORIZON = 30
+CONTROLLERS = ("nmpc", "sqp", "ltv", "lqr")
+SPLIT = ("derivatives", "assembly", "osqp", "line_search")
 
 
 def _controller(kind: str, model, reference):
     if kind == "nmpc":
         return NMPC(model, reference, NMPCSettings(horizon=HORIZON))
+    if kind == "sqp":
+        return SQPMPC(model, reference, SQPSettings(horizon=HORIZON))
     if kind == "ltv":
         return LTVMPC(model, reference, LTVSettings(horizon=HORIZON))
     return LQRController(reference)
 
 
 def run(kind: str, model, reference, x0: np.ndarray, seconds: float) -> dict:
-    """Fly one case; solve-time statistics, counts and position RMSE."""
+    """Fly one case; solve-time statistics, counts, position RMSE and (SQP) iterations and time split."""
     ctrl = _controller(kind, model, reference)
+    steps = int(round(seconds / DT))
+    ctrl.prepare(steps * DT)
     sim = Simulator()
     x = x0.copy()
-    times, err = [], []
+    times, err, iters, cold = [], [], [], []
+    split = dict.fromkeys(SPLIT, 0.0)
     failures = fallbacks = 0
-    for k in range(int(round(seconds / DT))):
+    for k in range(steps):
         t = k * DT
         u, info = ctrl(x, t)
         times.append(info.solve_time_s)
         failures += info.status not in ("optimal", "lqr")
         fallbacks += info.fallback is not None
+        if kind == "sqp":
+            iters.append(info.iterations)
+            cold.append(info.extra["cold_start"])
+            for key in SPLIT:
+                split[key] += info.extra["time_split_s"][key]
         x = sim.step(x, u)
         err.append(np.linalg.norm(x[0:3] - reference(np.array([t + DT]))[0, 0:3]))
         if not np.all(np.isfinite(x)) or err[-1] > 2.0:
             break
     ms = 1e3 * np.array(times)
-    return {"solve_ms": {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)), "max": float(ms.max())},
-            "deadline_misses": int(np.sum(ms > 1e3 * DT)), "solver_failures": int(failures),
-            "fallbacks": int(fallbacks), "rmse_position_m": float(np.sqrt(np.mean(np.square(err)))),
-            "steps": len(times)}
+    warm = ms[~np.array(cold, dtype=bool)] if cold else ms
+    out = {"solve_ms": {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)), "max": float(ms.max()),
+                        "max_without_cold_starts": float(warm.max()) if warm.size else None},
+           "deadline_misses": int(np.sum(ms > 1e3 * DT)), "solver_failures": int(failures),
+           "fallbacks": int(fallbacks), "rmse_position_m": float(np.sqrt(np.mean(np.square(err)))),
+           "steps": len(times)}
+    if kind == "sqp":
+        n = len(times)
+        it = np.array(iters)
+        parts = {key: 1e3 * v / n for key, v in split.items()}
+        parts["python"] = float(np.mean(ms)) - sum(parts.values())
+        out.update(iterations={"mean": float(it.mean()), "counts": np.bincount(it).tolist()},
+                   cold_starts=int(np.sum(cold)), time_split_ms=parts)
+    return out
 
 
 def floor_us(model, repeat: int = 200) -> float:
@@ -81,34 +112,53 @@ def main(argv=None) -> int:
     """Run the benchmark and print its figures."""
     ap = argparse.ArgumentParser(prog="python -m mpc.bench", description=__doc__.splitlines()[0])
     ap.add_argument("--models", type=Path, default=Path("models"))
-    ap.add_argument("--controllers", default="nmpc,ltv,lqr")
+    ap.add_argument("--controllers", default=",".join(CONTROLLERS))
+    ap.add_argument("--cases", default="hover,figure8-fast")
     ap.add_argument("--json", type=Path, default=Path("bench_mpc.json"))
     args = ap.parse_args(argv)
     kinds = [k for k in args.controllers.split(",") if k]
-    bad = set(kinds) - {"nmpc", "ltv", "lqr"}
+    bad = set(kinds) - set(CONTROLLERS)
     if bad:
-        raise SystemExit(f"--controllers: unknown {sorted(bad)}; choose from nmpc, ltv, lqr")
-    files = sorted(p for p in args.models.glob("*.onnx") if not p.name.endswith(".jac.onnx"))
-    models = [("oracle", AnalyticModel())] + [(f.stem, OnnxModel(f)) for f in files]
+        raise SystemExit(f"--controllers: unknown {sorted(bad)}; choose from {', '.join(CONTROLLERS)}")
+    fig8 = Figure8(0.75, 3.0, 1.0)
     x_hover = np.zeros(NX)
     x_hover[0:3] = [0.3, 0.0, -1.0]
-    fig8 = figure8_reference()
+    all_cases = {"hover": (hover_reference(), x_hover, 5.0), "figure8-fast": (fig8, fig8(np.array([0.0]))[0], 6.0)}
+    cases = [c for c in args.cases.split(",") if c]
+    bad = set(cases) - set(all_cases)
+    if bad:
+        raise SystemExit(f"--cases: unknown {sorted(bad)}; choose from {', '.join(all_cases)}")
+    if not args.models.is_dir():
+        raise SystemExit(f"--models: {str(args.models)!r} is not a folder")
+    files = sorted(p for p in args.models.glob("*.onnx") if not p.name.endswith(".jac.onnx"))
+    models = [("oracle", AnalyticModel())] + [(f.stem, OnnxModel(f)) for f in files]
     out = {"python": platform.python_version(), "cpus": os.cpu_count(), "horizon": HORIZON, "cases": []}
-    print(f"{'controller':<6}{'model':<22}{'case':<10}{'median':>8}{'p95':>8}{'max':>8} ms"
+    print(f"{'controller':<6}{'model':<22}{'case':<14}{'median':>8}{'p95':>8}{'max':>8}{'max*':>8} ms"
           f"{'misses':>8}{'fail':>6}{'fallb':>6}{'RMSE m':>9}{'floor us':>10}")
+    sqp_rows = []
     for name, model in models:
         fl = floor_us(model)
         for kind in kinds:
             if kind == "lqr" and name != "oracle":
                 continue  # LQR uses the analytic hover linearization whatever the model
-            for case, ref, x0, secs in (("hover", hover_reference(), x_hover, 5.0),
-                                        ("figure8", fig8, fig8(np.array([0.0]))[0], 6.0)):
+            for case in cases:
+                ref, x0, secs = all_cases[case]
                 r = run(kind, model, ref, x0, secs)
                 out["cases"].append({"controller": kind, "model": name, "case": case, "floor_us": fl, **r})
                 s = r["solve_ms"]
-                print(f"{kind:<6}{name:<22}{case:<10}{s['median']:>8.2f}{s['p95']:>8.2f}{s['max']:>8.1f}   "
-                      f"{r['deadline_misses']:>8}{r['solver_failures']:>6}{r['fallbacks']:>6}"
-                      f"{r['rmse_position_m']:>9.4f}{fl:>10.0f}")
+                print(f"{kind:<6}{name:<22}{case:<14}{s['median']:>8.2f}{s['p95']:>8.2f}{s['max']:>8.1f}"
+                      f"{s['max_without_cold_starts']:>8.1f}   {r['deadline_misses']:>8}{r['solver_failures']:>6}"
+                      f"{r['fallbacks']:>6}{r['rmse_position_m']:>9.4f}{fl:>10.0f}", flush=True)
+                if kind == "sqp":
+                    sqp_rows.append((name, case, r))
+    if sqp_rows:
+        print("\nmax*: without the SQP's counted cold-start periods. SQP iterations and time split per period (ms):")
+        print(f"{'model':<22}{'case':<14}{'iter mean':>10}  {'counts 0,1,2..':<18}"
+              + "".join(f"{k:>12}" for k in (*SPLIT, "python")))
+        for name, case, r in sqp_rows:
+            sp = r["time_split_ms"]
+            print(f"{name:<22}{case:<14}{r['iterations']['mean']:>10.2f}  {str(r['iterations']['counts']):<18}"
+                  + "".join(f"{sp[k]:>12.2f}" for k in (*SPLIT, "python")))
     write_json(args.json, out)
     print(f"wrote {args.json}")
     return 0

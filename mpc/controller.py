@@ -77,8 +77,13 @@ class Timer:
     """Context manager measuring wall time in seconds (``.elapsed``)."""
 
     def __enter__(self):
-        self._t0 = time.perf_counter()
+        self.start = self._t0 = time.perf_counter()
         return self
+
+    @staticmethod
+    def now() -> float:
+        """The clock the timer reads, s."""
+        return time.perf_counter()
 
     def __exit__(self, *exc):
         self.elapsed = time.perf_counter() - self._t0
@@ -109,6 +114,10 @@ class MPCBase:
         self.u_hover = self.lqr.u_hover
         self.failures_in_a_row = 0
         self.counts = {"solver_failures": 0, "shifted_plan": 0, "lqr_fallback": 0}
+
+    def prepare(self, t_end: float) -> None:
+        """Compute the reference and feed-forward up to ``t_end`` plus one horizon (s) before a flight."""
+        self.ff.prepare(t_end + self.N * self.ff.dt)
 
     def _success(self) -> None:
         self.failures_in_a_row = 0

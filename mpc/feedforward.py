@@ -152,6 +152,21 @@ class FeedForward:
             guess = np.tile(self.trim, (len(t), 1))
         return fit_inputs(self.model, x0, x1, guess, self.w, self.u_scale)
 
+    def prepare(self, t_end: float, chunk: int = 512) -> None:
+        """Fit the feed-forward for every control period from 0 to ``t_end`` (s) ahead of a flight.
+
+        The reference is known before take-off, so its states and inputs can
+        be computed in a few large batched calls instead of one small call per
+        control period; the controllers then only look them up. Values are the
+        same fit either way (the fit is per period).
+        """
+        if not (np.isfinite(t_end) and t_end >= 0):
+            raise ConfigurationError(f"t_end must be a finite time >= 0 s; found {t_end}")
+        n = int(np.floor(t_end / self.dt + 1e-9)) + 1
+        times = self.dt * np.arange(n)
+        for start in range(0, n, chunk):
+            self.inputs(times[start:start + chunk])
+
     def linearization_point(self) -> tuple[np.ndarray, np.ndarray]:
         """Hover state (12,) at 1 m and the model's trim (4,)."""
         return HOVER_STATE.copy(), self.trim.copy()

@@ -124,6 +124,10 @@ class LQRController:
         self.K, self.P = lqr(self.A, self.B, self.Q, self.R)
         self.reference = self.ff.states
 
+    def prepare(self, t_end: float) -> None:
+        """Compute the reference and feed-forward up to ``t_end`` (s) before a flight."""
+        self.ff.prepare(t_end)
+
     def input(self, x: np.ndarray, x_ref: np.ndarray, u_ff: np.ndarray | None = None) -> np.ndarray:
         """Feasible input (4,) for state ``x``, desired state ``x_ref`` and feed-forward ``u_ff`` (no checks)."""
         u = (self.u_hover if u_ff is None else u_ff) - self.K @ (x - x_ref)

@@ -71,9 +71,8 @@ class AnalyticModel(PredictionModel):
         self.theta = self.params.theta
         #: CasADi function ``F(x, u) -> x_next`` (column vectors), for symbolic use (NMPC).
         self.casadi_step = step_function(self.params)
-        xs, us = ca.SX.sym("x", NX), ca.SX.sym("u", NU)
-        xn = self.casadi_step(xs, us)
-        self._lin = ca.Function("lin", [xs, us], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, us)])
+        self._theta = ca.DM(self.params.theta)
+        self._step, self._lin = _numeric_functions(self.params)
         self._maps: dict = {}
 
     @classmethod
@@ -88,23 +87,56 @@ class AnalyticModel(PredictionModel):
     def _mapped(self, fn: str, n: int):
         key = (fn, n)
         if key not in self._maps:
-            base = self.casadi_step if fn == "step" else self._lin
+            base = self._step if fn == "step" else self._lin
             self._maps[key] = base.map(n, "serial")
         return self._maps[key]
 
     def step(self, x, u) -> np.ndarray:
         """Next states (N, 12)."""
         x, u = _batch(x, u)
-        return np.asarray(self._mapped("step", len(x))(x.T, u.T)).T
+        n = len(x)
+        return np.asarray(self._mapped("step", n)(x.T, u.T, ca_repmat(self._theta, n))).T
 
     def linearize(self, x, u):
-        """``(x_next, A, B)`` by CasADi's automatic differentiation."""
+        """``(x_next, A, B)`` by CasADi's automatic differentiation (compiled, see :mod:`mpc.compiled`)."""
         x, u = _batch(x, u)
         n = len(x)
-        xn, A, B = self._mapped("lin", n)(x.T, u.T)
+        xn, A, B = self._mapped("lin", n)(x.T, u.T, ca_repmat(self._theta, n))
         A = np.asarray(A).reshape(NX, n, NX).transpose(1, 0, 2)
         B = np.asarray(B).reshape(NX, n, NU).transpose(1, 0, 2)
         return np.asarray(xn).T, A, B
+
+
+def ca_repmat(v, n: int):
+    import casadi as ca
+
+    return ca.repmat(v, 1, n)
+
+
+_NUMERIC: dict = {}
+
+
+def _numeric_functions(params: QuadParams):
+    """Compiled ``step(x, u, theta)`` and ``lin(x, u, theta) -> (x_next, A, B)`` of the nominal equations.
+
+    ``theta`` is an input, so one compiled library serves every parameter
+    set that differs only in ``(m, Jxx, Jyy, Jzz, kt, kq)``.
+    """
+    import casadi as ca
+
+    from sim.dynamics_casadi import step_function
+
+    from .compiled import compiled
+
+    key = tuple(getattr(params, n) for n in ("g", "c_d", "d"))
+    if key not in _NUMERIC:
+        F = step_function(params, symbolic_theta=True)
+        xs, us, th = ca.SX.sym("x", NX), ca.SX.sym("u", NU), ca.SX.sym("theta", len(THETA_NAMES))
+        xn = F(xs, us, th)
+        step = ca.Function("pinnmpc_step", [xs, us, th], [xn])
+        lin = ca.Function("pinnmpc_lin", [xs, us, th], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, us)])
+        _NUMERIC[key] = (compiled(step), compiled(lin))
+    return _NUMERIC[key]
 
 
 class OnnxModel(PredictionModel):

@@ -229,6 +229,26 @@ class NMPC(MPCBase):
         X[0] = x
         return self._pack(X, U)
 
+    def solve_from(self, x, t: float, X0, U0):
+        """Solve the period at ``(x, t)`` from the guess ``(X0 (N + 1, 12), U0 (N, 4))``, no warm start.
+
+        Returns ``(X (N + 1, 12), U (N, 4), IPOPT's return status)``; the
+        controller's own warm start is left as it was.
+        """
+        x = check_state(x)
+        X0, U0 = np.asarray(X0, dtype=float), np.asarray(U0, dtype=float)
+        if X0.shape != (self.N + 1, NX) or U0.shape != (self.N, NU):
+            raise ConfigurationError(f"X0 must be ({self.N + 1}, 12) and U0 ({self.N}, 4); "
+                                     f"found {X0.shape} and {U0.shape}")
+        times = t + DT * np.arange(self.N + 1)
+        ref, u_ref = self.ff.states(times), self.ff.inputs(times[:self.N])
+        X0 = X0.copy()
+        X0[0] = x
+        sol = self._solver(x0=self._pack(X0, U0), p=np.concatenate([x, ref.ravel(), u_ref.ravel()]),
+                           lbx=self._lbw, ubx=self._ubw, lbg=self._lbg, ubg=self._ubg)
+        X, U = self._unpack(np.asarray(sol["x"]).ravel())
+        return X, U, self._solver.stats().get("return_status", "unknown")
+
     def __call__(self, x, t: float):
         """Input (4,) and :class:`ControlInfo` for the measured state ``x`` at time ``t`` (s)."""
         x = check_state(x)

@@ -32,7 +32,7 @@ FIG_DIR = "figures"
 #: Marker per base scenario in the headline figure (others: diamond).
 SCENARIO_MARKERS = {"hover": "o", "figure8-slow": "s", "figure8-fast": "^"}
 #: Colour per controller (others: grey).
-CONTROLLER_COLORS = {"nmpc": "tab:blue", "ltv": "tab:orange", "lqr": "tab:green"}
+CONTROLLER_COLORS = {"nmpc": "tab:blue", "sqp": "tab:purple", "ltv": "tab:orange", "lqr": "tab:green"}
 #: Floor of log-scaled errors, m (an error of exactly 0 is drawn here).
 LOG_FLOOR_M = 1e-5
 #: rc settings of every figure.

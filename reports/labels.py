@@ -16,7 +16,7 @@ from sim.params import DT
 #: Scenarios without a variant in report order: the bases, the speed ladder, the random paths, the yaw turn.
 BASE_SCENARIOS = tuple(n for n in scenario_names() if "+" not in n)
 #: Display names of the controllers.
-CONTROLLER_LABELS = {"nmpc": "NMPC", "ltv": "LTV-MPC", "lqr": "LQR"}
+CONTROLLER_LABELS = {"nmpc": "NMPC", "sqp": "SQP", "ltv": "LTV-MPC", "lqr": "LQR"}
 #: The model name of the true (simulator) equations.
 ORACLE = "oracle"
 #: Control period, s; the deadline of one controller solve.

@@ -370,3 +370,28 @@ def ladder_table(runs: list[dict]) -> str:
             f"maximum trackable speed is the mean speed of the fastest rung below the first one that is not "
             f"(a dash: the ladder was not flown completely).")
     return text + "\n\n" + md_table(header, rows)
+
+
+def realtime_table(runs: list[dict]) -> str:
+    """Each controller x model flown with both timings: RMSE ideal against real time, and what the time cost."""
+    rt = [r for r in runs if r.get("timing") == "realtime"]
+    if not rt:
+        return "No run was flown with real-time timing."
+    ideal = {(r["scenario"], r["controller"], r["model"]): r for r in runs if r.get("timing", "ideal") == "ideal"}
+    header = ["scenario", "controller", "model", "RMSE ideal (m)", "RMSE real time (m)", "crash (real time)",
+              "solve median / p95 / max (ms)", "deadline misses", "skipped periods", "solver failures", "fallbacks"]
+    rows = []
+    for r in sorted(rt, key=lambda r: (r["scenario"], controller_key(r["controller"]), model_key(r["model"]))):
+        i = ideal.get((r["scenario"], r["controller"], r["model"]))
+        s = r.get("solve_ms") or {}
+        rows.append([r["scenario"], controller_label(r["controller"]), r["model"],
+                     "not flown" if i is None else (crash_text(i) if i.get("crashed") else fmt(i.get("rmse_position_m"))),
+                     fmt(r.get("rmse_position_m")), crash_text(r) if r.get("crashed") else "no",
+                     " / ".join(fmt(s.get(k), ".1f") for k in ("median", "p95", "max")) if s else "-",
+                     r.get("deadline_misses"), r.get("skipped_periods"), r.get("solver_failures"), r.get("fallbacks")])
+    return ("With real-time timing the input computed from the measurement at a period takes effect after the "
+            "call's measured wall time, rounded up to the simulator's 1 ms substep; a call that overruns the "
+            f"{DT_S * 1e3:.0f} ms period keeps the previous input until it returns, and the periods it overran are "
+            "skipped (the controller is not called). Ideal timing applies every input at once. The SQP runs "
+            "with its 8 ms budget in real time and without it (at most its iteration limit) in ideal timing.\n\n"
+            + md_table(header, rows))

@@ -13,9 +13,11 @@ Layout of a results folder ``DIR``::
 
 Which runs (``main_plan``): every scenario of :func:`main_scenarios` (hover,
 the figure-8 speed ladder, the random paths, the yaw turn, and the variants
-of ``hover`` and ``figure8-fast``) with the LTV-MPC on the oracle and on
-every shipped model, and with the LQR on the oracle; the NMPC with the
-oracle on ``figure8-fast`` (:data:`NMPC_SCENARIOS`, :data:`NMPC_MODELS`).
+of ``hover`` and ``figure8-fast``) with the SQP and the LTV-MPC on the oracle
+and on every shipped model, and with the LQR on the oracle; the NMPC with the
+oracle on ``figure8-fast`` (:data:`NMPC_SCENARIOS`, :data:`NMPC_MODELS`);
+and ``figure8-fast`` once more with real-time timing, flown by the SQP, the
+LTV-MPC and the NMPC with every model (:data:`REALTIME_SCENARIOS`).
 An IPOPT solve takes 100-200 ms per control period on these 2-core machines
 (600 periods a run), so the NMPC with every model does not fit the main
 job's 10 minutes; ``full=True`` (``pinnmpc run --full``: every scenario,
@@ -41,6 +43,9 @@ from .runner import RunSpec, spec_dict, sweep
 
 #: Scenarios the NMPC flies in the main job (every scenario with ``full=True``).
 NMPC_SCENARIOS = ("figure8-fast",)
+#: Scenarios flown with real-time timing too, by the SQP, the LTV-MPC and the NMPC with every model.
+REALTIME_SCENARIOS = ("figure8-fast",)
+REALTIME_CONTROLLERS = ("sqp", "ltv", "nmpc")
 #: Models the NMPC flies in the main job (every model with ``full=True``).
 NMPC_MODELS = ("oracle",)
 #: Time-dependent provenance fields (excluded when two runs are compared).
@@ -75,8 +80,12 @@ def main_plan(models_dir="models", full: bool = False, scenarios: list[str] | No
         for m in models:
             if full or (sc in NMPC_SCENARIOS and m in NMPC_MODELS):
                 specs.append(RunSpec(sc, "nmpc", m))
+            specs.append(RunSpec(sc, "sqp", m))
             specs.append(RunSpec(sc, "ltv", m))
         specs.append(RunSpec(sc, "lqr", "oracle"))
+    for sc in names:
+        if sc in REALTIME_SCENARIOS:
+            specs += [RunSpec(sc, c, m, timing="realtime") for c in REALTIME_CONTROLLERS for m in models]
     return specs
 
 

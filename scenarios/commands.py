@@ -9,14 +9,14 @@ from pathlib import Path
 from sim.files import write_json
 
 #: Fields printed by ``pinnmpc fly``, in order (names other tools rely on).
-FLY_FIELDS = ("scenario", "controller", "model", "rmse_position_m", "max_position_error_m", "crashed",
+FLY_FIELDS = ("scenario", "controller", "model", "timing", "rmse_position_m", "max_position_error_m", "crashed",
               "crash_time_s", "solve_ms", "deadline_misses", "solver_failures", "fallbacks")
 
 
 def register(sub) -> None:
     """Add this package's subcommands to the ``pinnmpc`` parser."""
     from .library import scenario_names
-    from .runner import CONTROLLERS, HORIZON
+    from .runner import CONTROLLERS, HORIZON, TIMINGS
 
     names = scenario_names()
     p = sub.add_parser("fly", help="fly one closed-loop run and print its metrics",
@@ -28,6 +28,10 @@ def register(sub) -> None:
     p.add_argument("--scenario", required=True, metavar="NAME", help="scenario name (see above)")
     p.add_argument("--seed", type=int, default=None, help="seed of noise and gusts (default: the scenario's, 0)")
     p.add_argument("--horizon", type=int, default=HORIZON, help=f"MPC horizon in steps of 10 ms (default {HORIZON})")
+    p.add_argument("--timing", choices=TIMINGS, default="ideal",
+                   help="ideal: each input applies at once (deterministic, default); realtime: it applies after "
+                        "the call's measured wall time, rounded up to 1 ms, and a call that overruns the 10 ms "
+                        "period keeps the previous input until it returns")
     p.add_argument("--json", metavar="FILE", type=Path, default=None, help="write the result as JSON")
     p.add_argument("--trace", metavar="FILE.npz", type=Path, default=None, help="write the trace arrays")
     p.add_argument("--plot", metavar="FILE.png", type=Path, default=None, help="plot path, height, error, inputs")
@@ -84,7 +88,7 @@ def cmd_fly(args: argparse.Namespace) -> int:
             raise ValueError(f"--{name} {str(path)!r} is a folder; give a file name")
     if args.plot is not None and args.plot.suffix.lower() != ".png":
         raise ValueError(f"--plot must name a .png file; found {str(args.plot)!r}")
-    spec = RunSpec(args.scenario, args.controller, args.model, args.seed, args.horizon)
+    spec = RunSpec(args.scenario, args.controller, args.model, args.seed, args.horizon, args.timing)
     result, trace = fly(spec, progress=sys.stderr.isatty())
     for k in FLY_FIELDS:
         print(f"{k:<22}{_fmt(result[k])}")

@@ -16,7 +16,8 @@ Definitions (``K`` control periods flown, state ``x_k`` at time ``k dt``):
   from ``t_g`` on, and ``recovery_time_s``, the time from ``t_g`` until the
   error is back within ``settled_error_m + RECOVERY_BAND_M`` for good;
 * solve time median / p95 / max over the periods flown (ms), deadline misses
-  = periods whose solve took longer than ``dt``;
+  = periods whose solve took longer than ``dt`` (with real-time timing the
+  periods a busy controller skipped are counted as ``skipped_periods``);
 * ``solver_failures`` = periods whose solve failed (then the shifted plan or
   the LQR flew); ``fallbacks`` = periods flown by the LQR fallback.
 """
@@ -37,7 +38,7 @@ CRASH_TILT_RAD = np.deg2rad(80.0)
 #: Fields that measure this machine's wall time; everything else in a result is reproducible exactly.
 TIMING_FIELDS = ("solve_ms", "deadline_misses", "wall_time_s")
 #: Trace arrays that measure wall time.
-TRACE_TIMING_FIELDS = ("solve_s",)
+TRACE_TIMING_FIELDS = ("solve_s", "latency_s")
 
 
 def crash_reason(x: np.ndarray, x_ref: np.ndarray) -> str | None:
@@ -61,7 +62,7 @@ def position_errors(x: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
 def closed_loop_metrics(x: np.ndarray, x_ref: np.ndarray, solve_s: np.ndarray, failed: np.ndarray,
                         lqr_fallback: np.ndarray, crash_step: int | None, crash_why: str | None = None,
                         dt: float = DT, impulse_start_s: float | None = None,
-                        planned_steps: int | None = None) -> dict:
+                        planned_steps: int | None = None, called: np.ndarray | None = None) -> dict:
     """Metrics of one run from its trace.
 
     Parameters
@@ -78,6 +79,11 @@ def closed_loop_metrics(x: np.ndarray, x_ref: np.ndarray, solve_s: np.ndarray, f
         Start of a gust impulse, s (adds the gust peak error and recovery time).
     planned_steps : int, optional
         Control periods the run was planned for; a run that stopped earlier has no settled error.
+    called : ndarray of bool, shape (K,), optional
+        Periods in which the controller was called (real-time timing: a
+        controller still busy with an earlier call is not called). The solve
+        times and deadline misses cover these periods; ``skipped_periods``
+        counts the others.
     """
     x, x_ref = np.asarray(x, dtype=float), np.asarray(x_ref, dtype=float)
     solve_ms = 1e3 * np.asarray(solve_s, dtype=float)
@@ -88,6 +94,11 @@ def closed_loop_metrics(x: np.ndarray, x_ref: np.ndarray, solve_s: np.ndarray, f
     finite = np.isfinite(e)
     e_ok = e[finite]
     K = solve_ms.shape[0]
+    extra = {}
+    if called is not None:
+        called = np.asarray(called, dtype=bool)
+        extra["skipped_periods"] = int(K - np.sum(called))
+        solve_ms = solve_ms[called]
     complete = crash_step is None and (planned_steps is None or K >= planned_steps) and bool(np.all(finite))
     n_settle = int(round(SETTLE_WINDOW_S / dt))
     settled = float(np.max(e[-n_settle:])) if complete and K >= n_settle else None
@@ -104,7 +115,7 @@ def closed_loop_metrics(x: np.ndarray, x_ref: np.ndarray, solve_s: np.ndarray, f
     with np.errstate(invalid="ignore"):
         e_yaw = np.abs(np.angle(np.exp(1j * (x[1:, 5] - x_ref[1:, 5]))))   # heading error, wrapped to [0, pi]
     e_yaw = e_yaw[np.isfinite(e_yaw)]
-    return {**gust,
+    return {**gust, **extra,
         "settled_error_m": settled,
         "rmse_yaw_rad": float(np.sqrt(np.mean(e_yaw ** 2))) if e_yaw.size else None,
         "rmse_position_m": float(np.sqrt(np.mean(e_ok ** 2))) if e_ok.size else None,
@@ -117,7 +128,7 @@ def closed_loop_metrics(x: np.ndarray, x_ref: np.ndarray, solve_s: np.ndarray, f
         "deadline_misses": int(np.sum(solve_ms > 1e3 * dt)),
         "solver_failures": int(np.sum(failed)),
         "fallbacks": int(np.sum(lqr_fallback)),
-        "steps": int(solve_ms.size),
+        "steps": int(K),
     }
 
 

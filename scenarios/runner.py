@@ -34,7 +34,7 @@ from .errors import ScenarioError
 from .library import get_scenario
 from .metrics import closed_loop_metrics, crash_reason
 
-CONTROLLERS = ("nmpc", "ltv", "lqr")
+CONTROLLERS = ("nmpc", "sqp", "ltv", "lqr")
 #: Metrics of a run that never flew (its controller could not be built, or the run raised).
 NOT_FLOWN = {"rmse_position_m": None, "max_position_error_m": None, "settled_error_m": None, "rmse_yaw_rad": None,
              "crashed": False, "crash_time_s": None,
@@ -42,6 +42,11 @@ NOT_FLOWN = {"rmse_position_m": None, "max_position_error_m": None, "settled_err
              "steps": 0}
 #: MPC horizon of every run unless stated, steps of DT.
 HORIZON = 30
+#: How compute time enters a run: ``ideal`` applies each input at once (deterministic); ``realtime`` applies it
+#: after the call's measured wall time, rounded up to the simulator's 1 ms substep (see :func:`fly`).
+TIMINGS = ("ideal", "realtime")
+#: The simulator's substep, ms (the resolution of real-time latencies).
+SUBSTEP_MS = 1
 
 
 def model_name(model: str) -> str:
@@ -61,10 +66,13 @@ class RunSpec:
     model: str = "oracle"
     seed: int | None = None       # None: the scenario's own seed
     horizon: int = HORIZON        # MPC horizon, steps
+    timing: str = "ideal"         # "ideal" (input applied at once) or "realtime" (after the measured compute time)
 
     def __post_init__(self):
         if self.controller not in CONTROLLERS:
             raise ScenarioError(f"controller must be one of {', '.join(CONTROLLERS)}; found {self.controller!r}")
+        if self.timing not in TIMINGS:
+            raise ScenarioError(f"timing must be one of {', '.join(TIMINGS)}; found {self.timing!r}")
         get_scenario(self.scenario)  # raises for an unknown name
         if not isinstance(self.model, str) or not self.model:
             raise ScenarioError(f"model must be 'oracle' or the path of an .onnx file; found {self.model!r}")
@@ -84,8 +92,9 @@ class RunSpec:
 
     @property
     def run_id(self) -> str:
-        """File-name-safe identifier ``<scenario>__<controller>__<model>``."""
-        return f"{self.scenario}__{self.controller}__{self.model_name}"
+        """File-name-safe identifier ``<scenario>__<controller>__<model>`` (``__realtime`` appended for that timing)."""
+        base = f"{self.scenario}__{self.controller}__{self.model_name}"
+        return base if self.timing == "ideal" else f"{base}__{self.timing}"
 
 
 def _sha256(path: str) -> str | None:
@@ -94,12 +103,14 @@ def _sha256(path: str) -> str | None:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def make_controller(kind: str, model, reference, horizon: int = HORIZON):
-    """The controller ``kind`` (``nmpc``, ``ltv``, ``lqr``) on prediction ``model`` following ``reference``.
+def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing: str = "ideal"):
+    """The controller ``kind`` (``nmpc``, ``sqp``, ``ltv``, ``lqr``) on prediction ``model`` following ``reference``.
 
     The controller gets the model and the reference only: its vehicle spec
     comes from the model (:meth:`mpc.spec.VehicleSpec.from_model`), never from
-    the plant's parameters.
+    the plant's parameters. With ``ideal`` timing the SQP runs without its
+    wall-clock budget (at most its iteration limit), so that the run is
+    reproducible bit for bit; with ``realtime`` timing the budget applies.
     """
     from mpc.lqr import LQRController
     from mpc.ltv import LTVMPC, LTVSettings
@@ -107,11 +118,67 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON):
 
     if kind == "nmpc":
         return NMPC(model, reference, NMPCSettings(horizon=horizon))
+    if kind == "sqp":
+        from mpc.sqp import SQPMPC, SQPSettings
+        if timing == "ideal":
+            return SQPMPC(model, reference, SQPSettings(horizon=horizon, time_budget_s=None, cold_start_budget_s=None))
+        return SQPMPC(model, reference, SQPSettings(horizon=horizon))
     if kind == "ltv":
         return LTVMPC(model, reference, LTVSettings(horizon=horizon))
     if kind == "lqr":
         return LQRController(reference, model)
     raise ScenarioError(f"controller must be one of {', '.join(CONTROLLERS)}; found {kind!r}")
+
+
+class _RealtimeClock:
+    """The plant side of real-time timing: when each computed input takes effect.
+
+    The controller is called at a period boundary ``k dt`` only when it is
+    idle. A call that took ``L`` seconds of wall time returns ``ceil(L / 1 ms)``
+    substeps later; its input takes effect from that substep on (plus the
+    scenario's delay periods) and the controller is idle again from then.
+    Until then the previous input stays applied (before the first one, the
+    vehicle's hover thrust). A period whose input changes mid-way is flown
+    in pieces of whole substeps with the same simulator equations.
+    """
+
+    def __init__(self, plant, sc, hover):
+        from sim import Simulator
+
+        self._make = lambda m: Simulator(plant, sc.fidelity, dt=m * DT / 10, substeps=m,
+                                         payload_kg=sc.payload_kg, wind=_wind(sc))
+        self._sims: dict[int, object] = {}
+        self.delay_ms = 10 * sc.delay_steps
+        self.u = hover
+        self.events: list[tuple[int, np.ndarray]] = []    # (time the input takes effect, ms; input)
+        self.busy_until_ms = 0
+
+    def _sim(self, m: int):
+        if m not in self._sims:
+            self._sims[m] = self._make(m)
+        return self._sims[m]
+
+    def idle(self, k: int) -> bool:
+        return self.busy_until_ms <= 10 * k
+
+    def command(self, k: int, u: np.ndarray, latency_s: float) -> None:
+        lat_ms = max(SUBSTEP_MS, int(np.ceil(latency_s * 1e3 / SUBSTEP_MS - 1e-9)) * SUBSTEP_MS)
+        self.busy_until_ms = 10 * k + lat_ms
+        self.events.append((10 * k + lat_ms + self.delay_ms, np.array(u, dtype=float)))
+
+    def fly_period(self, k: int, x, n, t: float):
+        """Advance period ``k``; ``(x, rotor speed, input in effect at its end)``."""
+        t0, t1 = 10 * k, 10 * k + 10
+        now = t0
+        while now < t1:
+            while self.events and self.events[0][0] <= now:
+                self.u = self.events.pop(0)[1]
+            nxt = t1 if not self.events else min(t1, self.events[0][0])
+            # The wind of a period is evaluated at its start, as in the ideal-timing simulator.
+            res = self._sim(nxt - now).step_full(x, self.u, rotor_speed=n, t=t)
+            x, n = res.x, res.rotor_speed
+            now = nxt
+        return x, n, self.u
 
 
 def _wind(sc):
@@ -157,11 +224,15 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
     crash_step, why, error = None, None, None
     base = {"run_id": spec.run_id, "scenario": spec.scenario, "controller": spec.controller,
             "model": spec.model_name, "model_file": None if spec.model == "oracle" or spec.model.startswith("analytic:") else str(spec.model),
-            "model_sha256": _sha256(spec.model), "seed": sc.seed, "horizon": spec.horizon}
+            "model_sha256": _sha256(spec.model), "seed": sc.seed, "horizon": spec.horizon, "timing": spec.timing}
     t0 = time.perf_counter()
     k_end = 0
+    realtime = spec.timing == "realtime"
+    latency = np.full(K, np.nan)
+    called = np.zeros(K, dtype=bool)
     try:
-        ctrl = make_controller(spec.controller, model, ref, spec.horizon)
+        ctrl = make_controller(spec.controller, model, ref, spec.horizon, spec.timing)
+        ctrl.prepare(K * DT)   # the reference is known before take-off: its feed-forward is fitted now
     except ValueError as e:  # e.g. no LQR gain for this model's hover linearization
         error = f"{type(e).__name__}: {e}"
         ctrl = None
@@ -171,32 +242,44 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
         x = np.array(sc.x0, dtype=float)
         X[0] = x
         n = None
-        # Before the first delayed command arrives, the vehicle's own hover thrust holds it (plant side).
-        pending = [np.array([plant.m * plant.g, 0.0, 0.0, 0.0])] * sc.delay_steps
+        # Before the first (delayed or computed) command arrives, the vehicle's own hover thrust holds it (plant side).
+        hover = np.array([plant.m * plant.g, 0.0, 0.0, 0.0])
+        pending = [hover] * sc.delay_steps
+        clock = _RealtimeClock(plant, sc, hover) if realtime else None
         steps = range(K)
         if progress:
             from tqdm import tqdm
             steps = tqdm(steps, desc=spec.run_id, unit="step", leave=False)
         for k in steps:
             t = k * DT
-            xm = x if sc.noise is None else sim.measure(x, rng, sc.noise)
-            Xm[k] = xm
-            u_cmd, info = ctrl(xm, t)
-            Ucmd[k] = u_cmd
-            if sc.delay_steps:
-                pending.append(u_cmd)
-                u = pending.pop(0)
+            if not realtime or clock.idle(k):
+                xm = x if sc.noise is None else sim.measure(x, rng, sc.noise)
+                Xm[k] = xm
+                c0 = time.perf_counter()
+                u_cmd, info = ctrl(xm, t)
+                latency[k] = time.perf_counter() - c0
+                called[k] = True
+                Ucmd[k] = u_cmd
+                solve_s[k] = info.solve_time_s
+                iters[k] = info.iterations
+                status[k] = info.status
+                failed[k] = info.fallback is not None
+                lqr_fb[k] = info.fallback == "lqr"
+            if realtime:
+                if called[k]:
+                    clock.command(k, u_cmd, latency[k])
+                with np.errstate(all="ignore"):
+                    x, n, u = clock.fly_period(k, x, n, t)
             else:
-                u = u_cmd
+                if sc.delay_steps:
+                    pending.append(u_cmd)
+                    u = pending.pop(0)
+                else:
+                    u = u_cmd
+                with np.errstate(all="ignore"):
+                    res = sim.step_full(x, u, rotor_speed=n, t=t)
+                x, n = res.x, res.rotor_speed
             U[k] = u
-            solve_s[k] = info.solve_time_s
-            iters[k] = info.iterations
-            status[k] = info.status
-            failed[k] = info.fallback is not None
-            lqr_fb[k] = info.fallback == "lqr"
-            with np.errstate(all="ignore"):
-                res = sim.step_full(x, u, rotor_speed=n, t=t)
-            x, n = res.x, res.rotor_speed
             X[k + 1] = x
             k_end = k + 1
             why = crash_reason(x, X_ref[k + 1])
@@ -208,13 +291,14 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
         metrics = closed_loop_metrics(X[:k_end + 1], X_ref[:k_end + 1], solve_s[:k_end], failed[:k_end],
                                       lqr_fb[:k_end], crash_step, why,
                                       impulse_start_s=None if sc.impulse is None else sc.impulse.start_s,
-                                      planned_steps=K)
+                                      planned_steps=K, called=called[:k_end] if realtime else None)
     else:
         metrics = dict(NOT_FLOWN)
     result = {**base, **metrics, "shifted_plan": int(np.sum(failed[:k_end] & ~lqr_fb[:k_end])),
               "error": error, "wall_time_s": wall, "scenario_spec": sc.to_dict()}
     trace = {"t": t_all[:k_end + 1], "x": X[:k_end + 1], "x_ref": X_ref[:k_end + 1], "x_measured": Xm[:k_end],
-             "u": U[:k_end], "u_command": Ucmd[:k_end], "solve_s": solve_s[:k_end], "iterations": iters[:k_end],
+             "u": U[:k_end], "u_command": Ucmd[:k_end], "solve_s": solve_s[:k_end], "latency_s": latency[:k_end],
+             "called": called[:k_end], "iterations": iters[:k_end],
              "status": status[:k_end], "solver_failed": failed[:k_end], "lqr_fallback": lqr_fb[:k_end]}
     return result, trace
 
@@ -279,7 +363,7 @@ def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True) -
 
             _worker_init()
             # Longest runs first (NMPC, long scenarios) so the pool ends together.
-            order = sorted(specs, key=lambda s: -(get_scenario(s.scenario).steps * (20 if s.controller == "nmpc" else 1)))
+            order = sorted(specs, key=lambda s: -(get_scenario(s.scenario).steps * _COST.get((s.controller, s.timing), 1)))
             with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
                                      initializer=_worker_init) as pool:
                 futs = {pool.submit(_run_and_save, s, str(out_dir)): s for s in order}
@@ -291,6 +375,10 @@ def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True) -
         if bar:
             bar.close()
     return [results[i] for i in ids]
+
+
+#: Rough cost of a period relative to the LTV-MPC's (orders a sweep's runs longest first).
+_COST = {("nmpc", "ideal"): 20, ("sqp", "ideal"): 2}
 
 
 def spec_dict(spec: RunSpec) -> dict:

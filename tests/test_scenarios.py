@@ -358,10 +358,15 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
     specs = main_plan(MODELS)
-    nmpc = {(s.scenario, s.model_name) for s in specs if s.controller == "nmpc"}
+    ideal = [s for s in specs if s.timing == "ideal"]
+    nmpc = {(s.scenario, s.model_name) for s in ideal if s.controller == "nmpc"}
     assert nmpc == {("figure8-fast", "oracle")}
-    ltv = {s.scenario for s in specs if s.controller == "ltv"}
-    assert ltv == {n for n in scenario_names() if not n.startswith("figure8-slow+")}
+    ltv = {(s.scenario, s.model_name) for s in ideal if s.controller == "ltv"}
+    assert {sc for sc, _ in ltv} == {n for n in scenario_names() if not n.startswith("figure8-slow+")}
+    assert {(s.scenario, s.model_name) for s in ideal if s.controller == "sqp"} == ltv   # sqp flies what ltv flies
+    models = {m for _, m in ltv}
+    realtime = {(s.scenario, s.controller, s.model_name) for s in specs if s.timing == "realtime"}
+    assert realtime == {("figure8-fast", c, m) for c in ("sqp", "ltv", "nmpc") for m in models}
     assert {s.scenario for s in main_plan(MODELS, full=True) if s.controller == "nmpc"} == set(scenario_names())
     assert len({s.model_name for s in specs if s.controller == "ltv"}) == 1 + len(list(MODELS.glob("*.jac.onnx")))
 

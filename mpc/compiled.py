@@ -1,0 +1,80 @@
+"""Compiled CasADi functions for the analytic model's hot loops.
+
+The analytic model's one-period step and its Jacobian are long expression
+graphs (ten RK4 substeps; the Jacobian of one stage is about 44,000
+operations), and CasADi's virtual machine evaluates them in about 7 ms for a
+30-stage horizon. Compiled to C they take well under a millisecond.
+
+:func:`compiled` generates the C code of a function, compiles it with the
+system C compiler into a shared library kept in a cache folder (named by the
+SHA-256 of the code, so a changed function is compiled anew and an unchanged
+one only once per machine), and loads it with ``casadi.external``. Without a
+working compiler it returns the function itself: the results are the same
+to rounding, only slower.
+
+The cache folder is ``$PINNMPC_CACHE`` or ``~/.cache/pinn-mpc``. The
+compiler is ``$CC`` or ``cc``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+import warnings
+from pathlib import Path
+
+import casadi as ca
+
+#: Compiler flags: -O1 compiles the 44,000-operation Jacobian in about 9 s and runs it about 16x faster than
+#: CasADi's virtual machine (-O0: 1.5 s and 5x).
+FLAGS = ("-O1", "-shared", "-fPIC")
+_loaded: dict[str, ca.Function] = {}
+
+
+def cache_dir() -> Path:
+    """Folder of the compiled libraries."""
+    return Path(os.environ.get("PINNMPC_CACHE") or Path.home() / ".cache" / "pinn-mpc")
+
+
+def compiled(fn: ca.Function) -> ca.Function:
+    """``fn`` compiled to C and loaded (cached by its code), or ``fn`` itself if that is not possible."""
+    with tempfile.TemporaryDirectory() as tmp:
+        name = fn.name()
+        gen = ca.CodeGenerator(f"{name}.c", {"with_header": False})
+        gen.add(fn)
+        src_path = Path(tmp) / f"{name}.c"
+        gen.generate(str(Path(tmp)) + os.sep)
+        code = src_path.read_bytes()
+    key = hashlib.sha256(code + " ".join(FLAGS).encode()).hexdigest()[:20]
+    if key in _loaded:
+        return _loaded[key]
+    lib = cache_dir() / f"{name}-{key}.so"
+    try:
+        if not lib.is_file():
+            _compile(code, name, lib)
+        out = ca.external(name, str(lib))
+    except (OSError, RuntimeError, subprocess.SubprocessError) as e:
+        warnings.warn(f"could not compile the CasADi function {name!r} ({e}); using CasADi's virtual machine "
+                      "(same results, slower)", RuntimeWarning, stacklevel=2)
+        out = fn
+    _loaded[key] = out
+    return out
+
+
+def _compile(code: bytes, name: str, lib: Path) -> None:
+    cc = os.environ.get("CC") or "cc"
+    if shutil.which(cc) is None:
+        raise OSError(f"no C compiler {cc!r} on the PATH")
+    lib.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
+        src = Path(tmp) / f"{name}.c"
+        src.write_bytes(code)
+        out = Path(tmp) / lib.name
+        r = subprocess.run([cc, *FLAGS, "-o", str(out), str(src), "-lm"], capture_output=True, text=True,
+                           timeout=600)
+        if r.returncode != 0:
+            raise OSError(f"{cc} failed: {r.stderr.strip()[:500]}")
+        os.replace(out, lib)     # atomic: a parallel process sees either no library or a whole one

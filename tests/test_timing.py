@@ -1,0 +1,97 @@
+"""Real-time timing: when a computed input takes effect, overruns, what a run records; ideal timing unchanged."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from scenarios.errors import ScenarioError
+from scenarios.library import get_scenario
+from scenarios.runner import RunSpec, _RealtimeClock, fly
+from sim import QuadParams, Simulator
+from sim.params import DT
+
+ROOT = Path(__file__).resolve().parents[1]
+P = QuadParams()
+HOVER_U = np.array([P.m * P.g, 0.0, 0.0, 0.0])
+TOL = {"state_abs": 1e-12}   # the clock's pieces against the same pieces flown by hand (rounding only)
+
+
+def hover_state():
+    x = np.zeros(12)
+    x[2] = -1.0
+    x[9] = 0.2            # moving, so that when the input changes shows in the state
+    return x
+
+
+def piece(x, u, ms, t=0.0):
+    """``ms`` substeps of 1 ms with ``u`` held (the simulator's own equations)."""
+    return Simulator(P, dt=ms * DT / 10, substeps=ms).step(x, u, t=t)
+
+
+def test_an_input_takes_effect_after_its_latency_rounded_up_to_a_substep():
+    u = HOVER_U + np.array([0.05, 1e-4, 0.0, 0.0])
+    clock = _RealtimeClock(P, get_scenario("hover"), HOVER_U)
+    assert clock.idle(0)
+    clock.command(0, u, 3.2e-3)                 # returns after 3.2 ms: takes effect from 4 ms
+    x1, _, u_end = clock.fly_period(0, hover_state(), None, 0.0)
+    expected = piece(piece(hover_state(), HOVER_U, 4), u, 6)
+    np.testing.assert_allclose(x1, expected, rtol=0, atol=TOL["state_abs"])
+    assert np.array_equal(u_end, u) and clock.idle(1)
+    # A different rounding is a different state: the test can see a 1 ms error.
+    assert np.max(np.abs(piece(piece(hover_state(), HOVER_U, 3), u, 7) - expected)) > 1e3 * TOL["state_abs"]
+
+
+def test_an_overrun_keeps_the_previous_input_and_skips_periods_until_it_returns():
+    u0 = HOVER_U + np.array([0.02, 0.0, 0.0, 0.0])
+    u1 = HOVER_U + np.array([-0.03, 0.0, 2e-4, 0.0])
+    clock = _RealtimeClock(P, get_scenario("hover"), HOVER_U)
+    clock.command(0, u0, 0.4e-3)                # 0.4 ms -> from 1 ms
+    x, n, _ = clock.fly_period(0, hover_state(), None, 0.0)
+    assert clock.idle(1)
+    clock.command(1, u1, 23.5e-3)               # an overrun: returns at 10 + 24 = 34 ms
+    assert not clock.idle(2) and not clock.idle(3) and clock.idle(4)
+    x_a, n, ua = clock.fly_period(1, x, n, 0.01)
+    x_b, n, ub = clock.fly_period(2, x_a, n, 0.02)
+    x_c, n, uc = clock.fly_period(3, x_b, n, 0.03)
+    assert np.array_equal(ua, u0) and np.array_equal(ub, u0) and np.array_equal(uc, u1)
+    np.testing.assert_allclose(x_b, piece(piece(x, u0, 10), u0, 10), rtol=0, atol=TOL["state_abs"])
+    np.testing.assert_allclose(x_c, piece(piece(x_b, u0, 4), u1, 6), rtol=0, atol=TOL["state_abs"])
+
+
+def test_delay_periods_add_to_the_latency():
+    u = HOVER_U + np.array([0.05, 0.0, 0.0, 0.0])
+    clock = _RealtimeClock(P, get_scenario("hover+delay"), HOVER_U)   # 3 periods of delay
+    clock.command(0, u, 1.5e-3)                 # takes effect at 30 + 2 = 32 ms
+    x = hover_state()
+    for k in range(3):
+        x, _, uk = clock.fly_period(k, x, None, 0.01 * k)
+        assert np.array_equal(uk, HOVER_U)
+    x3, _, u3 = clock.fly_period(3, x, None, 0.03)
+    assert np.array_equal(u3, u)
+    np.testing.assert_allclose(x3, piece(piece(x, HOVER_U, 2), u, 8), rtol=0, atol=TOL["state_abs"])
+
+
+def test_a_realtime_run_records_its_timing_latencies_and_skipped_periods():
+    r, tr = fly(RunSpec("yaw-turn", "nmpc", "oracle", timing="realtime"))
+    assert r["timing"] == "realtime" and r["run_id"].endswith("__realtime")
+    called = tr["called"]
+    assert called[0] and np.all(np.isfinite(tr["latency_s"][called])) and np.all(np.isnan(tr["latency_s"][~called]))
+    assert r["skipped_periods"] == int(np.sum(~called))
+    # Each call is followed by the first period that starts after it returned (latency rounded up to 1 ms).
+    k_called = np.flatnonzero(called)
+    lat_ms = np.maximum(1, np.ceil(tr["latency_s"][called] * 1e3 - 1e-9))
+    np.testing.assert_array_equal(np.diff(k_called), np.ceil(lat_ms[:-1] / 10.0).astype(int))
+    assert r["skipped_periods"] > 0      # an IPOPT solve here often takes longer than the 10 ms period
+
+
+def test_ideal_timing_is_the_default_and_is_recorded():
+    spec = RunSpec("hover", "lqr", "oracle")
+    assert spec.timing == "ideal" and not spec.run_id.endswith("realtime")
+    r, tr = fly(spec)
+    assert r["timing"] == "ideal" and "skipped_periods" not in r and bool(np.all(tr["called"]))
+
+
+def test_an_unknown_timing_is_a_clear_error():
+    with pytest.raises(ScenarioError, match="timing must be one of ideal, realtime"):
+        RunSpec("hover", "ltv", "oracle", timing="fast")
