@@ -36,6 +36,9 @@ from .controller import ControlInfo, MPCBase, Reference, Timer, check_common_set
 from .errors import ConfigurationError
 from .models import PredictionModel
 
+#: OSQP's "no time limit" (its default setting), s.
+NO_TIME_LIMIT = 1e10
+
 
 @dataclass(frozen=True)
 class LTVSettings:
@@ -182,12 +185,12 @@ class LTVMPC(MPCBase):
         return xs, us
 
     def _iteration_plan(self):
-        """``(max_iterations, line_search, time_budget_s or None, step_tol)`` of one period.
+        """``(max_iterations, line_search, time_budget_s or None, (step_tol, defect_tol))`` of one period.
 
         The LTV-MPC is the real-time iteration: one QP along the shifted
         previous plan, full step. :class:`mpc.sqp.SQPMPC` iterates.
         """
-        return 1, False, None, 0.0
+        return 1, False, None, (0.0, 0.0)
 
     def __call__(self, x, t: float):
         """Input (4,) and :class:`ControlInfo` for the measured state ``x`` at time ``t`` (s)."""
@@ -230,6 +233,11 @@ class LTVMPC(MPCBase):
             split["derivatives"] += tm.now() - t_it
             finite = np.all(np.isfinite(fx)) and np.all(np.isfinite(A)) and np.all(np.isfinite(B))
             if finite:
+                if budget is not None:
+                    # After the first QP of a period (which must give a plan), one hard QP must not overrun the
+                    # budget: OSQP gets the time left.
+                    self._solver.update_settings(time_limit=NO_TIME_LIMIT if done == 0 else
+                                                 max(budget - (tm.now() - tm.start), 1e-4))
                 warm = first_warm if done == 0 else None
                 res = self._solve_qp(x, ref, u_ref, X[:N], U, fx, A, B, warm=warm, split=split)
                 status, qp_iterations = res.info.status, qp_iterations + int(res.info.iter)
@@ -250,20 +258,28 @@ class LTVMPC(MPCBase):
                 mu = max(mu, self._merit_factor * float(np.max(np.abs(y))) + 1e-9)
                 Xl, Ul = X[:N], U     # the linearization point, for the second-order correction's QP
 
-                def resolve(shift, Xl=Xl, Ul=Ul, fx=fx, A=A, B=B):
+                qp_time = tm.now() - t_it
+
+                def resolve(shift, Xl=Xl, Ul=Ul, fx=fx, A=A, B=B, qp_time=qp_time):
+                    if budget is not None:
+                        left = budget - (tm.now() - tm.start)
+                        if left < qp_time:     # no time for the correction's QP: the caller backtracks instead
+                            return None
+                        self._solver.update_settings(time_limit=left)
                     return self._solve_qp(x, ref, u_ref, Xl, Ul, fx + shift, A, B, split=split)
 
-                Xn, Un, alpha, accepted, phi0, phi = self._line_search(X, U, Xq, Uq, fx, ref, u_ref, mu, resolve)
+                Xn, Un, alpha, accepted, phi0, phi, defect = self._line_search(X, U, Xq, Uq, fx, ref, u_ref, mu,
+                                                                               resolve)
                 merits.append((phi0, phi, accepted))
                 ls_failures += not accepted
                 split["line_search"] += tm.now() - t_ls
             else:
-                Xn, Un, alpha = Xq, Uq, 1.0
+                Xn, Un, alpha, defect = Xq, Uq, 1.0, np.inf
             alphas.append(alpha)
             # Converged when the QP's full step is small (a step shortened by the line search is not convergence).
             step = max(np.max(np.abs(Xq - X) / self._sx), np.max(np.abs(Uq - U) / self._su))
             X, U = Xn, Un
-            if step < tol:
+            if step < tol[0] or defect < tol[1]:
                 converged = True
                 break
             if budget is not None and done < max_it:

@@ -40,14 +40,17 @@ def register(sub) -> None:
     p = sub.add_parser("run", help="the main job: Tables I-III, every closed-loop run, the report",
                        description="Evaluates the shipped models (Tables I-III, Fisher bounds), flies every "
                                    "scenario (hover, the figure-8 speed ladder, random paths, the yaw turn, and the "
-                                   "variants of hover and figure8-fast) with the LTV-MPC (oracle and every shipped "
-                                   "model) and the LQR, and figure8-fast with the NMPC on the oracle, then writes "
-                                   "DIR/report.md and DIR/report.html. About 7 minutes on 2 cores (--full: hours).")
+                                   "variants of hover and figure8-fast but +highfi) with the real-time SQP (oracle "
+                                   "and every shipped model) and the LQR, the LTV-MPC on its CI-bound cases, "
+                                   "figure8-fast with the IPOPT NMPC on the oracle, and figure8-fast with "
+                                   "real-time timing (SQP, LTV-MPC and NMPC, every model), then writes "
+                                   "DIR/report.md and DIR/report.html. About 9 minutes on 2 cores (--full: hours).")
     p.add_argument("--out", type=Path, default=Path("results/main"), help="results folder (default results/main)")
     p.add_argument("--jobs", type=int, default=None, help="worker processes (default: number of CPUs)")
     p.add_argument("--models", type=Path, default=Path("models"), help="folder of ONNX models (default models)")
     p.add_argument("--full", action="store_true",
-                   help="fly the figure8-slow variants too, and the NMPC on every scenario with every model")
+                   help="fly the figure8-slow and +highfi variants too, the LTV-MPC everywhere, and the NMPC "
+                        "on every scenario with every model")
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser("bounds", help="write the CI bounds file from the results of pinnmpc run",

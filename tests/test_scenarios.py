@@ -361,14 +361,17 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     ideal = [s for s in specs if s.timing == "ideal"]
     nmpc = {(s.scenario, s.model_name) for s in ideal if s.controller == "nmpc"}
     assert nmpc == {("figure8-fast", "oracle")}
+    sqp = {(s.scenario, s.model_name) for s in ideal if s.controller == "sqp"}
+    assert {sc for sc, _ in sqp} == {n for n in scenario_names()
+                                     if not n.startswith("figure8-slow+") and not n.endswith("+highfi")}
     ltv = {(s.scenario, s.model_name) for s in ideal if s.controller == "ltv"}
-    assert {sc for sc, _ in ltv} == {n for n in scenario_names() if not n.startswith("figure8-slow+")}
-    assert {(s.scenario, s.model_name) for s in ideal if s.controller == "sqp"} == ltv   # sqp flies what ltv flies
-    models = {m for _, m in ltv}
+    assert ltv and ltv <= sqp                       # the SQP flies every case the LTV-MPC flies
+    assert {"hover", "figure8-slow", "figure8-fast", "figure8-2.0s", "yaw-turn"} <= {sc for sc, _ in ltv}
+    models = {m for _, m in sqp}
     realtime = {(s.scenario, s.controller, s.model_name) for s in specs if s.timing == "realtime"}
     assert realtime == {("figure8-fast", c, m) for c in ("sqp", "ltv", "nmpc") for m in models}
     assert {s.scenario for s in main_plan(MODELS, full=True) if s.controller == "nmpc"} == set(scenario_names())
-    assert len({s.model_name for s in specs if s.controller == "ltv"}) == 1 + len(list(MODELS.glob("*.jac.onnx")))
+    assert len(models) == 1 + len(list(MODELS.glob("*.jac.onnx")))
 
 
 def test_perturbed_starts_of_a_well_posed_case_agree():

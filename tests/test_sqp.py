@@ -22,13 +22,13 @@ TOL = {
     "objective_rel": 1e-4,      # |J_sqp - J_ipopt| / J_ipopt at the converged solutions
     "defect_abs": 1e-7,         # largest dynamics defect |f(X_k, U_k) - X_{k+1}| of the SQP's plan
     "merit_rel": 1e-12,         # an accepted step never raises the merit by more than rounding
-    "proposed_min_within": 38,  # states (of 50) reached with the Proposed PINN (measured 41)
-    "proposed_worst": 1e-2,     # largest relative objective gap of a feasible plan, Proposed PINN (measured 1.7e-3)
+    "proposed_min_within": 38,  # states (of 50) reached with the Proposed PINN (measured 40 and 43)
+    "proposed_worst": 1e-2,     # largest relative gap of a feasible plan, Proposed PINN (measured 1.3e-3, 7.2e-3)
 }
 #: Perturbed reference states (for the line-search check): the reference plus seeded errors of these sizes.
 ERROR_SCALE = np.array([0.02, 0.02, 0.02, 0.03, 0.03, 0.03, 0.2, 0.2, 0.2, 0.1, 0.1, 0.1])
 #: No budget, tight QPs (polished), a small step tolerance.
-CONVERGED = SQPSettings(time_budget_s=None, cold_start_budget_s=None, max_sqp_iter=400, step_tol=1e-7,
+CONVERGED = SQPSettings(time_budget_s=None, cold_start_budget_s=None, max_sqp_iter=400, step_tol=1e-7, defect_tol=0.0,
                         eps_abs=1e-10, eps_rel=1e-10, max_iter=100000, polish=True)
 #: States along figure8-fast: every 12th period of the SQP's own two-lap flight (50 states).
 N_STATES, EVERY = 50, 12
@@ -78,8 +78,8 @@ def test_sqp_reaches_ipopts_optimal_objective_with_the_oracle():
 def test_sqp_reaches_ipopts_optimal_objective_with_the_proposed_pinn():
     gaps = np.abs(objective_gaps(OnnxModel(PROPOSED)))
     within = int(np.sum(gaps <= TOL["objective_rel"]))
-    # What the SQP does reach (regression guard): measured 41 of 50 within 1e-4 with a feasible plan, the worst
-    # feasible gap 1.7e-3.
+    # What the SQP does reach (regression guard): measured 40 and 43 of 50 within 1e-4 with a feasible plan
+    # (BLAS threading changes the flown states), the worst feasible gap 1.3e-3 and 7.2e-3.
     finite = gaps[np.isfinite(gaps)]
     assert within >= TOL["proposed_min_within"] and np.max(finite) <= TOL["proposed_worst"], (within, np.max(finite))
     if within < N_STATES:
