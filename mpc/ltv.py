@@ -258,12 +258,12 @@ class LTVMPC(MPCBase):
                 mu = max(mu, self._merit_factor * float(np.max(np.abs(y))) + 1e-9)
                 Xl, Ul = X[:N], U     # the linearization point, for the second-order correction's QP
 
-                qp_time = tm.now() - t_it
+                iteration_time = tm.now() - t_it     # derivatives + QP: more than the correction's QP needs
 
-                def resolve(shift, Xl=Xl, Ul=Ul, fx=fx, A=A, B=B, qp_time=qp_time):
+                def resolve(shift, Xl=Xl, Ul=Ul, fx=fx, A=A, B=B, iteration_time=iteration_time):
                     if budget is not None:
                         left = budget - (tm.now() - tm.start)
-                        if left < qp_time:     # no time for the correction's QP: the caller backtracks instead
+                        if left < iteration_time:   # no time for the correction's QP: the caller backtracks instead
                             return None
                         self._solver.update_settings(time_limit=left)
                     return self._solve_qp(x, ref, u_ref, Xl, Ul, fx + shift, A, B, split=split)
@@ -282,7 +282,7 @@ class LTVMPC(MPCBase):
             if step < tol[0] or defect < tol[1]:
                 converged = True
                 break
-            if budget is not None and done < max_it:
+            if budget is not None:
                 per_iteration = (tm.now() - tm.start) / done
                 if tm.now() - tm.start + per_iteration > budget:
                     break
@@ -317,10 +317,6 @@ class LTVMPC(MPCBase):
                        predicted=None if self._plan_x is None else self._plan_x.copy(), fallback=fallback,
                        extra=extra)
 
-    #: Penalty of the merit function over the QP's largest dynamics multiplier (SQP only). Measured on 50 states
-    #: of the Proposed model's figure8-fast flight (no budget, 400 iterations): 1.1 took 179 iterations on
-    #: average and came within 1e-4 of IPOPT's objective on 47 states; 2.0 took 252 and on 38.
-    _merit_factor = 1.1
     #: The LTV-MPC reports OSQP's iterations; the SQP its own (and OSQP's in ``extra``).
     _reports_sqp = False
 

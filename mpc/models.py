@@ -95,22 +95,16 @@ class AnalyticModel(PredictionModel):
         """Next states (N, 12)."""
         x, u = _batch(x, u)
         n = len(x)
-        return np.asarray(self._mapped("step", n)(x.T, u.T, ca_repmat(self._theta, n))).T
+        return np.asarray(self._mapped("step", n)(x.T, u.T, self._theta)).T   # theta broadcast over the map
 
     def linearize(self, x, u):
         """``(x_next, A, B)`` by CasADi's automatic differentiation (compiled, see :mod:`mpc.compiled`)."""
         x, u = _batch(x, u)
         n = len(x)
-        xn, A, B = self._mapped("lin", n)(x.T, u.T, ca_repmat(self._theta, n))
+        xn, A, B = self._mapped("lin", n)(x.T, u.T, self._theta)
         A = np.asarray(A).reshape(NX, n, NX).transpose(1, 0, 2)
         B = np.asarray(B).reshape(NX, n, NU).transpose(1, 0, 2)
         return np.asarray(xn).T, A, B
-
-
-def ca_repmat(v, n: int):
-    import casadi as ca
-
-    return ca.repmat(v, 1, n)
 
 
 _NUMERIC: dict = {}

@@ -374,6 +374,9 @@ def ladder_table(runs: list[dict]) -> str:
 
 def realtime_table(runs: list[dict]) -> str:
     """Each controller x model flown with both timings: RMSE ideal against real time, and what the time cost."""
+    from mpc.sqp import SQPSettings
+
+    budget_ms = 1e3 * SQPSettings().time_budget_s
     rt = [r for r in runs if r.get("timing") == "realtime"]
     if not rt:
         return "No run was flown with real-time timing."
@@ -393,5 +396,6 @@ def realtime_table(runs: list[dict]) -> str:
             "call's measured wall time, rounded up to the simulator's 1 ms substep; a call that overruns the "
             f"{DT_S * 1e3:.0f} ms period keeps the previous input until it returns, and the periods it overran are "
             "skipped (the controller is not called). Ideal timing applies every input at once. The SQP runs "
-            "with its 8 ms budget in real time and without it (at most its iteration limit) in ideal timing.\n\n"
+            f"with its {budget_ms:g} ms budget in real time and without it (at most its iteration limit) in ideal "
+            "timing.\n\n"
             + md_table(header, rows))

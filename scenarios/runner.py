@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.params import DT, NU, NX, QuadParams
+from sim.params import DT, NU, NX, SUBSTEPS, QuadParams
 
 from .errors import ScenarioError
 from .library import get_scenario
@@ -45,8 +45,9 @@ HORIZON = 30
 #: How compute time enters a run: ``ideal`` applies each input at once (deterministic); ``realtime`` applies it
 #: after the call's measured wall time, rounded up to the simulator's 1 ms substep (see :func:`fly`).
 TIMINGS = ("ideal", "realtime")
-#: The simulator's substep, ms (the resolution of real-time latencies).
-SUBSTEP_MS = 1
+#: The control period and the simulator's substep, ms (the substep is the resolution of real-time latencies).
+PERIOD_MS = int(round(DT * 1e3))
+SUBSTEP_MS = PERIOD_MS // SUBSTEPS
 
 
 def model_name(model: str) -> str:
@@ -145,31 +146,31 @@ class _RealtimeClock:
     def __init__(self, plant, sc, hover):
         from sim import Simulator
 
-        self._make = lambda m: Simulator(plant, sc.fidelity, dt=m * DT / 10, substeps=m,
-                                         payload_kg=sc.payload_kg, wind=_wind(sc))
+        # A piece of ``ms`` milliseconds: the simulator's own substeps, that many of them.
+        self._make = lambda ms: Simulator(plant, sc.fidelity, dt=ms * 1e-3, substeps=ms // SUBSTEP_MS,
+                                          payload_kg=sc.payload_kg, wind=_wind(sc))
         self._sims: dict[int, object] = {}
-        self.delay_ms = 10 * sc.delay_steps
+        self.delay_ms = PERIOD_MS * sc.delay_steps
         self.u = hover
         self.events: list[tuple[int, np.ndarray]] = []    # (time the input takes effect, ms; input)
         self.busy_until_ms = 0
 
-    def _sim(self, m: int):
-        if m not in self._sims:
-            self._sims[m] = self._make(m)
-        return self._sims[m]
+    def _sim(self, ms: int):
+        if ms not in self._sims:
+            self._sims[ms] = self._make(ms)
+        return self._sims[ms]
 
     def idle(self, k: int) -> bool:
-        return self.busy_until_ms <= 10 * k
+        return self.busy_until_ms <= PERIOD_MS * k
 
     def command(self, k: int, u: np.ndarray, latency_s: float) -> None:
         lat_ms = max(SUBSTEP_MS, int(np.ceil(latency_s * 1e3 / SUBSTEP_MS - 1e-9)) * SUBSTEP_MS)
-        self.busy_until_ms = 10 * k + lat_ms
-        self.events.append((10 * k + lat_ms + self.delay_ms, np.array(u, dtype=float)))
+        self.busy_until_ms = PERIOD_MS * k + lat_ms
+        self.events.append((self.busy_until_ms + self.delay_ms, np.array(u, dtype=float)))
 
     def fly_period(self, k: int, x, n, t: float):
         """Advance period ``k``; ``(x, rotor speed, input in effect at its end)``."""
-        t0, t1 = 10 * k, 10 * k + 10
-        now = t0
+        now, t1 = PERIOD_MS * k, PERIOD_MS * (k + 1)
         while now < t1:
             while self.events and self.events[0][0] <= now:
                 self.u = self.events.pop(0)[1]

@@ -21,13 +21,13 @@ from sim.files import write_json
 from .runner import CONTROLLERS, HORIZON, RunSpec, fly
 
 
-def _trial(spec: RunSpec, offset_m: float) -> dict:
+def _trial(spec: RunSpec, offset_m: float, model=None) -> dict:
     from .library import get_scenario
 
     base = get_scenario(spec.scenario, spec.seed)
     x0 = list(base.x0)
     x0[0] += offset_m
-    res, _ = fly(spec, scenario=dataclasses.replace(base, x0=tuple(x0)))
+    res, _ = fly(spec, scenario=dataclasses.replace(base, x0=tuple(x0)), model=model)
     return {"offset_m": offset_m, "rmse_position_m": res["rmse_position_m"], "crashed": res["crashed"],
             "crash_time_s": res["crash_time_s"], "solver_failures": res["solver_failures"]}
 
@@ -39,10 +39,10 @@ def perturbed_rmse(spec: RunSpec, trials: int = 5, step_m: float = 1e-9, jobs: i
     """
     from mpc.models import load_model
 
-    load_model(spec.model)      # a bad model file fails here, once, with the contract's message
+    model = load_model(spec.model)      # a bad model file fails here, once, with the contract's message
     offsets = [k * step_m for k in range(trials)]
     if jobs == 1:
-        return [_trial(spec, o) for o in offsets]
+        return [_trial(spec, o, model) for o in offsets]
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 

@@ -4,6 +4,7 @@ import sim  # noqa: F401  (first: it pins the BLAS kernel before numpy loads, as
 import numpy as np
 import pytest
 
+from mpc.models import PredictionModel
 from sim import NoiseModel
 from sim.excitation import make_dataset
 
@@ -23,3 +24,32 @@ def clean_aggressive():
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+class NaNJacobiansAfter(PredictionModel):
+    """A prediction model that forwards to ``base`` and returns NaN Jacobians after ``left`` more linearizations.
+
+    ``left`` can be set again at any time (for example after a controller's
+    feed-forward fit, which linearizes the model too).
+    """
+
+    def __init__(self, base, left: int):
+        self.base, self.left = base, left
+        self.name, self.theta = base.name, base.theta
+
+    def step(self, x, u):
+        return self.base.step(x, u)
+
+    def linearize(self, x, u):
+        xn, A, B = self.base.linearize(x, u)
+        self.left -= 1
+        if self.left < 0:
+            A = A.copy()
+            A[:, 0, 0] = np.nan
+        return xn, A, B
+
+
+@pytest.fixture
+def nan_jacobians_after():
+    """``nan_jacobians_after(base, n)``: ``base`` wrapped so that its Jacobians turn NaN after ``n`` calls."""
+    return NaNJacobiansAfter

@@ -120,27 +120,9 @@ def test_bad_model_and_state_are_clear_errors():
         LTVMPC(AnalyticModel())(np.full(12, np.inf), 0.0)
 
 
-class _NaNAfter(LinearModel):
-    """The linear hover model that starts returning NaN after ``n`` linearizations."""
-
-    def __init__(self, n):
-        from mpc.lqr import hover_linearization
-        A, B = hover_linearization()
-        x0, u0 = hover_point()
-        super().__init__(A, B, x0, u0)
-        self.left = n
-
-    def linearize(self, x, u):
-        xn, A, B = super().linearize(x, u)
-        self.left -= 1
-        if self.left < 0:
-            A = A.copy()
-            A[:, 0, 0] = np.nan
-        return xn, A, B
-
-
-def test_a_model_returning_nan_is_a_counted_failure_not_an_exception():
-    model = _NaNAfter(2)
+def test_a_model_returning_nan_is_a_counted_failure_not_an_exception(nan_jacobians_after):
+    from mpc.lqr import hover_linearization
+    model = nan_jacobians_after(LinearModel(*hover_linearization(), *hover_point()), 2)   # the linear hover model
     mpc = LTVMPC(AnalyticModel())
     mpc.model = model            # the LQR fallback keeps the analytic gain; only the prediction breaks
     x = hover_point()[0].copy()

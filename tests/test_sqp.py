@@ -142,24 +142,9 @@ def test_cold_start_from_a_standing_start_is_counted_and_does_not_fail():
     np.testing.assert_array_equal(X[1:], sqp.model.step(X[:-1], U))
 
 
-class _NaNAfter(AnalyticModel):
-    """The oracle, returning NaN Jacobians after ``n`` linearizations."""
-
-    def __init__(self, n):
-        super().__init__()
-        self.left = n
-
-    def linearize(self, x, u):
-        xn, A, B = super().linearize(x, u)
-        self.left -= 1
-        if self.left < 0:
-            A = A.copy()
-            A[:, 0, 0] = np.nan
-        return xn, A, B
-
-
-def test_failures_shift_the_plan_then_fall_back_to_lqr_and_the_next_plan_is_a_counted_cold_start():
-    model = _NaNAfter(10 ** 9)
+def test_failures_shift_the_plan_then_fall_back_to_lqr_and_the_next_plan_is_a_counted_cold_start(
+        nan_jacobians_after):
+    model = nan_jacobians_after(AnalyticModel(), 10 ** 9)   # the oracle
     sqp = SQPMPC(model, settings=SQPSettings(time_budget_s=None, cold_start_budget_s=None, max_sqp_iter=1,
                                              cold_start_max_iter=1))
     sqp.prepare(1.0)       # the feed-forward fit linearizes the model too: done before the count starts
