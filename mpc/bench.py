@@ -13,13 +13,15 @@ fallbacks and the position RMSE of the run; for the SQP also the SQP
 iterations per period and the split of its time: derivative graph, QP
 assembly (including OSQP's matrix update), OSQP's solve, line search, and
 the rest (Python). It also prints the floor: one batched model + Jacobian
-evaluation over the whole horizon (one call). Nothing is asserted; the
+evaluation over the whole horizon, with float64 Jacobians (as IPOPT uses
+them) and with float32 ones (as the QP controllers do). Nothing is asserted; the
 figures are written as JSON.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import platform
 import time
@@ -58,7 +60,7 @@ def run(kind: str, model, reference, x0: np.ndarray, seconds: float) -> dict:
     """Fly one case; solve-time statistics, counts, position RMSE and (SQP) iterations and time split."""
     ctrl = _controller(kind, model, reference)
     steps = int(round(seconds / DT))
-    ctrl.prepare(steps * DT)
+    ctrl.prepare(steps * DT, x0=x0)   # the SQP plans its first period before take-off
     sim = Simulator()
     x = x0.copy()
     times, err, iters, cold = [], [], [], []
@@ -66,7 +68,11 @@ def run(kind: str, model, reference, x0: np.ndarray, seconds: float) -> dict:
     failures = fallbacks = 0
     for k in range(steps):
         t = k * DT
-        u, info = ctrl(x, t)
+        gc.disable()   # the cyclic garbage collector runs between periods, not inside the call (as in real-time runs)
+        try:
+            u, info = ctrl(x, t)
+        finally:
+            gc.enable()
         times.append(info.solve_time_s)
         failures += info.status not in ("optimal", "lqr")
         fallbacks += info.fallback is not None
@@ -96,15 +102,20 @@ def run(kind: str, model, reference, x0: np.ndarray, seconds: float) -> dict:
     return out
 
 
-def floor_us(model, repeat: int = 200) -> float:
-    """Microseconds of one batched model + Jacobian evaluation over the horizon."""
+def floor_us(model, repeat: int = 200, single: bool = False) -> float:
+    """Microseconds of one batched model + Jacobian evaluation over the horizon.
+
+    ``single``: with the Jacobians in single precision, as the QP controllers
+    evaluate them (:meth:`mpc.models.PredictionModel.linearize_single`).
+    """
     x = np.zeros((HORIZON, NX))
     x[:, 2] = -1.0
     u = np.tile([0.667, 0.0, 0.0, 0.0], (HORIZON, 1))
-    model.linearize(x, u)
+    lin = model.linearize_single if single else model.linearize
+    lin(x, u)
     t0 = time.perf_counter()
     for _ in range(repeat):
-        model.linearize(x, u)
+        lin(x, u)
     return (time.perf_counter() - t0) / repeat * 1e6
 
 
@@ -134,21 +145,22 @@ def main(argv=None) -> int:
     models = [("oracle", AnalyticModel())] + [(f.stem, OnnxModel(f)) for f in files]
     out = {"python": platform.python_version(), "cpus": os.cpu_count(), "horizon": HORIZON, "cases": []}
     print(f"{'controller':<6}{'model':<22}{'case':<14}{'median':>8}{'p95':>8}{'max':>8}{'max*':>8} ms"
-          f"{'misses':>8}{'fail':>6}{'fallb':>6}{'RMSE m':>9}{'floor us':>10}")
+          f"{'misses':>8}{'fail':>6}{'fallb':>6}{'RMSE m':>9}{'floor us':>10}{'f32 us':>8}")
     sqp_rows = []
     for name, model in models:
         fl = floor_us(model)
+        fl32 = floor_us(model, single=True)
         for kind in kinds:
             if kind == "lqr" and name != "oracle":
                 continue  # LQR uses the analytic hover linearization whatever the model
             for case in cases:
                 ref, x0, secs = all_cases[case]
                 r = run(kind, model, ref, x0, secs)
-                out["cases"].append({"controller": kind, "model": name, "case": case, "floor_us": fl, **r})
+                out["cases"].append({"controller": kind, "model": name, "case": case, "floor_us": fl, "floor_single_us": fl32, **r})
                 s = r["solve_ms"]
                 print(f"{kind:<6}{name:<22}{case:<14}{s['median']:>8.2f}{s['p95']:>8.2f}{s['max']:>8.1f}"
                       f"{s['max_without_cold_starts']:>8.1f}   {r['deadline_misses']:>8}{r['solver_failures']:>6}"
-                      f"{r['fallbacks']:>6}{r['rmse_position_m']:>9.4f}{fl:>10.0f}", flush=True)
+                      f"{r['fallbacks']:>6}{r['rmse_position_m']:>9.4f}{fl:>10.0f}{fl32:>8.0f}", flush=True)
                 if kind == "sqp":
                     sqp_rows.append((name, case, r))
     if sqp_rows:

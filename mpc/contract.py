@@ -149,7 +149,7 @@ def jacobian_path(model_path) -> Path:
     return p.with_name(p.stem + ".jac.onnx")
 
 
-def open_session(path, threads: int = 1):
+def open_session(path, threads: int = 1, graph: bytes | None = None):
     """An onnxruntime CPU session with ``threads`` intra-op and one inter-op thread.
 
     Parameters
@@ -159,6 +159,9 @@ def open_session(path, threads: int = 1):
     threads : int
         Intra-op threads (>= 1). One thread keeps timings reproducible and
         leaves cores to parallel runs.
+    graph : bytes, optional
+        A serialized graph to load instead of the file (``path`` then only
+        names it in errors).
 
     Returns
     -------
@@ -177,10 +180,57 @@ def open_session(path, threads: int = 1):
     so.intra_op_num_threads = int(threads)
     so.inter_op_num_threads = 1
     so.log_severity_level = 3  # errors only: warnings about unused initializers etc. are noise here
+    source = str(path) if graph is None else graph
     try:
-        return ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
+        return ort.InferenceSession(source, sess_options=so, providers=["CPUExecutionProvider"])
     except Exception as e:  # onnxruntime raises its own pybind exception types
         raise ModelContractError(f"{path}: onnxruntime cannot load the model ({_short(str(e), 300)})") from e
+
+
+def single_precision(path) -> bytes:
+    """The ONNX graph of ``path`` with every float64 tensor turned into float32, serialized.
+
+    Initializers, ``Constant`` nodes, ``Cast(to=DOUBLE)`` and the declared
+    types of inputs, outputs and intermediate values are converted; the
+    graph's structure is unchanged. Used for the derivative graph of the
+    QP-based controllers, whose Jacobians need about 7 significant digits
+    (onnxruntime evaluates the float32 graph 1.5-2.3x faster on our machines).
+
+    Raises
+    ------
+    ModelContractError
+        If the file cannot be read or converted.
+    """
+    import onnx
+    from onnx import TensorProto, numpy_helper
+
+    double, single = TensorProto.DOUBLE, TensorProto.FLOAT
+
+    def convert_tensor(t):
+        if t.data_type == double:
+            t.CopyFrom(numpy_helper.from_array(numpy_helper.to_array(t).astype(np.float32), t.name))
+
+    def convert_graph(g):
+        for t in g.initializer:
+            convert_tensor(t)
+        for v in (*g.input, *g.output, *g.value_info):
+            if v.type.tensor_type.elem_type == double:
+                v.type.tensor_type.elem_type = single
+        for node in g.node:
+            for a in node.attribute:
+                if a.type == onnx.AttributeProto.TENSOR:
+                    convert_tensor(a.t)
+                elif a.type == onnx.AttributeProto.GRAPH:
+                    convert_graph(a.g)
+                elif node.op_type == "Cast" and a.name == "to" and a.i == double:
+                    a.i = single
+
+    try:
+        model = onnx.load(str(path))
+        convert_graph(model.graph)
+        return model.SerializeToString()
+    except Exception as e:  # onnx raises DecodeError, ValueError, ... for bad files
+        raise ModelContractError(f"{path}: cannot convert the graph to float32 ({_short(str(e), 300)})") from e
 
 
 def check_model(path) -> ModelInfo:

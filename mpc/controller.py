@@ -115,8 +115,12 @@ class MPCBase:
         self.failures_in_a_row = 0
         self.counts = {"solver_failures": 0, "shifted_plan": 0, "lqr_fallback": 0}
 
-    def prepare(self, t_end: float) -> None:
-        """Compute the reference and feed-forward up to ``t_end`` plus one horizon (s) before a flight."""
+    def prepare(self, t_end: float, x0=None) -> None:
+        """Before a flight: compute the reference and feed-forward up to ``t_end`` plus one horizon (s).
+
+        ``x0`` (12,): the state the vehicle stands in before take-off, for
+        controllers that plan their first period ahead (:class:`mpc.sqp.SQPMPC`).
+        """
         self.ff.prepare(t_end + self.N * self.ff.dt)
 
     def _success(self) -> None:

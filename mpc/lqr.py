@@ -124,8 +124,8 @@ class LQRController:
         self.K, self.P = lqr(self.A, self.B, self.Q, self.R)
         self.reference = self.ff.states
 
-    def prepare(self, t_end: float) -> None:
-        """Compute the reference and feed-forward up to ``t_end`` (s) before a flight."""
+    def prepare(self, t_end: float, x0=None) -> None:
+        """Compute the reference and feed-forward up to ``t_end`` (s) before a flight (``x0`` is not needed)."""
         self.ff.prepare(t_end)
 
     def input(self, x: np.ndarray, x_ref: np.ndarray, u_ff: np.ndarray | None = None) -> np.ndarray:

@@ -25,6 +25,7 @@ TOL = {
     "onnx_jacobian_fd": 1e-3,         # derivative graph vs central differences of the ONNX model
     "dlqr_gain": 1e-6,                # K from mpc vs control.dlqr on an independent linearization
     "hover_error_m": 0.01,            # LQR within 1 cm of the setpoint after 2 s
+    "single_vs_double": 1e-5,         # float32 derivative graph vs float64 (measured 5e-8 .. 7e-7 near hover)
 }
 
 
@@ -80,6 +81,50 @@ def test_onnx_model_jacobians_match_finite_differences():
     fA, fB = central_jacobians(m.step, x, u)
     assert rel(A, fA) < TOL["onnx_jacobian_fd"] and rel(B, fB) < TOL["onnx_jacobian_fd"]
     assert m.name == "baseline" and m.theta.shape == (6,)
+
+
+@pytest.mark.parametrize("name", ["baseline", "fourier", "modular", "proposed"])
+def test_single_precision_jacobians_agree_with_the_derivative_graph_and_the_step_stays_exact(name):
+    m = OnnxModel(ROOT / "models" / f"{name}.onnx")
+    assert m._jac_single is not None, "the float32 copy of a shipped derivative graph was refused"
+    x, u = feasible_samples(64, seed=3)       # +-20 deg, +-2 rad/s: wider than the load-time check's probes
+    xn, A, B = m.linearize(x, u)
+    xs, As, Bs = m.linearize_single(x, u)
+    assert np.array_equal(xs, m.step(x, u))
+    assert As.dtype == Bs.dtype == np.float64
+    assert rel(As, A) < TOL["single_vs_double"] and rel(Bs, B) < TOL["single_vs_double"]
+    assert not np.array_equal(As, A)   # it is the float32 graph
+
+
+def test_a_float32_copy_that_disagrees_is_not_used(tmp_path, monkeypatch):
+    from test_contract import build_jacobian, build_model
+
+    import mpc.contract as contract
+
+    good = build_model(tmp_path / "toy.onnx")
+    build_jacobian(good)
+    (tmp_path / "wrong").mkdir()
+    wrong = build_model(tmp_path / "wrong" / "toy.onnx")
+    build_jacobian(wrong, a_scale=1.001)          # A 0.1 % off: what a bad float32 conversion could give
+    real = contract.single_precision
+    monkeypatch.setattr(contract, "single_precision", lambda path: real(contract.jacobian_path(wrong)))
+    with pytest.warns(UserWarning, match="float32 copy differs"):
+        m = OnnxModel(good)
+    x, u = feasible_samples(5)
+    for a, b in zip(m.linearize_single(x, u), m.linearize(x, u)):
+        assert np.array_equal(a, b)
+
+
+def test_a_float32_model_uses_its_own_derivative_graph(tmp_path):
+    from test_contract import build_jacobian, build_model
+
+    path = build_model(tmp_path / "toy32.onnx", np.float32)
+    build_jacobian(path, np.float32)
+    m = OnnxModel(path)
+    x, u = feasible_samples(5)
+    assert m._jac_single is None
+    for a, b in zip(m.linearize_single(x, u), m.linearize(x, u)):
+        assert np.array_equal(a, b)
 
 
 def test_onnx_model_without_derivative_graph_is_refused(tmp_path):
