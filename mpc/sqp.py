@@ -46,13 +46,19 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
-from sim.params import DT, NX
+from sim.params import DT, NU, NX
 from sim.rotors import realize
 
 from .controller import ControlInfo, Timer, check_state
 from .errors import ConfigurationError
 from .ltv import LTVMPC, LTVSettings
+
+#: Central-difference step of the exact Hessian, in acceptable deviations (of the default weights).
+EXACT_FD_STEP = 1e-4
+#: Smallest eigenvalue of a stage's exact Hessian block, in acceptable deviations (where the cost's is 1).
+EIGEN_FLOOR = 1e-2
 
 #: Armijo constant and backtracking of the line search.
 ARMIJO = 1e-4
@@ -64,9 +70,9 @@ MAX_BACKTRACKS = 4
 class SQPSettings(LTVSettings):
     """Settings of :class:`SQPMPC` (the LTV-MPC's QP settings, plus the SQP's; units in comments)."""
 
-    # One iteration with a 5x128 PINN over 30 stages costs about 4 ms on our 2-core machines (2 ms of it the
-    # derivative graph), so two fill the default budget; on figure8-fast the second iteration brings the Proposed
-    # model from 0.131 m (one iteration, as the LTV-MPC) to 0.113 m, against IPOPT's 0.116 m.
+    # One iteration with a 5x128 PINN over 30 stages costs 3-4.5 ms on our 2-core machines (1.5-2 ms of it the model's
+    # step and float32 Jacobians), so two about fill the default budget; on figure8-fast the second iteration brings
+    # the Proposed model from 0.125 m (one iteration, as the LTV-MPC) to 0.119 m, against IPOPT's 0.116 m.
     max_sqp_iter: int = 2                   # SQP iterations per period
     # OSQP iterations per QP. A QP at the rotor limits can take OSQP's 4000 (60 ms here) and fail anyway; the
     # SQP then keeps its current plan (or, in the first iteration, replays the shifted plan).
@@ -82,6 +88,12 @@ class SQPSettings(LTVSettings):
     cold_start_max_iter: int = 5            # SQP iterations of a cold-start period
     cold_start_budget_s: float | None = 0.008  # wall time of a cold-start period, s (None: no budget)
     cold_start: str = "rollout"             # first iterate: "rollout" (model under feed-forward + LQR) or "hold"
+    # The QP's Hessian: "gauss-newton" (the cost's own, free) or "exact": the cost's plus the model's second
+    # derivatives weighted by the last QP's dynamics multipliers, by central differences of the model's Jacobians
+    # (32 more Jacobians per stage, float64: about 30x an iteration's derivative time), made positive definite per
+    # stage. For converged solutions (a network's curvature can make Gauss-Newton converge slowly), not for the
+    # real-time budget.
+    hessian: str = "gauss-newton"
 
     def __post_init__(self):
         super().__post_init__()
@@ -93,6 +105,8 @@ class SQPSettings(LTVSettings):
             v = getattr(self, name)
             if v is not None and not (np.isfinite(v) and v > 0):
                 raise ConfigurationError(f"{name} must be None or a time > 0 s; found {v!r}")
+        if self.hessian not in ("gauss-newton", "exact"):
+            raise ConfigurationError(f"hessian must be 'gauss-newton' or 'exact'; found {self.hessian!r}")
         if self.cold_start not in ("rollout", "hold"):
             raise ConfigurationError(f"cold_start must be 'rollout' or 'hold'; found {self.cold_start!r}")
         for name in ("step_tol", "defect_tol"):
@@ -133,7 +147,36 @@ class SQPMPC(LTVMPC):
 
     def _cold_start_plan(self, max_it, budget):
         self.counts["cold_starts"] += 1
-        return max(max_it, self.s.cold_start_max_iter), self.s.cold_start_budget_s
+        return max(max_it, self.s.cold_start_max_iter), None if self._preflight else self.s.cold_start_budget_s
+
+    _preflight = False
+    #: :class:`ControlInfo` of the plan made before take-off by :meth:`prepare` (None without one).
+    preflight: ControlInfo | None = None
+
+    def prepare(self, t_end: float, x0=None) -> None:
+        """Before a flight (see :meth:`mpc.ltv.LTVMPC.prepare`); with ``x0``, also plan the first period.
+
+        A vehicle standing at ``x0`` before take-off has time to plan: the
+        cold start (a model rollout under feed-forward and LQR, then
+        ``cold_start_max_iter`` SQP iterations, no time budget) is made for
+        ``(x0, t = 0)`` here, and the first period starts from that plan
+        (from the measured state) like any later period. It is counted in
+        ``counts["cold_starts"]``; its info record is :attr:`preflight`.
+        """
+        super().prepare(t_end, x0)
+        self.preflight = None
+        if x0 is None or self.s.cold_start != "rollout" or self._plan_x is not None:
+            return
+        x0 = check_state(x0)
+        self._preflight = True
+        try:
+            with Timer() as tm:
+                times = DT * np.arange(self.N + 1)
+                _, fields = self._iterate(x0, self.ff.states(times), self.ff.inputs(times[:self.N]), tm)
+        finally:
+            self._preflight = False
+        self.preflight = ControlInfo(solve_time_s=tm.elapsed, **fields)
+        self._plan_is_current = self._plan_x is not None
 
     def _initial_iterate(self, x, ref, u_ref):
         if self._plan_x is not None or self.s.cold_start == "hold":
@@ -174,6 +217,77 @@ class SQPMPC(LTVMPC):
                 nxt = self.model.step(X[k], U[k])[0]
             X[k + 1] = nxt if np.all(np.isfinite(nxt)) else X[k]
         return X, U
+
+    # ----------------------------------------------------------- exact Hessian
+    def _build_hessian(self):
+        """With ``hessian="exact"``, a full 16 x 16 block per stage (state and input), ``P`` at the end."""
+        if self.s.hessian != "exact":
+            return super()._build_hessian()
+        N, nz = self.N, NX + NU
+        iu, ju = np.triu_indices(nz)
+        base = np.zeros((nz, nz))
+        base[:NX, :NX], base[NX:, NX:] = self.Q, self.R
+        rows, cols, vals = [], [], []
+        for k in range(N):
+            idx = np.r_[self._xi(k) + np.arange(NX), self._ui(k) + np.arange(NU)]   # ascending: upper triangle
+            rows.append(idx[iu])
+            cols.append(idx[ju])
+            vals.append(base[iu, ju])
+        it, jt = np.triu_indices(NX)
+        idx = self._xi(N) + np.arange(NX)
+        rows.append(idx[it])
+        cols.append(idx[jt])
+        vals.append(self.P[it, jt])
+        rows, cols, vals = (np.concatenate(a) for a in (rows, cols, vals))
+        n_var = self.nx_var + N * NU
+        ids = sp.csc_matrix((np.arange(1, len(vals) + 1, dtype=float), (rows, cols)), shape=(n_var, n_var))
+        ids.sort_indices()
+        self._h_perm = ids.data.astype(np.int64) - 1
+        self._h_vals, self._h_base, self._h_tri = vals, base, (iu, ju)
+        from .lqr import DEFAULT_STATE_SCALE, input_scale
+
+        self._h_scale = np.r_[DEFAULT_STATE_SCALE, input_scale(self.spec)]
+        placeholder = np.where(vals == 0.0, 1e-12, vals)    # explicit entries for the pattern; replaced every QP
+        return sp.csc_matrix((placeholder[self._h_perm], ids.indices, ids.indptr), shape=ids.shape)
+
+    def _hessian_values(self, X, U, y):
+        if self.s.hessian != "exact":
+            return None
+        N, nz = self.N, NX + NU
+        blocks = np.broadcast_to(self._h_base, (N, nz, nz)).copy()
+        if y is not None:
+            blocks += self._lagrangian_curvature(X[:N], U, y)
+            # Positive definite per stage, in the acceptable deviations (where the cost's block is the identity).
+            S = self._h_scale
+            w, V = np.linalg.eigh(blocks * S[None, :, None] * S[None, None, :])
+            w = np.maximum(w, EIGEN_FLOOR)
+            blocks = ((V * w[:, None, :]) @ V.transpose(0, 2, 1)) / S[None, :, None] / S[None, None, :]
+            blocks = 0.5 * (blocks + blocks.transpose(0, 2, 1))
+        vals = self._h_vals.copy()
+        iu, ju = self._h_tri
+        vals[:N * len(iu)] = blocks[:, iu, ju].ravel()
+        added = blocks - self._h_base                          # the curvature the cost does not have
+        Z = np.hstack([X[:N], U])
+        g = -np.einsum("kij,kj->ki", added, Z)                  # linear term of (z - z_k)' added (z - z_k) / 2
+        dq = np.zeros(self.nx_var + N * NU)
+        dq[:self.nx_var - NX] = g[:, :NX].ravel()
+        dq[self.nx_var:] = g[:, NX:].ravel()
+        return vals[self._h_perm], dq
+
+    def _lagrangian_curvature(self, X, U, y):
+        """``sum_i y_ki d2 f_i / dz2`` per stage (N, 16, 16) by central differences of the model's Jacobians."""
+        N, nz = self.N, NX + NU
+        Z = np.hstack([X, U])
+        h = EXACT_FD_STEP * self._h_scale
+        E = np.diag(h)
+        pts = np.concatenate([Z[:, None, :] + E[None], Z[:, None, :] - E[None]], axis=1).reshape(-1, nz)
+        with np.errstate(all="ignore"):
+            _, A, B = self.model.linearize(pts[:, :NX], pts[:, NX:])
+        J = np.concatenate([A, B], axis=2).reshape(N, 2, nz, NX, nz)
+        g = np.einsum("ksjic,ki->ksjc", J, y)                   # gradient of y_k' f at each point
+        H = (g[:, 0] - g[:, 1]) / (2.0 * h[None, :, None])
+        H = 0.5 * (H + H.transpose(0, 2, 1))
+        return np.where(np.isfinite(H), H, 0.0)
 
     # ----------------------------------------------------------- merit function
     def cost(self, X, U, ref, u_ref) -> float:

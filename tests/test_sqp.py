@@ -22,14 +22,16 @@ TOL = {
     "objective_rel": 1e-4,      # |J_sqp - J_ipopt| / J_ipopt at the converged solutions
     "defect_abs": 1e-7,         # largest dynamics defect |f(X_k, U_k) - X_{k+1}| of the SQP's plan
     "merit_rel": 1e-12,         # an accepted step never raises the merit by more than rounding
-    "proposed_min_within": 38,  # states (of 50) reached with the Proposed PINN (measured 40 and 43)
-    "proposed_worst": 1e-2,     # largest relative gap of a feasible plan, Proposed PINN (measured 1.3e-3, 7.2e-3)
+    "proposed_min_within": 38,  # states (of 50) within objective_rel with the Proposed PINN (measured 40)
+    "exact_hessian_rel": 1e-6,  # central-difference Hessian vs CasADi's symbolic one (measured 7e-9)
 }
 #: Perturbed reference states (for the line-search check): the reference plus seeded errors of these sizes.
 ERROR_SCALE = np.array([0.02, 0.02, 0.02, 0.03, 0.03, 0.03, 0.2, 0.2, 0.2, 0.1, 0.1, 0.1])
-#: No budget, tight QPs (polished), a small step tolerance.
+#: No budget, tight QPs (polished), a small step tolerance; the exact Hessian and float64 Jacobians (float32 ones
+#: leave steps of about 1e-7 that never pass the step tolerance).
 CONVERGED = SQPSettings(time_budget_s=None, cold_start_budget_s=None, max_sqp_iter=400, step_tol=1e-7, defect_tol=0.0,
-                        eps_abs=1e-10, eps_rel=1e-10, max_iter=100000, polish=True)
+                        eps_abs=1e-10, eps_rel=1e-10, max_iter=100000, polish=True, hessian="exact",
+                        jacobians="float64")
 #: States along figure8-fast: every 12th period of the SQP's own two-lap flight (50 states).
 N_STATES, EVERY = 50, 12
 
@@ -51,11 +53,15 @@ def flown_states(model):
     return out
 
 
-def objective_gaps(model):
-    """Relative objective gap SQP - IPOPT per state, both started from the same guess (the cold-start rollout)."""
+def objective_gaps(model, confirm=False):
+    """Relative objective gap SQP - IPOPT per state, both started from the same guess (the cold-start rollout).
+
+    ``confirm``: also the gap of IPOPT started from the SQP's own plan (NaN where the first gap is within
+    tolerance): near zero when the SQP's plan is a local optimum IPOPT stays at.
+    """
     sqp = SQPMPC(model, FIG8_FAST, CONVERGED)
     ipopt = NMPC(model, FIG8_FAST, NMPCSettings(tol=1e-10, max_iter=3000, time_limit_s=60.0))
-    N, gaps = sqp.N, []
+    N, gaps, confirmed = sqp.N, [], []
     for t, x in flown_states(model):
         times = t + 0.01 * np.arange(N + 1)
         ref, u_ref = sqp.ff.states(times), sqp.ff.inputs(times[:N])
@@ -67,7 +73,12 @@ def objective_gaps(model):
         js, jn = sqp.cost(Xs, Us, ref, u_ref), sqp.cost(Xn, Un, ref, u_ref)
         # A plan that still violates the dynamics has not reached anything: count it as a miss.
         gaps.append((js - jn) / jn if defect <= TOL["defect_abs"] else np.inf)
-    return np.array(gaps)
+        if confirm and not abs(gaps[-1]) <= TOL["objective_rel"]:
+            Xc, Uc, _ = ipopt.solve_from(x, t, Xs, Us)
+            confirmed.append((js - sqp.cost(Xc, Uc, ref, u_ref)) / js)
+        else:
+            confirmed.append(np.nan)
+    return (np.array(gaps), np.array(confirmed)) if confirm else np.array(gaps)
 
 
 def test_sqp_reaches_ipopts_optimal_objective_with_the_oracle():
@@ -76,18 +87,42 @@ def test_sqp_reaches_ipopts_optimal_objective_with_the_oracle():
 
 
 def test_sqp_reaches_ipopts_optimal_objective_with_the_proposed_pinn():
-    gaps = np.abs(objective_gaps(OnnxModel(PROPOSED)))
+    signed, confirmed = objective_gaps(OnnxModel(PROPOSED), confirm=True)
+    gaps = np.abs(signed)
     within = int(np.sum(gaps <= TOL["objective_rel"]))
-    # What the SQP does reach (regression guard): measured 40 and 43 of 50 within 1e-4 with a feasible plan
-    # (BLAS threading changes the flown states), the worst feasible gap 1.3e-3 and 7.2e-3.
-    finite = gaps[np.isfinite(gaps)]
-    assert within >= TOL["proposed_min_within"] and np.max(finite) <= TOL["proposed_worst"], (within, np.max(finite))
+    # Every state ends with a plan that satisfies the model (with the exact Hessian; the Gauss-Newton one left 7 of
+    # 50 infeasible after 400 iterations), and the regression guard on what is reached: measured 40 and 43 of 50.
+    assert np.all(np.isfinite(gaps)), f"{int(np.sum(~np.isfinite(gaps)))} states end with an infeasible plan"
+    assert within >= TOL["proposed_min_within"], within
+    # Where the two differ, the SQP's plan is a local optimum: IPOPT started from it stays within 1e-4 of it.
+    off = ~np.isnan(confirmed)
+    assert np.all(np.abs(confirmed[off]) <= TOL["objective_rel"]), confirmed[off]
     if within < N_STATES:
-        # The target is every state. With the PINN the Gauss-Newton iteration converges linearly (its Hessian
-        # leaves out the network's curvature) and the problem has more than one local optimum: on a few states
-        # the 400 iterations end short of IPOPT's objective or at another optimum (on one, a lower one).
-        pytest.xfail(f"{N_STATES - within} of {N_STATES} states not within 1e-4 of IPOPT's objective with a "
-                     f"feasible plan ({int(np.sum(~np.isfinite(gaps)))} infeasible; worst gap {np.max(finite):.1e})")
+        # The target is every state. The network's problem has more than one local optimum, and from the same guess
+        # the SQP and IPOPT (whose limited-memory Hessian stops these states at its "acceptable" level) end at
+        # different ones: measured 5 states with a lower objective than IPOPT's, 5 with a higher one.
+        lower, higher = int(np.sum(signed < -TOL["objective_rel"])), int(np.sum(signed > TOL["objective_rel"]))
+        pytest.xfail(f"{N_STATES - within} of {N_STATES} states not within 1e-4 of IPOPT's objective: at other "
+                     f"local optima (IPOPT confirms them), {lower} lower and {higher} higher "
+                     f"(worst gap {np.max(gaps):.1e})")
+
+
+def test_the_exact_hessian_is_the_models_curvature_weighted_by_the_multipliers():
+    import casadi as ca
+
+    model = AnalyticModel()
+    sqp = SQPMPC(model, FIG8_FAST, SQPSettings(hessian="exact"))
+    N, rng = sqp.N, np.random.default_rng(0)
+    t = 0.01 * np.arange(N)
+    X = sqp.ff.states(t) + 0.02 * rng.standard_normal((N, 12))
+    U = sqp.ff.inputs(t) * (1 + 0.05 * rng.standard_normal((N, 4)))
+    y = rng.standard_normal((N, 12))
+    H = sqp._lagrangian_curvature(X, U, y)
+    xs, us, ys = ca.SX.sym("x", 12), ca.SX.sym("u", 4), ca.SX.sym("y", 12)
+    hess = ca.Function("h", [xs, us, ys], [ca.hessian(ca.dot(ys, model.casadi_step(xs, us)), ca.vertcat(xs, us))[0]])
+    exact = np.array([np.array(hess(X[k], U[k], y[k])) for k in range(N)])
+    err = np.linalg.norm(H - exact, axis=(1, 2)) / np.linalg.norm(exact, axis=(1, 2))
+    assert np.max(err) <= TOL["exact_hessian_rel"], np.max(err)
 
 
 def test_the_ltv_mpc_is_the_one_iteration_full_step_case():
@@ -142,6 +177,23 @@ def test_cold_start_from_a_standing_start_is_counted_and_does_not_fail():
     np.testing.assert_array_equal(X[1:], sqp.model.step(X[:-1], U))
 
 
+def test_a_plan_made_before_take_off_starts_the_first_period_unshifted():
+    x0 = hover_point()[0].copy()
+    x0[0:2] = [0.3, -0.2]
+    sqp = SQPMPC(OnnxModel(PROPOSED))
+    sqp.prepare(0.5, x0=x0)
+    pre = sqp.preflight
+    assert pre.is_optimal() and pre.extra["cold_start"] and pre.iterations >= 1
+    assert sqp.counts["cold_starts"] == 1
+    X, U = sqp._plan_x.copy(), sqp._plan_u.copy()
+    Xi, Ui = sqp._nominal(x0, None)     # the plan was made for t = 0: the first period starts from it as it is
+    assert np.array_equal(Xi[1:], X[1:]) and np.array_equal(Xi[0], x0) and np.array_equal(Ui, U)
+    u, info = sqp(x0, 0.0)
+    assert info.is_optimal() and not info.extra["cold_start"] and sqp.counts["cold_starts"] == 1
+    Xi, _ = sqp._nominal(x0, None)      # later periods shift the plan by one step
+    np.testing.assert_array_equal(Xi[1:-1], sqp._plan_x[2:])
+
+
 def test_failures_shift_the_plan_then_fall_back_to_lqr_and_the_next_plan_is_a_counted_cold_start(
         nan_jacobians_after):
     model = nan_jacobians_after(AnalyticModel(), 10 ** 9)   # the oracle
@@ -178,6 +230,8 @@ def test_two_ideal_runs_are_identical():
     (dict(cold_start_budget_s=-1.0), "cold_start_budget_s"),
     (dict(step_tol=-1.0), "step_tol"),
     (dict(cold_start="zeros"), "cold_start"),
+    (dict(jacobians="float16"), "jacobians"),
+    (dict(hessian="bfgs"), "hessian"),
 ])
 def test_bad_settings_are_clear_errors(kwargs, match):
     with pytest.raises(ConfigurationError, match=match):
