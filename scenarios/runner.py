@@ -19,6 +19,7 @@ rotor speeds across periods (motor lag of ``+highfi``).
 
 from __future__ import annotations
 
+import gc
 import hashlib
 import json
 import os
@@ -233,7 +234,9 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
     called = np.zeros(K, dtype=bool)
     try:
         ctrl = make_controller(spec.controller, model, ref, spec.horizon, spec.timing)
-        ctrl.prepare(K * DT)   # the reference is known before take-off: its feed-forward is fitted now
+        # The reference is known before take-off: its feed-forward is fitted now, and a controller that plans
+        # ahead (the SQP) makes its first plan from the state the vehicle stands in.
+        ctrl.prepare(K * DT, x0=np.array(sc.x0, dtype=float))
     except ValueError as e:  # e.g. no LQR gain for this model's hover linearization
         error = f"{type(e).__name__}: {e}"
         ctrl = None
@@ -247,6 +250,7 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
         hover = np.array([plant.m * plant.g, 0.0, 0.0, 0.0])
         pending = [hover] * sc.delay_steps
         clock = _RealtimeClock(plant, sc, hover) if realtime else None
+        gc_enabled = gc.isenabled()
         steps = range(K)
         if progress:
             from tqdm import tqdm
@@ -256,9 +260,17 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
             if not realtime or clock.idle(k):
                 xm = x if sc.noise is None else sim.measure(x, rng, sc.noise)
                 Xm[k] = xm
+                if realtime:
+                    # Python's cyclic garbage collector waits until the call has returned, as in a real-time
+                    # loop: a collection triggered by the simulator's allocations is not the controller's time.
+                    gc.disable()
                 c0 = time.perf_counter()
-                u_cmd, info = ctrl(xm, t)
-                latency[k] = time.perf_counter() - c0
+                try:
+                    u_cmd, info = ctrl(xm, t)
+                finally:
+                    latency[k] = time.perf_counter() - c0
+                    if realtime and gc_enabled:
+                        gc.enable()
                 called[k] = True
                 Ucmd[k] = u_cmd
                 solve_s[k] = info.solve_time_s
@@ -295,8 +307,11 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
                                       planned_steps=K, called=called[:k_end] if realtime else None)
     else:
         metrics = dict(NOT_FLOWN)
+    pre = getattr(ctrl, "preflight", None)
+    preflight = None if pre is None else {"solve_time_s": pre.solve_time_s, "iterations": int(pre.iterations),
+                                          "status": pre.status}
     result = {**base, **metrics, "shifted_plan": int(np.sum(failed[:k_end] & ~lqr_fb[:k_end])),
-              "error": error, "wall_time_s": wall, "scenario_spec": sc.to_dict()}
+              "preflight": preflight, "error": error, "wall_time_s": wall, "scenario_spec": sc.to_dict()}
     trace = {"t": t_all[:k_end + 1], "x": X[:k_end + 1], "x_ref": X_ref[:k_end + 1], "x_measured": Xm[:k_end],
              "u": U[:k_end], "u_command": Ucmd[:k_end], "solve_s": solve_s[:k_end], "latency_s": latency[:k_end],
              "called": called[:k_end], "iterations": iters[:k_end],
@@ -338,6 +353,11 @@ def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True) -
 
     Each result is also written to ``out_dir/runs/<id>.json`` with its trace
     in ``out_dir/traces/<id>.npz``.
+
+    Runs with real-time timing are flown after the others, one at a time in
+    this process, so that the compute time they are charged is measured on an
+    otherwise idle machine (with two processes on two cores a controller's
+    call takes about 1.5 times as long).
     """
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ScenarioError(f"jobs must be an integer >= 1; found {jobs!r}")
@@ -363,19 +383,31 @@ def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True) -
             from concurrent.futures import ProcessPoolExecutor, as_completed
 
             _worker_init()
-            # Longest runs first (NMPC, long scenarios) so the pool ends together.
-            order = sorted(specs, key=lambda s: -(get_scenario(s.scenario).steps * _COST.get((s.controller, s.timing), 1)))
-            with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
-                                     initializer=_worker_init) as pool:
-                futs = {pool.submit(_run_and_save, s, str(out_dir)): s for s in order}
-                for f in as_completed(futs):
-                    results[futs[f].run_id] = f.result()
-                    if bar:
-                        bar.update()
+            for workers, batch in sweep_batches(specs, jobs):
+                with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
+                                         initializer=_worker_init) as pool:
+                    futs = {pool.submit(_run_and_save, s, str(out_dir)): s for s in batch}
+                    for f in as_completed(futs):
+                        results[futs[f].run_id] = f.result()
+                        if bar:
+                            bar.update()
     finally:
         if bar:
             bar.close()
     return [results[i] for i in ids]
+
+
+def sweep_batches(specs: list[RunSpec], jobs: int) -> list[tuple[int, list[RunSpec]]]:
+    """``(processes, runs)`` in the order a sweep on ``jobs`` processes flies them.
+
+    Ideal-timing runs first, on ``jobs`` processes, longest first (NMPC, long
+    scenarios) so that the pool ends together; then the real-time runs, one
+    process, one at a time.
+    """
+    pooled = [s for s in specs if s.timing != "realtime"]
+    alone = [s for s in specs if s.timing == "realtime"]
+    order = sorted(pooled, key=lambda s: -(get_scenario(s.scenario).steps * _COST.get((s.controller, s.timing), 1)))
+    return [(n, b) for n, b in ((jobs, order), (1, alone)) if b]
 
 
 #: Rough cost of a period relative to the LTV-MPC's (orders a sweep's runs longest first).

@@ -7,7 +7,7 @@ import pytest
 
 from scenarios.errors import ScenarioError
 from scenarios.library import get_scenario
-from scenarios.runner import RunSpec, _RealtimeClock, fly
+from scenarios.runner import RunSpec, _RealtimeClock, fly, sweep_batches
 from sim import QuadParams, Simulator
 from sim.params import DT
 
@@ -95,3 +95,21 @@ def test_ideal_timing_is_the_default_and_is_recorded():
 def test_an_unknown_timing_is_a_clear_error():
     with pytest.raises(ScenarioError, match="timing must be one of ideal, realtime"):
         RunSpec("hover", "ltv", "oracle", timing="fast")
+
+
+def test_realtime_runs_are_flown_alone_after_the_others():
+    ideal = [RunSpec("hover", "ltv", "oracle"), RunSpec("figure8-fast", "nmpc", "oracle")]
+    rt = [RunSpec("figure8-fast", "sqp", "oracle", timing="realtime"), RunSpec("hover", "ltv", "oracle", timing="realtime")]
+    batches = sweep_batches([rt[0], ideal[0], rt[1], ideal[1]], jobs=2)
+    assert batches == [(2, [ideal[1], ideal[0]]), (1, rt)]     # the NMPC (longest) first
+    assert sweep_batches(ideal, 2) == [(2, [ideal[1], ideal[0]])]
+
+
+def test_a_realtime_sqp_run_plans_before_take_off_and_leaves_the_garbage_collector_on():
+    import gc
+
+    r, tr = fly(RunSpec("hover", "sqp", "oracle", timing="realtime"))
+    assert gc.isenabled()
+    pre = r["preflight"]
+    assert pre["status"] == "optimal" and pre["iterations"] >= 1 and pre["solve_time_s"] > 0
+    assert r["crashed"] is False and bool(tr["called"][0])
