@@ -21,7 +21,6 @@ figures are written as JSON.
 from __future__ import annotations
 
 import argparse
-import gc
 import os
 import platform
 import time
@@ -33,7 +32,7 @@ from sim import Simulator
 from sim.files import write_json
 from sim.params import DT, NX
 
-from .controller import hover_reference
+from .controller import collector_paused, hover_reference
 from .lqr import LQRController
 from .ltv import LTVMPC, LTVSettings
 from .models import AnalyticModel, OnnxModel
@@ -68,11 +67,8 @@ def run(kind: str, model, reference, x0: np.ndarray, seconds: float) -> dict:
     failures = fallbacks = 0
     for k in range(steps):
         t = k * DT
-        gc.disable()   # the cyclic garbage collector runs between periods, not inside the call (as in real-time runs)
-        try:
+        with collector_paused():   # the garbage collector runs between periods, as in real-time runs
             u, info = ctrl(x, t)
-        finally:
-            gc.enable()
         times.append(info.solve_time_s)
         failures += info.status not in ("optimal", "lqr")
         fallbacks += info.fallback is not None

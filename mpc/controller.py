@@ -10,14 +10,16 @@ returning the desired states (K, 12) at the times (K,) (s).
 
 from __future__ import annotations
 
+import gc
 import time
+from contextlib import contextmanager
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from sim._validate import as_batch
-from sim.params import NX
+from sim.params import DT, NX
 
 from .errors import ConfigurationError
 
@@ -90,6 +92,23 @@ class Timer:
         return False
 
 
+@contextmanager
+def collector_paused(pause: bool = True):
+    """Pause Python's cyclic garbage collector for the block (when ``pause``), then restore its state.
+
+    A controller's call in a real-time loop is charged for its own work; a
+    collection triggered by other code's allocations runs after it returns.
+    """
+    was_enabled = gc.isenabled()
+    if pause:
+        gc.disable()
+    try:
+        yield
+    finally:
+        if pause and was_enabled:
+            gc.enable()
+
+
 class MPCBase:
     """What the LTV-MPC and the NMPC share: set-up of model, reference, weights and LQR, and failure bookkeeping.
 
@@ -122,6 +141,11 @@ class MPCBase:
         controllers that plan their first period ahead (:class:`mpc.sqp.SQPMPC`).
         """
         self.ff.prepare(t_end + self.N * self.ff.dt)
+
+    def _horizon_reference(self, t: float):
+        """Reference states (N + 1, 12) and feed-forward inputs (N, 4) over the horizon from time ``t`` (s)."""
+        times = t + DT * np.arange(self.N + 1)
+        return self.ff.states(times), self.ff.inputs(times[:self.N])
 
     def _success(self) -> None:
         self.failures_in_a_row = 0

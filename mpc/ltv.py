@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from sim.params import DT, NU, NX
+from sim.params import NU, NX
 from sim.rotors import mixer_matrix, realize
 
 from .controller import ControlInfo, MPCBase, Reference, Timer, check_common_settings, check_state
@@ -38,6 +38,20 @@ from .models import PredictionModel
 
 #: OSQP's "no time limit" (its default setting), s.
 NO_TIME_LIMIT = 1e10
+
+
+def csc_in_entry_order(rows, cols, vals, shape):
+    """A CSC matrix of the entries ``(rows[i], cols[i], vals[i])`` and ``perm``: CSC slot -> entry index.
+
+    Later value updates in entry order go to OSQP as ``new_vals[perm]``. Every
+    entry is kept in the pattern, zeros included (give placeholders for values
+    that are zero now but may not be later).
+    """
+    vals = np.asarray(vals, dtype=float)
+    ids = sp.csc_matrix((np.arange(1, len(vals) + 1, dtype=float), (rows, cols)), shape=shape)
+    ids.sort_indices()
+    perm = ids.data.astype(np.int64) - 1
+    return sp.csc_matrix((vals[perm], ids.indices, ids.indptr), shape=shape), perm
 
 
 @dataclass(frozen=True)
@@ -103,6 +117,9 @@ class LTVMPC(MPCBase):
         self.N = N
         self.nx_var = (N + 1) * NX
         self._Minv = np.linalg.inv(mixer_matrix(self.spec))     # wrench -> rotor speeds squared
+        from .lqr import DEFAULT_STATE_SCALE, input_scale
+
+        self._sx, self._su = DEFAULT_STATE_SCALE, input_scale(self.spec)   # step sizes are measured in these
         self._build_pattern()
         self._status = osqp.SolverStatus
         self._solver = osqp.OSQP()
@@ -112,9 +129,6 @@ class LTVMPC(MPCBase):
         if self.s.time_limit_s > 0:
             settings_["time_limit"] = self.s.time_limit_s
         self._solver.setup(self._H, np.zeros(self._H.shape[0]), self._A0, self._l0, self._u0, **settings_)
-        from .lqr import DEFAULT_STATE_SCALE, input_scale
-
-        self._sx, self._su = DEFAULT_STATE_SCALE, input_scale(self.spec)   # step sizes are measured in these
         self._plan_x: np.ndarray | None = None
         self._plan_u: np.ndarray | None = None
         self._z: np.ndarray | None = None
@@ -131,8 +145,7 @@ class LTVMPC(MPCBase):
         horizon's batch size (onnxruntime allocates its buffers for a new shape on the first call, about 0.5 ms
         that would otherwise fall into the first period)."""
         super().prepare(t_end, x0)
-        times = DT * np.arange(self.N + 1)
-        X, U = self.ff.states(times), self.ff.inputs(times[:self.N])
+        X, U = self._horizon_reference(0.0)
         with np.errstate(all="ignore"):
             self._linearize(X[:self.N], U)
             self.model.step(X[:self.N], U)
@@ -188,13 +201,8 @@ class LTVMPC(MPCBase):
         # Entry indices of all A_k and B_k, in the order of A.ravel() and B.ravel() of (N, 12, *) arrays.
         self._idx_A = np.concatenate([np.arange(a0, a1) for (a0, a1), _ in self._dyn_slots])
         self._idx_B = np.concatenate([np.arange(b0, b1) for _, (b0, b1) in self._dyn_slots])
-        n_entries = len(vals)
-        ids = sp.csc_matrix((np.arange(1, n_entries + 1, dtype=float), (rows, cols)),
-                            shape=(r, self.nx_var + N * NU))
-        ids.sort_indices()
-        self._perm = ids.data.astype(np.int64) - 1           # CSC slot -> entry index
         self._vals = np.asarray(vals, dtype=float)
-        self._A0 = sp.csc_matrix((self._vals[self._perm], ids.indices, ids.indptr), shape=ids.shape)
+        self._A0, self._perm = csc_in_entry_order(rows, cols, self._vals, (r, self.nx_var + N * NU))
         self._l0, self._u0 = np.concatenate(lo), np.concatenate(hi)
 
     def _build_hessian(self):
@@ -234,9 +242,7 @@ class LTVMPC(MPCBase):
         """Input (4,) and :class:`ControlInfo` for the measured state ``x`` at time ``t`` (s)."""
         x = check_state(x)
         with Timer() as tm:
-            times = t + DT * np.arange(self.N + 1)
-            ref = self.ff.states(times)
-            u_ref = self.ff.inputs(times[:self.N])
+            ref, u_ref = self._horizon_reference(t)
             out = self._iterate(x, ref, u_ref, tm)
         return out[0], ControlInfo(solve_time_s=tm.elapsed, **out[1])
 
@@ -298,8 +304,7 @@ class LTVMPC(MPCBase):
             Uq = res.x[self.nx_var:].reshape(N, NU)
             if line_search:
                 t_ls = tm.now()
-                y = res.y[NX:self._n_eq]
-                mu = max(mu, self._merit_factor * float(np.max(np.abs(y))) + 1e-9)
+                mu = max(mu, self._merit_factor * float(np.max(np.abs(y_last))) + 1e-9)
                 Xl, Ul = X[:N], U     # the linearization point, for the second-order correction's QP
 
                 iteration_time = tm.now() - t_it     # derivatives + QP: more than the correction's QP needs
@@ -311,8 +316,8 @@ class LTVMPC(MPCBase):
                             return None
                         self._solver.update_settings(time_limit=left)
                     # The same matrices (A_k, B_k, Hessian): only the bounds change, OSQP keeps its factorization.
-                    return self._solve_qp(x, ref, u_ref, Xl, Ul, fx + shift, A, B, split=split,
-                                          hess=None if hess is None else (None, hess[1]), same_matrices=True)
+                    return self._solve_qp(x, ref, u_ref, Xl, Ul, fx + shift, A, B, split=split, hess=hess,
+                                          same_matrices=True)
 
                 Xn, Un, alpha, accepted, phi0, phi, defect = self._line_search(X, U, Xq, Uq, fx, ref, u_ref, mu,
                                                                                resolve)
@@ -380,9 +385,9 @@ class LTVMPC(MPCBase):
 
         ``warm``: a primal start (else OSQP starts from its last solution);
         ``split``: a dict whose ``assembly`` and ``osqp`` times (s) are increased;
-        ``hess``: ``(Px, dq)`` from :meth:`_hessian_values` (``Px`` None: the Hessian set last);
-        ``same_matrices``: ``A``, ``B`` are those of the last QP (only the vectors are updated, and OSQP
-        reuses its factorization).
+        ``hess``: ``(Px, dq)`` from :meth:`_hessian_values`;
+        ``same_matrices``: ``A``, ``B`` (and ``Px``) are those of the last QP (only the vectors are updated,
+        and OSQP reuses its factorization).
         """
         t0 = time.perf_counter()
         N = self.N
@@ -399,7 +404,7 @@ class LTVMPC(MPCBase):
         q = np.concatenate([-(ref[:N] @ self.Q).ravel(), -(self.P @ ref[N]), -(u_ref @ self.R).ravel()])
         if hess is not None:
             q = q + hess[1]
-            if hess[0] is not None:
+            if not same_matrices:
                 mats["Px"] = hess[0]
         self._solver.update(q=q, l=lo, u=hi, **mats)
         if warm is not None:

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from sim.params import DT, NU, NX
+from sim.params import NU, NX
 from sim.rotors import mixer_matrix, realize
 
 from .controller import ControlInfo, MPCBase, Reference, Timer, check_common_settings, check_state
@@ -240,8 +240,7 @@ class NMPC(MPCBase):
         if X0.shape != (self.N + 1, NX) or U0.shape != (self.N, NU):
             raise ConfigurationError(f"X0 must be ({self.N + 1}, 12) and U0 ({self.N}, 4); "
                                      f"found {X0.shape} and {U0.shape}")
-        times = t + DT * np.arange(self.N + 1)
-        ref, u_ref = self.ff.states(times), self.ff.inputs(times[:self.N])
+        ref, u_ref = self._horizon_reference(t)
         X0 = X0.copy()
         X0[0] = x
         sol = self._solver(x0=self._pack(X0, U0), p=np.concatenate([x, ref.ravel(), u_ref.ravel()]),
@@ -254,9 +253,7 @@ class NMPC(MPCBase):
         x = check_state(x)
         N = self.N
         with Timer() as tm:
-            times = t + DT * np.arange(N + 1)
-            ref = self.ff.states(times)
-            u_ref = self.ff.inputs(times[:N])
+            ref, u_ref = self._horizon_reference(t)
             args = dict(x0=self._guess(x, u_ref), p=np.concatenate([x, ref.ravel(), u_ref.ravel()]),
                         lbx=self._lbw, ubx=self._ubw,
                         lbg=self._lbg, ubg=self._ubg)

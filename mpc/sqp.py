@@ -46,14 +46,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 
-from sim.params import DT, NU, NX
+from sim.params import NU, NX
 from sim.rotors import realize
 
 from .controller import ControlInfo, Timer, check_state
 from .errors import ConfigurationError
-from .ltv import LTVMPC, LTVSettings
+from .ltv import LTVMPC, LTVSettings, csc_in_entry_order
 
 #: Central-difference step of the exact Hessian, in acceptable deviations (of the default weights).
 EXACT_FD_STEP = 1e-4
@@ -171,8 +170,7 @@ class SQPMPC(LTVMPC):
         self._preflight = True
         try:
             with Timer() as tm:
-                times = DT * np.arange(self.N + 1)
-                _, fields = self._iterate(x0, self.ff.states(times), self.ff.inputs(times[:self.N]), tm)
+                _, fields = self._iterate(x0, *self._horizon_reference(0.0), tm)
         finally:
             self._preflight = False
         self.preflight = ControlInfo(solve_time_s=tm.elapsed, **fields)
@@ -196,8 +194,7 @@ class SQPMPC(LTVMPC):
             raise ConfigurationError(f"X0 must be ({self.N + 1}, 12) and U0 ({self.N}, 4); "
                                      f"found {X0.shape} and {U0.shape}")
         with Timer() as tm:
-            times = t + DT * np.arange(self.N + 1)
-            ref, u_ref = self.ff.states(times), self.ff.inputs(times[:self.N])
+            ref, u_ref = self._horizon_reference(t)
             _, fields = self._iterate(x, ref, u_ref, tm, guess=(X0, U0))
         return self._plan_x.copy(), self._plan_u.copy(), ControlInfo(solve_time_s=tm.elapsed, **fields)
 
@@ -240,15 +237,11 @@ class SQPMPC(LTVMPC):
         vals.append(self.P[it, jt])
         rows, cols, vals = (np.concatenate(a) for a in (rows, cols, vals))
         n_var = self.nx_var + N * NU
-        ids = sp.csc_matrix((np.arange(1, len(vals) + 1, dtype=float), (rows, cols)), shape=(n_var, n_var))
-        ids.sort_indices()
-        self._h_perm = ids.data.astype(np.int64) - 1
         self._h_vals, self._h_base, self._h_tri = vals, base, (iu, ju)
-        from .lqr import DEFAULT_STATE_SCALE, input_scale
-
-        self._h_scale = np.r_[DEFAULT_STATE_SCALE, input_scale(self.spec)]
+        self._h_scale = np.r_[self._sx, self._su]
         placeholder = np.where(vals == 0.0, 1e-12, vals)    # explicit entries for the pattern; replaced every QP
-        return sp.csc_matrix((placeholder[self._h_perm], ids.indices, ids.indptr), shape=ids.shape)
+        H, self._h_perm = csc_in_entry_order(rows, cols, placeholder, (n_var, n_var))
+        return H
 
     def _hessian_values(self, X, U, y):
         if self.s.hessian != "exact":

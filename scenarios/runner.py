@@ -19,7 +19,6 @@ rotor speeds across periods (motor lag of ``+highfi``).
 
 from __future__ import annotations
 
-import gc
 import hashlib
 import json
 import os
@@ -203,6 +202,7 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
     scenario's data, for example with a perturbed initial state; ``model`` (a
     loaded :class:`mpc.models.PredictionModel`) saves loading ``spec.model`` again.
     """
+    from mpc.controller import collector_paused
     from mpc.models import load_model
     from sim import Simulator
 
@@ -250,7 +250,6 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
         hover = np.array([plant.m * plant.g, 0.0, 0.0, 0.0])
         pending = [hover] * sc.delay_steps
         clock = _RealtimeClock(plant, sc, hover) if realtime else None
-        gc_enabled = gc.isenabled()
         steps = range(K)
         if progress:
             from tqdm import tqdm
@@ -260,17 +259,12 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
             if not realtime or clock.idle(k):
                 xm = x if sc.noise is None else sim.measure(x, rng, sc.noise)
                 Xm[k] = xm
-                if realtime:
-                    # Python's cyclic garbage collector waits until the call has returned, as in a real-time
-                    # loop: a collection triggered by the simulator's allocations is not the controller's time.
-                    gc.disable()
-                c0 = time.perf_counter()
-                try:
+                # In real time the garbage collector waits until the call has returned: a collection triggered
+                # by the simulator's allocations is not the controller's time.
+                with collector_paused(realtime):
+                    c0 = time.perf_counter()
                     u_cmd, info = ctrl(xm, t)
-                finally:
                     latency[k] = time.perf_counter() - c0
-                    if realtime and gc_enabled:
-                        gc.enable()
                 called[k] = True
                 Ucmd[k] = u_cmd
                 solve_s[k] = info.solve_time_s
