@@ -301,11 +301,11 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
                                       planned_steps=K, called=called[:k_end] if realtime else None)
     else:
         metrics = dict(NOT_FLOWN)
-    pre = getattr(ctrl, "preflight", None)
-    preflight = None if pre is None else {"solve_time_s": pre.solve_time_s, "iterations": int(pre.iterations),
-                                          "status": pre.status}
+    pre = getattr(ctrl, "preflight", None)    # the SQP's plan made before take-off: what it did, and (timing) how long
+    preflight = None if pre is None else {"iterations": int(pre.iterations), "status": pre.status}
     result = {**base, **metrics, "shifted_plan": int(np.sum(failed[:k_end] & ~lqr_fb[:k_end])),
-              "preflight": preflight, "error": error, "wall_time_s": wall, "scenario_spec": sc.to_dict()}
+              "preflight": preflight, "preflight_ms": None if pre is None else 1e3 * pre.solve_time_s,
+              "error": error, "wall_time_s": wall, "scenario_spec": sc.to_dict()}
     trace = {"t": t_all[:k_end + 1], "x": X[:k_end + 1], "x_ref": X_ref[:k_end + 1], "x_measured": Xm[:k_end],
              "u": U[:k_end], "u_command": Ucmd[:k_end], "solve_s": solve_s[:k_end], "latency_s": latency[:k_end],
              "called": called[:k_end], "iterations": iters[:k_end],
