@@ -37,10 +37,8 @@ left in it as OSQP's own time limit, so that one hard QP cannot overrun it. Cold
 
 The time budget is a wall-clock rule, so a run that uses it is not
 reproducible bit for bit; ``time_budget_s=None`` iterates to ``step_tol``
-or ``max_sqp_iter`` only. The scenarios' deterministic ``ideal`` timing also
-sets ``step_tol = defect_tol = 0``: exactly ``max_sqp_iter`` iterations in
-every period, a control law continuous in the state
-(:data:`scenarios.runner.IDEAL_SQP`).
+or ``max_sqp_iter`` only (the deterministic ``ideal`` timing of the
+scenarios does this).
 """
 
 from __future__ import annotations

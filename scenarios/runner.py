@@ -104,26 +104,14 @@ def _sha256(path: str) -> str | None:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-#: The SQP's settings in ``ideal`` timing (over the defaults): no wall-clock budget, and no early stop, so that
-#: each period makes ``max_sqp_iter`` iterations (``cold_start_max_iter`` in a cold start). Measured on
-#: figure8-fast with Proposed over 6 starts 1e-9 m apart: the RMSE spread is 13.7 % of the median with the early
-#: stop and 5.9 % without (7.2 % over 12 starts); IPOPT's is 1.7 %.
-IDEAL_SQP = {"time_budget_s": None, "cold_start_budget_s": None, "step_tol": 0.0, "defect_tol": 0.0}
-
-
 def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing: str = "ideal"):
     """The controller ``kind`` (``nmpc``, ``sqp``, ``ltv``, ``lqr``) on prediction ``model`` following ``reference``.
 
     The controller gets the model and the reference only: its vehicle spec
     comes from the model (:meth:`mpc.spec.VehicleSpec.from_model`), never from
     the plant's parameters. With ``ideal`` timing the SQP runs without its
-    wall-clock budget and without its early stop: every period makes exactly
-    ``max_sqp_iter`` iterations (:data:`IDEAL_SQP`). The run is then
-    reproducible bit for bit, and the control law is a continuous function of
-    the measured state (an early-stop test flips between one and two iterations
-    under perturbations of any size, and the closed loop amplifies that jump).
-    With ``realtime`` timing the budget and the early stop apply: there an
-    iteration saved is latency saved.
+    wall-clock budget (at most its iteration limit), so that the run is
+    reproducible bit for bit; with ``realtime`` timing the budget applies.
     """
     from mpc.lqr import LQRController
     from mpc.ltv import LTVMPC, LTVSettings
@@ -134,7 +122,7 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
     if kind == "sqp":
         from mpc.sqp import SQPMPC, SQPSettings
         if timing == "ideal":
-            return SQPMPC(model, reference, SQPSettings(horizon=horizon, **IDEAL_SQP))
+            return SQPMPC(model, reference, SQPSettings(horizon=horizon, time_budget_s=None, cold_start_budget_s=None))
         return SQPMPC(model, reference, SQPSettings(horizon=horizon))
     if kind == "ltv":
         return LTVMPC(model, reference, LTVSettings(horizon=horizon))

@@ -125,16 +125,3 @@ def test_two_ideal_sqp_runs_give_identical_results_but_for_their_timing_fields()
                                                                           if k not in TIMING_FIELDS}
     for k in set(t1) - set(TRACE_TIMING_FIELDS):
         np.testing.assert_array_equal(t1[k], t2[k])
-
-
-def test_ideal_sqp_makes_its_full_iteration_count_in_every_period():
-    # Hover with the oracle converges in one iteration (the early stop would end most periods there); in ideal
-    # timing every period makes max_sqp_iter iterations, so that the control law has no jump where the early-stop
-    # test flips.
-    from mpc.sqp import SQPSettings
-    from scenarios.runner import IDEAL_SQP
-
-    s = SQPSettings(**IDEAL_SQP)
-    r, tr = fly(RunSpec("hover", "sqp", "oracle"))
-    assert r["preflight"]["iterations"] == s.cold_start_max_iter
-    np.testing.assert_array_equal(tr["iterations"], s.max_sqp_iter)
