@@ -15,10 +15,16 @@ feed-forward, Riccati terminal cost ``P``).
   the derivative graph in one call and a declared block-diagonal sparsity
   (``has_jac_sparsity`` / ``get_jac_sparsity``).
 
-IPOPT uses a limited-memory Hessian for every model (callbacks give no
-second derivatives; the analytic model gets the same, for a fair timing
-comparison), iteration and CPU-time limits, and a warm start from the
-shifted previous solution. Failures are handled as in :mod:`mpc.ltv`.
+By default IPOPT uses a limited-memory Hessian for every model (callbacks
+give no second derivatives; the analytic model gets the same, for a fair
+timing comparison), iteration and CPU-time limits, and a warm start from the
+shifted previous solution. ``NMPCSettings(hessian="exact")`` gives it the
+exact Hessian of the Lagrangian instead: the analytic model's, or an ONNX
+model's through its graph rebuilt in CasADi (:mod:`mpc.symbolic`; dense
+networks only). That converges where the limited-memory Hessian stops at
+IPOPT's "acceptable" level, at several seconds per solve with a PINN: a
+reference for converged solutions, not a controller. Failures are handled as
+in :mod:`mpc.ltv`.
 """
 
 from __future__ import annotations
@@ -49,11 +55,14 @@ class NMPCSettings:
     # IPOPT tolerance (on the scaled problem). Measured (figure-8, one run): 1e-6 took 68 ms per period with
     # the proposed PINN (18 iterations) and 86 ms with the oracle; 1e-4 took 45 and 57 ms, same tracking error.
     tol: float = 1e-4
+    hessian: str = "limited-memory"   # IPOPT's Hessian: "limited-memory" or "exact" (see the module docstring)
 
     def __post_init__(self):
         check_common_settings(self.horizon, self.attitude_limit_rad, self.max_iter)
         if not self.time_limit_s > 0:
             raise ConfigurationError(f"time_limit_s must be > 0; found {self.time_limit_s}")
+        if self.hessian not in ("limited-memory", "exact"):
+            raise ConfigurationError(f"hessian must be 'limited-memory' or 'exact'; found {self.hessian!r}")
 
 
 def _block_diagonal(n_stages: int, rows: int, cols: int):
@@ -146,6 +155,19 @@ class NMPC(MPCBase):
         self._build(N)
         self._w: np.ndarray | None = None
 
+    def _symbolic_step(self):
+        """The model's one-period step as a CasADi function (for the exact Hessian)."""
+        F = getattr(self.model, "casadi_step", None)
+        if F is not None:
+            return F
+        path = getattr(self.model, "path", None)
+        if path is None:
+            raise ConfigurationError(f"hessian='exact' needs a model with a CasADi expression; "
+                                     f"{type(self.model).__name__} has none")
+        from .symbolic import casadi_step
+
+        return casadi_step(path)
+
     def _build(self, N: int) -> None:
         # IPOPT works on scaled variables: X = sx * Xs, U = u_hover + su * Us, with sx and su the
         # acceptable deviations of the default weights (torques are ~1e-3 N m; unscaled, the
@@ -161,8 +183,12 @@ class NMPC(MPCBase):
         x0 = ca.MX.sym("x0", NX)
         ref = ca.MX.sym("ref", NX, N + 1)
         uref = ca.MX.sym("uref", NU, N)
+        exact = self.s.hessian == "exact"
         if isinstance(self.model, AnalyticModel):
             F = self.model.casadi_step.map(N, "serial")
+            self._horizon = None
+        elif exact:
+            F = self._symbolic_step().map(N, "serial")
             self._horizon = None
         else:
             self._horizon = F = _Horizon("horizon", self.model, N)
@@ -180,9 +206,9 @@ class NMPC(MPCBase):
         w = ca.vertcat(ca.vec(Xs), ca.vec(Us))
         nlp = {"x": w, "f": cost, "g": g, "p": ca.vertcat(x0, ca.vec(ref), ca.vec(uref))}
         opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
-                "ipopt.hessian_approximation": "limited-memory", "ipopt.max_iter": self.s.max_iter,
+                "ipopt.hessian_approximation": self.s.hessian, "ipopt.max_iter": self.s.max_iter,
                 "ipopt.max_cpu_time": self.s.time_limit_s, "ipopt.tol": self.s.tol, "error_on_fail": False}
-        if self._horizon is None:
+        if isinstance(self.model, AnalyticModel):
             opts["expand"] = True   # analytic model: SX graph, much cheaper to evaluate than MX
         self._solver = ca.nlpsol("nmpc", "ipopt", nlp, {
             **opts, "ipopt.warm_start_init_point": "yes", "ipopt.warm_start_bound_push": 1e-9,

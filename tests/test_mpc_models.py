@@ -26,6 +26,9 @@ TOL = {
     "dlqr_gain": 1e-6,                # K from mpc vs control.dlqr on an independent linearization
     "hover_error_m": 0.01,            # LQR within 1 cm of the setpoint after 2 s
     "single_vs_double": 1e-5,         # float32 derivative graph vs float64 (measured 5e-8 .. 7e-7 near hover)
+    "casadi_step_abs": 1e-12,         # ONNX graph rebuilt in CasADi vs onnxruntime (measured 5e-16)
+    "casadi_jacobian_rel": 1e-10,     # its AD Jacobian vs the derivative graph (relative to the largest entry)
+    "casadi_hessian_rel": 1e-6,       # its AD Hessian vs central differences of the derivative graph (measured 2e-9)
 }
 
 
@@ -182,3 +185,58 @@ def test_mpc_imports_without_torch():
     code = "import sys; sys.modules['torch'] = None; import mpc, mpc.models, mpc.lqr, mpc.controller, mpc.contract"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 0, r.stderr
+
+
+@pytest.mark.parametrize("name", ["baseline", "proposed", "baseline_aggressive", "proposed_aggressive"])
+def test_the_casadi_rebuild_of_a_dense_pinn_equals_onnxruntime_and_its_derivative_graph(name):
+    import casadi as ca
+
+    from mpc.contract import _probe_batch
+    from mpc.symbolic import casadi_step
+
+    model = OnnxModel(ROOT / "models" / f"{name}.onnx")
+    F = casadi_step(model.path)
+    x, u = _probe_batch(32, np.float64, seed=4)
+    xs, us = ca.SX.sym("x", 12), ca.SX.sym("u", 4)
+    y = F(xs, us)
+    lin = ca.Function("lin", [xs, us], [y, ca.jacobian(y, xs), ca.jacobian(y, us)]).map(len(x))
+    xn, A, B = (np.asarray(v) for v in lin(x.T, u.T))
+    xn1, A1, B1 = model.linearize(x, u)
+    assert np.max(np.abs(xn.T - xn1)) <= TOL["casadi_step_abs"]
+    A = A.reshape(12, len(x), 12).transpose(1, 0, 2)
+    B = B.reshape(12, len(x), 4).transpose(1, 0, 2)
+    assert np.max(np.abs(A - A1)) / np.max(np.abs(A1)) <= TOL["casadi_jacobian_rel"]
+    assert np.max(np.abs(B - B1)) / np.max(np.abs(B1)) <= TOL["casadi_jacobian_rel"]
+
+
+def test_the_casadi_rebuild_gives_the_second_derivatives_of_the_derivative_graph():
+    import casadi as ca
+
+    from mpc.contract import _probe_batch
+    from mpc.symbolic import casadi_step
+
+    model = OnnxModel(ROOT / "models" / "proposed.onnx")
+    xs, us, ys = ca.SX.sym("x", 12), ca.SX.sym("u", 4), ca.SX.sym("y", 12)
+    z = ca.vertcat(xs, us)
+    hess = ca.Function("h", [xs, us, ys], [ca.hessian(ca.dot(ys, casadi_step(model.path)(xs, us)), z)[0]])
+    x, u = _probe_batch(4, np.float64, seed=5)
+    y = np.random.default_rng(5).standard_normal((4, 12))
+    h = np.concatenate([np.full(12, 1e-5), [1e-6], np.full(3, 1e-8)])     # per variable: state, thrust, torques
+    for k in range(len(x)):
+        H = np.array(hess(x[k], u[k], y[k]))
+        fd = np.zeros((16, 16))
+        for j in range(16):
+            e = np.zeros(16)
+            e[j] = h[j]
+            (_, Ap, Bp), (_, Am, Bm) = (model.linearize(x[k] + s * e[:12], u[k] + s * e[12:]) for s in (1, -1))
+            fd[j] = y[k] @ (np.concatenate([Ap[0], Bp[0]], axis=1) - np.concatenate([Am[0], Bm[0]], axis=1)) / (2 * h[j])
+        fd = (fd + fd.T) / 2
+        assert np.linalg.norm(H - fd) / np.linalg.norm(H) <= TOL["casadi_hessian_rel"], k
+
+
+@pytest.mark.parametrize("name,op", [("fourier", "Unsqueeze"), ("modular", "Transpose")])
+def test_a_graph_casadi_cannot_rebuild_is_refused_by_name(name, op):
+    from mpc.symbolic import casadi_step
+
+    with pytest.raises(ModelContractError, match=f"\\({op}\\) is not supported"):
+        casadi_step(ROOT / "models" / f"{name}.onnx")

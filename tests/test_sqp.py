@@ -53,14 +53,15 @@ def flown_states(model):
     return out
 
 
-def objective_gaps(model, confirm=False):
+def objective_gaps(model, confirm=False, hessian="limited-memory"):
     """Relative objective gap SQP - IPOPT per state, both started from the same guess (the cold-start rollout).
 
     ``confirm``: also the gap of IPOPT started from the SQP's own plan (NaN where the first gap is within
     tolerance): near zero when the SQP's plan is a local optimum IPOPT stays at.
     """
     sqp = SQPMPC(model, FIG8_FAST, CONVERGED)
-    ipopt = NMPC(model, FIG8_FAST, NMPCSettings(tol=1e-10, max_iter=3000, time_limit_s=60.0))
+    ipopt = NMPC(model, FIG8_FAST, NMPCSettings(tol=1e-10, max_iter=3000, time_limit_s=60.0, hessian=hessian))
+    accepted = ("Solve_Succeeded",) if hessian == "exact" else ("Solve_Succeeded", "Solved_To_Acceptable_Level")
     N, gaps, confirmed = sqp.N, [], []
     for t, x in flown_states(model):
         times = t + 0.01 * np.arange(N + 1)
@@ -68,7 +69,7 @@ def objective_gaps(model, confirm=False):
         X0, U0 = sqp.rollout(x, ref, u_ref)
         Xs, Us, _ = sqp.solve_from(x, t, X0, U0)
         Xn, Un, status = ipopt.solve_from(x, t, X0, U0)
-        assert status in ("Solve_Succeeded", "Solved_To_Acceptable_Level"), f"t={t}: IPOPT {status}"
+        assert status in accepted, f"t={t}: IPOPT {status}"
         defect = np.max(np.abs(model.step(Xs[:N], Us) - Xs[1:]))
         js, jn = sqp.cost(Xs, Us, ref, u_ref), sqp.cost(Xn, Un, ref, u_ref)
         # A plan that still violates the dynamics has not reached anything: count it as a miss.
@@ -105,6 +106,26 @@ def test_sqp_reaches_ipopts_optimal_objective_with_the_proposed_pinn():
         pytest.xfail(f"{N_STATES - within} of {N_STATES} states not within 1e-4 of IPOPT's objective: at other "
                      f"local optima (IPOPT confirms them), {lower} lower and {higher} higher "
                      f"(worst gap {np.max(gaps):.1e})")
+
+
+@pytest.mark.slow
+def test_sqp_against_ipopt_with_the_exact_hessian_on_the_proposed_pinn():
+    """The same comparison with IPOPT converged properly: exact Hessian (the PINN rebuilt in CasADi), tol 1e-10.
+
+    About 10 minutes. Measured: IPOPT converges on all 50 states; the SQP ends at IPOPT's point on 41 of them
+    (objectives equal to about 1e-14) and at other local optima on 9 (4 lower, 5 higher, worst 5.9e-3).
+    """
+    signed, confirmed = objective_gaps(OnnxModel(PROPOSED), confirm=True, hessian="exact")
+    gaps = np.abs(signed)
+    assert np.all(np.isfinite(gaps)), f"{int(np.sum(~np.isfinite(gaps)))} states end with an infeasible plan"
+    off = ~np.isnan(confirmed)
+    assert np.all(np.abs(confirmed[off]) <= TOL["objective_rel"]), confirmed[off]
+    within = int(np.sum(gaps <= TOL["objective_rel"]))
+    assert within >= TOL["proposed_min_within"], within
+    if within < N_STATES:
+        lower, higher = int(np.sum(signed < -TOL["objective_rel"])), int(np.sum(signed > TOL["objective_rel"]))
+        pytest.xfail(f"{N_STATES - within} of {N_STATES} states at other local optima than IPOPT's (exact Hessian, "
+                     f"converged): {lower} lower and {higher} higher (worst gap {np.max(gaps):.1e})")
 
 
 def test_the_exact_hessian_is_the_models_curvature_weighted_by_the_multipliers():
