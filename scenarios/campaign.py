@@ -138,8 +138,13 @@ def provenance(models_dir) -> dict:
 
 
 def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bool = False,
-                 progress: bool = True, scenarios: list[str] | None = None) -> dict:
-    """Run everything and build the report; returns ``{"results": [...], "report": path}``."""
+                 progress: bool = True, scenarios: list[str] | None = None, engine: str = "process",
+                 address: str | None = None, resume: bool = True) -> dict:
+    """Run everything and build the report; returns ``{"results": [...], "report": path}``.
+
+    ``engine``, ``address`` and ``resume`` are those of :func:`scenarios.runner.sweep`: closed-loop runs already
+    saved in ``out_dir`` with the same spec, seed, model file and code are reused unless ``resume`` is False.
+    """
     from reports import build_report
 
     out = Path(out_dir)
@@ -165,8 +170,10 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
     ablation = Path(models_dir) / "ablation.json"
     if ablation.is_file():
         shutil.copyfile(ablation, out / "ablation.json")
-    stage(f"closed-loop sweep: {len(specs)} runs on {jobs} processes")
-    results = sweep(specs, out, jobs=jobs, progress=progress)
+    where = (f"the Ray cluster at {address}" if address else f"a local Ray instance with {jobs} CPUs") \
+        if engine == "ray" else f"{jobs} processes"
+    stage(f"closed-loop sweep: {len(specs)} runs on {where}")
+    results = sweep(specs, out, jobs=jobs, progress=progress, engine=engine, address=address, resume=resume)
     write_json(out / "results.json", {"plan": {"full": full, "models_dir": str(models_dir),
                                            "specs": [spec_dict(s) for s in specs]}, "runs": results})
     stage("report")

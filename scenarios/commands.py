@@ -8,6 +8,8 @@ from pathlib import Path
 
 from sim.files import write_json
 
+from .engines import ENGINES
+
 #: Fields printed by ``pinnmpc fly``, in order (names other tools rely on).
 FLY_FIELDS = ("scenario", "controller", "model", "timing", "rmse_position_m", "max_position_error_m", "crashed",
               "crash_time_s", "solve_ms", "deadline_misses", "solver_failures", "fallbacks")
@@ -51,6 +53,14 @@ def register(sub) -> None:
     p.add_argument("--full", action="store_true",
                    help="fly the figure8-slow and +highfi variants too, the LTV-MPC everywhere, and the NMPC "
                         "on every scenario with every model")
+    p.add_argument("--engine", choices=ENGINES, default="process",
+                   help="where the closed-loop runs fly: a process pool here (default) or Ray tasks "
+                        "(pip install -e '.[ray]')")
+    p.add_argument("--address", default=None, metavar="ADDR",
+                   help="Ray cluster to send the runs to, e.g. HEAD:6379 (default: a local Ray instance)")
+    p.add_argument("--fresh", action="store_true",
+                   help="fly every run again; by default runs saved in --out with the same spec, seed, model file "
+                        "and code are reused, so an interrupted run resumes where it stopped")
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser("bounds", help="write the CI bounds file from the results of pinnmpc run",
@@ -119,7 +129,10 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     if args.jobs is not None and args.jobs < 1:
         raise ValueError(f"--jobs must be >= 1; found {args.jobs}")
-    out = run_main_job(args.out, args.models, args.jobs, args.full, progress=True)
+    if args.address is not None and args.engine != "ray":
+        raise ValueError("--address needs --engine ray")
+    out = run_main_job(args.out, args.models, args.jobs, args.full, progress=True, engine=args.engine,
+                       address=args.address, resume=not args.fresh)
     runs = out["results"]
     crashed = [r["run_id"] for r in runs if r.get("crashed")]
     errors = [r["run_id"] for r in runs if r.get("error")]

@@ -68,8 +68,14 @@ class RunSpec:
     seed: int | None = None       # None: the scenario's own seed
     horizon: int = HORIZON        # MPC horizon, steps
     timing: str = "ideal"         # "ideal" (input applied at once) or "realtime" (after the measured compute time)
+    member: int | None = None     # ensemble member (Scenario.member: its seed and a perturbed start); None: none
 
     def __post_init__(self):
+        if self.member is not None:
+            if isinstance(self.member, bool) or not isinstance(self.member, int) or self.member < 0:
+                raise ScenarioError(f"member must be an integer >= 0; found {self.member!r}")
+            if self.seed is not None:
+                raise ScenarioError("an ensemble member has its own seed; give member or seed, not both")
         if self.controller not in CONTROLLERS:
             raise ScenarioError(f"controller must be one of {', '.join(CONTROLLERS)}; found {self.controller!r}")
         if self.timing not in TIMINGS:
@@ -93,8 +99,16 @@ class RunSpec:
 
     @property
     def run_id(self) -> str:
-        """File-name-safe identifier ``<scenario>__<controller>__<model>`` (``__realtime`` appended for that timing)."""
+        """File-name-safe identifier ``<scenario>__<controller>__<model>``.
+
+        ``__s<seed>`` is appended for an explicit seed, ``__m<k>`` for ensemble member k, ``__realtime`` for
+        that timing.
+        """
         base = f"{self.scenario}__{self.controller}__{self.model_name}"
+        if self.seed is not None:
+            base += f"__s{self.seed}"
+        if self.member is not None:
+            base += f"__m{self.member}"
         return base if self.timing == "ideal" else f"{base}__{self.timing}"
 
 
@@ -206,7 +220,12 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
     from mpc.models import load_model
     from sim import Simulator
 
-    sc = get_scenario(spec.scenario, spec.seed) if scenario is None else scenario
+    if scenario is not None:
+        sc = scenario
+    elif spec.member is not None:
+        sc = get_scenario(spec.scenario).member(spec.member)
+    else:
+        sc = get_scenario(spec.scenario, spec.seed)
     if model is None:
         model = load_model(spec.model)      # contract errors raise here, before anything flies
     ref = sc.reference()
@@ -226,7 +245,8 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
     crash_step, why, error = None, None, None
     base = {"run_id": spec.run_id, "scenario": spec.scenario, "controller": spec.controller,
             "model": spec.model_name, "model_file": None if spec.model == "oracle" or spec.model.startswith("analytic:") else str(spec.model),
-            "model_sha256": _sha256(spec.model), "seed": sc.seed, "horizon": spec.horizon, "timing": spec.timing}
+            "model_sha256": _sha256(spec.model), "seed": sc.seed, "member": spec.member, "horizon": spec.horizon,
+            "timing": spec.timing}
     t0 = time.perf_counter()
     k_end = 0
     realtime = spec.timing == "realtime"
@@ -323,7 +343,59 @@ def save_run(result: dict, trace: dict, out_dir: Path) -> dict:
         rel = f"traces/{result['run_id']}.npz"
         np.savez_compressed(out_dir / rel, **trace)
     result = {**result, "trace": rel}
-    (out_dir / "runs" / f"{result['run_id']}.json").write_text(json.dumps(result, indent=2, sort_keys=True) + "\n")
+    # The JSON is written last and atomically: a run interrupted while saving leaves no result, and is flown again.
+    path = out_dir / "runs" / f"{result['run_id']}.json"
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(result, indent=2, sort_keys=True) + "\n")
+    os.replace(tmp, path)
+    return result
+
+
+_CODE_VERSION: str | None = None
+
+
+def code_version() -> str:
+    """SHA-256 (first 16 hex digits) of the package version and the source of the packages that fly a run.
+
+    Any change to ``sim``, ``mpc`` or ``scenarios`` (or the version) makes a
+    new code version, and so invalidates every cached run.
+    """
+    global _CODE_VERSION
+    if _CODE_VERSION is None:
+        import sim
+
+        root = Path(__file__).resolve().parents[1]
+        h = hashlib.sha256(sim.__version__.encode())
+        for pkg in ("sim", "mpc", "scenarios"):
+            for f in sorted((root / pkg).rglob("*")):
+                if f.suffix in (".py", ".toml") and f.is_file():
+                    h.update(str(f.relative_to(root)).encode())
+                    h.update(f.read_bytes())
+        _CODE_VERSION = h.hexdigest()[:16]
+    return _CODE_VERSION
+
+
+def cache_key(spec: RunSpec) -> str:
+    """Identity of a run's result: its spec, its seed, its model file's SHA-256 and the code version."""
+    seed = get_scenario(spec.scenario).seed if spec.seed is None else spec.seed
+    # The model by name and content, not by path: a results folder stays valid when the models move.
+    ident = {"scenario": spec.scenario, "controller": spec.controller, "model": spec.model_name,
+             "model_sha256": _sha256(spec.model), "seed": seed, "member": spec.member, "horizon": spec.horizon,
+             "timing": spec.timing, "code": code_version()}
+    return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
+
+
+def cached_result(spec: RunSpec, out_dir) -> dict | None:
+    """The saved result of ``spec`` under ``out_dir`` if it was flown with the same cache key, else None."""
+    path = Path(out_dir) / "runs" / f"{spec.run_id}.json"
+    try:
+        result = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if result.get("cache_key") != cache_key(spec):
+        return None
+    if result.get("trace") and not (Path(out_dir) / result["trace"]).is_file():
+        return None
     return result
 
 
@@ -332,59 +404,86 @@ def _worker_init() -> None:
         os.environ[var] = "1"
 
 
-def _run_and_save(spec: RunSpec, out_dir: str) -> dict:
+def fly_for_sweep(spec: RunSpec) -> tuple[dict, dict]:
+    """``fly(spec)`` for a sweep: a run that cannot fly is recorded (its error) and the sweep goes on.
+
+    The result carries its :func:`cache_key`. This is the unit of work of
+    every engine (a process-pool task, a Ray task).
+    """
     try:
         result, trace = fly(spec)
     except Exception as e:  # noqa: BLE001 - a run that cannot fly is recorded and the sweep goes on
         result = {"run_id": spec.run_id, "scenario": spec.scenario, "controller": spec.controller,
                   "model": spec.model_name, **NOT_FLOWN, "error": f"{type(e).__name__}: {e}"}
         trace = {}
-    return save_run(result, trace, Path(out_dir))
+    return {**result, "cache_key": cache_key(spec)}, trace
 
 
-def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True) -> list[dict]:
-    """Fly every spec (independent runs, ``jobs`` processes); results in the order of ``specs``.
+def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True, engine: str = "process",
+          address: str | None = None, resume: bool = True, on_result=None) -> list[dict]:
+    """Fly every spec (independent runs); results in the order of ``specs``.
 
-    Each result is also written to ``out_dir/runs/<id>.json`` with its trace
-    in ``out_dir/traces/<id>.npz``.
+    Parameters
+    ----------
+    specs : list of RunSpec
+    out_dir : path
+        Each result is written to ``out_dir/runs/<id>.json``, its trace to
+        ``out_dir/traces/<id>.npz``, as soon as the run returns.
+    jobs : int
+        Worker processes of the ``process`` engine (1: in this process), and
+        the CPUs of a local Ray instance.
+    engine : {"process", "ray"}
+        ``process``: a pool of worker processes on this machine.
+        ``ray``: one Ray task per run (:mod:`scenarios.engines`), on the
+        cluster at ``address`` or on a local instance.
+    resume : bool
+        Reuse every saved result under ``out_dir`` whose cache key (spec,
+        seed, model file hash, code version) matches; only the rest is flown.
+    on_result : callable, optional
+        Called with each new result once it is saved.
 
-    Runs with real-time timing are flown after the others, one at a time in
-    this process, so that the compute time they are charged is measured on an
-    otherwise idle machine (with two processes on two cores a controller's
-    call takes about 1.5 times as long).
+    Runs with real-time timing are flown after the others, one at a time, so
+    that the compute time they are charged is measured on an otherwise idle
+    machine (with two processes on two cores a controller's call takes about
+    1.5 times as long).
     """
+    from .engines import ENGINES, run_batches
+
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ScenarioError(f"jobs must be an integer >= 1; found {jobs!r}")
+    if engine not in ENGINES:
+        raise ScenarioError(f"engine must be one of {', '.join(ENGINES)}; found {engine!r}")
+    if address is not None and engine != "ray":
+        raise ScenarioError("address is for the ray engine; found it with engine 'process'")
     ids = [s.run_id for s in specs]
     dup = {i for i in ids if ids.count(i) > 1}
     if dup:
         raise ScenarioError(f"duplicate runs in the sweep: {sorted(dup)}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    results: dict[str, dict] = {}
+    if resume:
+        for s in specs:
+            r = cached_result(s, out_dir)
+            if r is not None:
+                results[s.run_id] = r
+    todo = [s for s in specs if s.run_id not in results]
     bar = None
     if progress:
         from tqdm import tqdm
-        bar = tqdm(total=len(specs), desc="closed-loop runs", unit="run")
-    results: dict[str, dict] = {}
-    try:
-        if jobs == 1:
-            for s in specs:
-                results[s.run_id] = _run_and_save(s, str(out_dir))
-                if bar:
-                    bar.update()
-        else:
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor, as_completed
+        bar = tqdm(total=len(specs), initial=len(results), desc="closed-loop runs", unit="run")
+        if results:
+            bar.set_postfix_str(f"{len(results)} from the cache")
 
-            _worker_init()
-            for workers, batch in sweep_batches(specs, jobs):
-                with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
-                                         initializer=_worker_init) as pool:
-                    futs = {pool.submit(_run_and_save, s, str(out_dir)): s for s in batch}
-                    for f in as_completed(futs):
-                        results[futs[f].run_id] = f.result()
-                        if bar:
-                            bar.update()
+    def done(spec, result, trace):
+        results[spec.run_id] = save_run(result, trace, out_dir)
+        if bar:
+            bar.update()
+        if on_result is not None:
+            on_result(results[spec.run_id])
+
+    try:
+        run_batches(sweep_batches(todo, jobs), done, engine=engine, jobs=jobs, address=address)
     finally:
         if bar:
             bar.close()

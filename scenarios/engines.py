@@ -1,0 +1,130 @@
+"""Where a sweep's runs are flown: a process pool on this machine, or Ray tasks on a cluster.
+
+Every run is independent: the unit of work is
+:func:`scenarios.runner.fly_for_sweep`, which returns the run's result and
+trace; the driver (the process that called :func:`scenarios.runner.sweep`)
+saves them as they arrive, so the results folder only needs to exist where the
+driver runs.
+
+* ``process`` (the default; no extra dependency): ``jobs`` worker processes
+  (spawned, one BLAS thread each); ``jobs = 1`` flies in the calling process.
+* ``ray``: one Ray task per run (one CPU each). With ``address`` the tasks go
+  to that cluster (``ray start --head`` on one node, ``ray start
+  --address=HEAD:6379`` on the others, then ``--address HEAD:6379``); without
+  it a local Ray instance with ``jobs`` CPUs is started for the sweep and shut
+  down after it. Each node needs this project installed in the same Python
+  environment and the model files at the same paths as the driver (a shared
+  file system, or the same checkout in the same place). Ray is an optional
+  extra: ``python -m pip install -e ".[ray]"``.
+
+Both engines fly the ideal-timing runs first, as many at a time as they have
+workers, and the real-time runs after them, one at a time (their compute time
+is what they measure). Both fix the worker's BLAS kernel and thread count, so
+that an ideal-timing run gives the same numbers on either engine.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+from .errors import ScenarioError
+
+ENGINES = ("process", "ray")
+
+#: Environment of every worker: one BLAS thread (the workers already fill the cores) and, on x86-64, the BLAS
+#: kernel the project pins (see :mod:`sim`), set before the worker loads numpy.
+WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def worker_env() -> dict[str, str]:
+    env = dict(WORKER_ENV)
+    if "OPENBLAS_CORETYPE" in os.environ:
+        env["OPENBLAS_CORETYPE"] = os.environ["OPENBLAS_CORETYPE"]
+    return env
+
+
+def run_batches(batches, done, engine: str = "process", jobs: int = 1, address: str | None = None) -> None:
+    """Fly ``batches`` (``[(workers, [RunSpec, ...]), ...]`` from :func:`scenarios.runner.sweep_batches`).
+
+    ``done(spec, result, trace)`` is called in this process as each run returns.
+    An exception raised by ``done`` (or a KeyboardInterrupt) stops the sweep:
+    runs not yet returned are cancelled, and whatever was saved stays saved.
+    """
+    if engine == "ray":
+        _ray(batches, done, jobs, address)
+    else:
+        _process(batches, done, jobs)
+
+
+def _process(batches, done, jobs: int) -> None:
+    from .runner import fly_for_sweep
+
+    if jobs == 1:
+        for _, batch in batches:
+            for spec in batch:
+                done(spec, *fly_for_sweep(spec))
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    from .runner import _worker_init
+
+    _worker_init()
+    for workers, batch in batches:
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_worker_init)
+        try:
+            futs = {pool.submit(fly_for_sweep, s): s for s in batch}
+            for f in as_completed(futs):
+                done(futs[f], *f.result())
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _fly_in(spec, cwd: str):
+    """A Ray task: fly ``spec`` with the driver's working directory (relative model paths resolve as there)."""
+    from .runner import fly_for_sweep
+
+    if os.path.isdir(cwd) and os.getcwd() != cwd:
+        os.chdir(cwd)
+    return fly_for_sweep(spec)
+
+
+def _ray(batches, done, jobs: int, address: str | None) -> None:
+    try:
+        import ray
+    except ImportError as e:
+        raise ScenarioError("engine 'ray' needs Ray, an optional extra: python -m pip install -e \".[ray]\"") from e
+    started = False
+    if not ray.is_initialized():
+        try:
+            ray.init(address=address, num_cpus=None if address else jobs, include_dashboard=False,
+                     log_to_driver=False, logging_level=logging.ERROR, runtime_env={"env_vars": worker_env()})
+        except Exception as e:  # noqa: BLE001 - Ray's connection errors come in several types
+            where = f"the Ray cluster at {address!r}" if address else "a local Ray instance"
+            raise ScenarioError(f"could not start or reach {where}: {type(e).__name__}: {e}") from e
+        started = True
+    task = ray.remote(num_cpus=1, max_retries=0)(_fly_in)
+    cwd = os.getcwd()
+    pending: dict = {}
+    try:
+        for workers, batch in batches:
+            if workers == 1:
+                for spec in batch:      # one at a time: a real-time run is charged for its compute
+                    ref = task.remote(spec, cwd)
+                    pending[ref] = spec
+                    result, trace = ray.get(ref)
+                    del pending[ref]
+                    done(spec, result, trace)
+                continue
+            pending.update({task.remote(s, cwd): s for s in batch})
+            while pending:
+                ready, _ = ray.wait(list(pending), num_returns=1)
+                for ref in ready:
+                    spec = pending.pop(ref)
+                    done(spec, *ray.get(ref))
+    finally:
+        for ref in pending:
+            ray.cancel(ref, force=True)
+        if started:
+            ray.shutdown()
