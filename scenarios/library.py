@@ -187,6 +187,18 @@ class Scenario:
         wind = None if self.wind is None else dataclasses.replace(self.wind, seed=int(seed))
         return dataclasses.replace(self, seed=int(seed), wind=wind)
 
+    def member(self, k: int) -> "Scenario":
+        """Ensemble member ``k``: seed ``k`` (noise and gusts redrawn) and the initial state moved by a seeded draw.
+
+        The draw is normal with the standard deviations
+        :data:`ENSEMBLE_X0_SIGMA`, seeded by ``k`` alone, so member ``k`` of
+        a scenario is the same in every sweep; the path stays.
+        """
+        sc = self.with_seed(k)
+        rng = np.random.default_rng([int(k), 0xE45])
+        x0 = np.asarray(self.x0, dtype=float) + np.asarray(ENSEMBLE_X0_SIGMA) * rng.standard_normal(NX)
+        return dataclasses.replace(sc, x0=tuple(float(v) for v in x0))
+
     def to_dict(self) -> dict:
         """JSON-ready description (stored with every result)."""
         return {"name": self.name, "kind": self.kind, "duration_s": self.duration_s, "x0": list(self.x0),
@@ -197,6 +209,12 @@ class Scenario:
                 "impulse": None if self.impulse is None else self.impulse.to_dict(),
                 "noise": None if self.noise is None else dataclasses.asdict(self.noise),
                 "delay_steps": self.delay_steps, "seed": self.seed, "description": self.description}
+
+
+#: Standard deviations of an ensemble member's initial-state perturbation (state order: position m, attitude rad,
+#: velocity m/s, body rates rad/s): small against the scenarios' own offsets, large against rounding, so that a
+#: case whose outcome depends on its start shows it.
+ENSEMBLE_X0_SIGMA = (0.01, 0.01, 0.01, 0.01, 0.01, 0.01, 0.02, 0.02, 0.02, 0.02, 0.02, 0.02)
 
 
 @functools.lru_cache(maxsize=64)

@@ -1,0 +1,79 @@
+"""Intervals for ensembles of closed-loop runs: Wilson for a crash probability, bootstrap for an RMSE.
+
+One run of a case on the edge of what a model can fly is a sample, not a
+number; an ensemble of runs from several seeds gives a distribution, and
+these functions summarize it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .errors import ScenarioError
+
+#: Two-sided 95 % standard normal quantile.
+Z95 = 1.959963984540054
+
+
+def wilson_interval(k: int, n: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval ``(low, high)`` of a probability from ``k`` events in ``n`` trials.
+
+    Unlike the normal approximation it stays inside [0, 1] and is not empty
+    at ``k = 0`` or ``k = n`` (0 crashes in 10 runs: 0 to 0.28).
+    """
+    for name, v in (("k", k), ("n", n)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+            raise ScenarioError(f"{name} must be an integer >= 0; found {v!r}")
+    if n == 0 or k > n:
+        raise ScenarioError(f"need 0 <= k <= n and n >= 1; found k={k}, n={n}")
+    p = k / n
+    denom = 1.0 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    # At k = 0 (k = n) the bound is exactly 0 (1); the formula leaves rounding there.
+    return (0.0 if k == 0 else max(0.0, centre - half)), (1.0 if k == n else min(1.0, centre + half))
+
+
+def bootstrap_ci(values, statistic=np.median, n_boot: int = 2000, level: float = 0.95,
+                 seed: int = 0) -> tuple[float, float]:
+    """Percentile bootstrap interval of ``statistic`` over ``values`` (seeded: the same input gives the same interval).
+
+    Parameters
+    ----------
+    values : array_like, shape (n,)
+        Finite samples (for example the RMSE of each run that did not crash), n >= 2.
+    statistic : callable
+        Reduces an array (n_boot, n) along axis 1, like ``np.median`` or ``np.mean``.
+    """
+    v = np.asarray(values, dtype=float).ravel()
+    if v.size < 2 or not np.all(np.isfinite(v)):
+        raise ScenarioError(f"values must be at least 2 finite numbers; found {v.size} "
+                            f"({int(np.sum(~np.isfinite(v)))} not finite)")
+    if not 0 < level < 1:
+        raise ScenarioError(f"level must be in (0, 1); found {level}")
+    rng = np.random.default_rng(seed)
+    boot = statistic(v[rng.integers(0, v.size, (n_boot, v.size))], axis=1)
+    a = (1 - level) / 2
+    return float(np.quantile(boot, a)), float(np.quantile(boot, 1 - a))
+
+
+def summarize(results: list[dict], metric: str = "rmse_position_m") -> dict:
+    """An ensemble's distribution: crash probability with its Wilson interval, the metric's median with a bootstrap CI.
+
+    The metric is taken over the runs that did not crash (a crashed run's
+    RMSE covers only its flight up to the crash); with fewer than two of
+    those its interval is None.
+    """
+    n = len(results)
+    if n == 0:
+        raise ScenarioError("an ensemble needs at least one run")
+    crashed = sum(bool(r.get("crashed")) for r in results)
+    vals = [r[metric] for r in results if not r.get("crashed") and r.get(metric) is not None]
+    out = {"runs": n, "crashes": crashed, "crash_probability": crashed / n,
+           "crash_probability_ci95": list(wilson_interval(crashed, n)), "metric": metric,
+           "flown": len(vals), "median": float(np.median(vals)) if vals else None,
+           "median_ci95": list(bootstrap_ci(vals)) if len(vals) >= 2 else None,
+           "min": float(min(vals)) if vals else None, "max": float(max(vals)) if vals else None}
+    return out
