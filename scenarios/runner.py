@@ -386,14 +386,18 @@ def cache_key(spec: RunSpec) -> str:
 
 
 def cached_result(spec: RunSpec, out_dir) -> dict | None:
-    """The saved result of ``spec`` under ``out_dir`` if it was flown with the same cache key, else None."""
+    """The saved result of ``spec`` under ``out_dir`` if it was flown with the same cache key, else None.
+
+    A saved run that could not start (its ``error`` is set, for example a
+    model file that failed the contract) is not reused.
+    """
     path = Path(out_dir) / "runs" / f"{spec.run_id}.json"
     try:
         result = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
-    if result.get("cache_key") != cache_key(spec):
-        return None
+    if result.get("cache_key") != cache_key(spec) or result.get("error"):
+        return None     # another spec, model or code; or a run that could not start (tried again)
     if result.get("trace") and not (Path(out_dir) / result["trace"]).is_file():
         return None
     return result

@@ -83,6 +83,10 @@ def test_a_run_is_flown_again_when_its_code_or_its_saved_file_changed(tmp_path, 
     assert len(flown) == 3 and json.loads(path.read_text())["cache_key"] == cache_key(spec)
     sweep([spec], tmp_path, progress=False, resume=False)
     assert len(flown) == 4
+    result = json.loads(path.read_text())
+    path.write_text(json.dumps({**result, "error": "RuntimeError: could not start"}))   # a run that failed to start
+    sweep([spec], tmp_path, progress=False)
+    assert len(flown) == 5
 
 
 def test_the_cache_key_follows_seed_model_content_and_code(tmp_path, monkeypatch):
