@@ -20,8 +20,8 @@ give no second derivatives; the analytic model gets the same, for a fair
 timing comparison), iteration and CPU-time limits, and a warm start from the
 shifted previous solution. ``NMPCSettings(hessian="exact")`` gives it the
 exact Hessian of the Lagrangian instead: the analytic model's, or an ONNX
-model's through its graph rebuilt in CasADi (:mod:`mpc.symbolic`; dense
-networks only). That converges where the limited-memory Hessian stops at
+model's through its graph imported as a CasADi expression
+(:mod:`mpc.symbolic`; dense networks). That converges where the limited-memory Hessian stops at
 IPOPT's "acceptable" level, at several seconds per solve with a PINN: a
 reference for converged solutions, not a controller. Failures are handled as
 in :mod:`mpc.ltv`.

@@ -112,7 +112,7 @@ def test_sqp_reaches_ipopts_optimal_objective_with_the_proposed_pinn():
 def test_sqp_against_ipopt_with_the_exact_hessian_on_the_proposed_pinn():
     """The same comparison with IPOPT converged properly: exact Hessian (the PINN rebuilt in CasADi), tol 1e-10.
 
-    About 7 minutes. Measured: IPOPT converges on all 50 states; the SQP ends at IPOPT's point on 41 of them
+    About 3.5 minutes. Measured: IPOPT converges on all 50 states; the SQP ends at IPOPT's point on 41 of them
     (objectives equal to about 1e-14) and at other local optima on 9 (4 lower, 5 higher, worst 5.9e-3).
     """
     signed, confirmed = objective_gaps(OnnxModel(PROPOSED), confirm=True, hessian="exact")
