@@ -10,7 +10,7 @@ from .headline import correlation_text, headline_data
 from .html import markdown_to_html
 from .inputs import load_inputs
 from .summary import summary_text
-from .tables import (closed_loop_table, fisher_table, hover_table, ladder_table, provenance_section,
+from .tables import (closed_loop_table, ensemble_table, fisher_table, hover_table, ladder_table, provenance_section,
                      realtime_table, solve_time_table, table_one, table_three, table_two)
 
 #: Title of the report (the Markdown ``#`` heading and the HTML title).
@@ -24,6 +24,7 @@ SECTIONS = (
     "Closed-loop results",
     "Hover: settled error and gust recovery",
     "Speed ladder: maximum trackable speed",
+    "Ensembles: crash probability and RMSE with intervals",
     "Real-time timing: compute time charged",
     "Headline: open-loop error against closed-loop error",
     "Trajectories and tracking error",
@@ -62,8 +63,10 @@ def report_markdown(run_dir) -> str:
     inp = load_inputs(run_dir)
     d = inp.run_dir
     _clear_figures(d)
-    every_run = inp.runs
-    # Every section but the real-time one reads the ideal-timing runs (results without a timing are ideal).
+    members = [r for r in inp.runs if r.get("member") is not None]
+    every_run = [r for r in inp.runs if r.get("member") is None]
+    # Every section but the real-time one reads the ideal-timing runs (results without a timing are ideal); the
+    # ensembles' members have their own section, every other table has one run per case.
     inp.runs = [r for r in every_run if r.get("timing", "ideal") == "ideal"]
     head = headline_data(inp.runs, inp.models_by_name())
     corr = correlation_text(head)
@@ -76,6 +79,7 @@ def report_markdown(run_dir) -> str:
     body["Closed-loop results"] = closed_loop_table(inp.runs)
     body["Hover: settled error and gust recovery"] = hover_table(inp.runs)
     body["Speed ladder: maximum trackable speed"] = ladder_table(inp.runs)
+    body["Ensembles: crash probability and RMSE with intervals"] = ensemble_table(members)
     body["Real-time timing: compute time charged"] = realtime_table(every_run)
     f = headline_figure(head, d)
     body["Headline: open-loop error against closed-loop error"] = (

@@ -22,7 +22,8 @@ LTV-MPC and the NMPC with every model (:data:`REALTIME_SCENARIOS`).
 An IPOPT solve takes 100-200 ms per control period on these 2-core machines
 (600 periods a run), so the NMPC with every model does not fit the main
 job's 10 minutes; ``full=True`` (``pinnmpc run --full``: every scenario,
-the NMPC on all of them with every model) takes hours.
+the NMPC on all of them with every model, and the ensembles of
+:data:`ENSEMBLE_SCENARIOS`) takes hours.
 """
 
 from __future__ import annotations
@@ -52,6 +53,12 @@ REALTIME_SCENARIOS = ("figure8-fast",)
 REALTIME_CONTROLLERS = ("sqp", "ltv", "nmpc")
 #: Models the NMPC flies in the main job (every model with ``full=True``).
 NMPC_MODELS = ("oracle",)
+#: Ensembles of ``full=True``: these scenarios, flown by these controllers with every model from ENSEMBLE_MEMBERS
+#: members each (:meth:`scenarios.library.Scenario.member`). 6 models x 2 controllers x 10 members on figure8-fast
+#: is about 280 worker-seconds, more than the default main job's budget leaves.
+ENSEMBLE_SCENARIOS = ("figure8-fast",)
+ENSEMBLE_CONTROLLERS = ("ltv", "sqp")
+ENSEMBLE_MEMBERS = 10
 #: Time-dependent provenance fields (excluded when two runs are compared).
 PROVENANCE_TIMING = ("started", "finished", "wall_time_s", "stage_seconds")
 
@@ -95,6 +102,9 @@ def main_plan(models_dir="models", full: bool = False, scenarios: list[str] | No
     for sc in names:
         if sc in REALTIME_SCENARIOS:
             specs += [RunSpec(sc, c, m, timing="realtime") for c in REALTIME_CONTROLLERS for m in models]
+    if full:
+        specs += [RunSpec(sc, c, m, member=k) for sc in names if sc in ENSEMBLE_SCENARIOS
+                  for c in ENSEMBLE_CONTROLLERS for m in models for k in range(ENSEMBLE_MEMBERS)]
     return specs
 
 

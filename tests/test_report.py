@@ -26,6 +26,7 @@ HEADINGS = (
     "Closed-loop results",
     "Hover: settled error and gust recovery",
     "Speed ladder: maximum trackable speed",
+    "Ensembles: crash probability and RMSE with intervals",
     "Headline: open-loop error against closed-loop error",
     "Trajectories and tracking error",
     "Rollout error growth",
@@ -252,3 +253,24 @@ def test_missing_required_file_names_it(results_dir, name):
     with pytest.raises(ReportError, match=re.escape(name)) as info:
         build_report(results_dir)
     assert isinstance(info.value, ValueError)
+
+
+def test_ensemble_members_get_their_own_table_and_stay_out_of_the_others(results_dir):
+    from scenarios.stats import wilson_interval
+
+    data = json.loads((results_dir / "results.json").read_text())
+    rmse = [0.050, 0.052, 0.049, 0.051, None]          # the last member crashed
+    for k, v in enumerate(rmse):
+        r = _result("hover", "ltv", "alpha", v if v is not None else 0.9, v is None, None)
+        r.update(run_id=f"{r['run_id']}__m{k}", member=k)
+        r.pop("trace")
+        data["runs"].append(r)
+    (results_dir / "results.json").write_text(json.dumps(data))
+    md = build_report(results_dir).read_text(encoding="utf-8")
+    assert len(_closed_loop_rows(md)) == len(RUNS)       # the members are not closed-loop rows
+    rows = [_cells(ln) for ln in _section(md, "Ensembles: crash probability and RMSE with intervals").splitlines()
+            if ln.startswith("| hover")]
+    assert len(rows) == 1
+    lo, hi = wilson_interval(1, 5)
+    assert rows[0][4:7] == ["5", "1", f"0.20 ({lo:.2f}–{hi:.2f})"]
+    assert rows[0][7].startswith("50.5 (") and rows[0][8] == "49.0–52.0"
