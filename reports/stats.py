@@ -4,35 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def rankdata(a) -> np.ndarray:
-    """Ranks 1..n of ``a`` (n,), ties given their average rank."""
-    a = np.asarray(a, dtype=float)
-    order = np.argsort(a, kind="mergesort")
-    ranks = np.empty(len(a))
-    ranks[order] = np.arange(1, len(a) + 1, dtype=float)
-    _, inverse, counts = np.unique(a, return_inverse=True, return_counts=True)
-    sums = np.bincount(inverse, weights=ranks)
-    return sums[inverse] / counts[inverse]
-
-
-def spearman(x, y) -> float | None:
-    """Spearman rank correlation of ``x`` and ``y`` (n,), or None.
-
-    None when fewer than 3 finite pairs remain or either variable is constant
-    (the correlation is undefined).
-    """
-    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
-    ok = np.isfinite(x) & np.isfinite(y)
-    x, y = x[ok], y[ok]
-    if len(x) < 3:
-        return None
-    rx, ry = rankdata(x), rankdata(y)
-    rx, ry = rx - rx.mean(), ry - ry.mean()
-    den = np.sqrt(np.sum(rx * rx) * np.sum(ry * ry))
-    if den == 0.0:
-        return None
-    return float(np.sum(rx * ry) / den)
+from scenarios.stats import rankdata, spearman  # noqa: F401  (the report's correlations)
 
 
 def median_or_none(values) -> float | None:

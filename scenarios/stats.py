@@ -1,4 +1,4 @@
-"""Intervals for ensembles of closed-loop runs: Wilson for a crash probability, bootstrap for an RMSE.
+"""Intervals and ranks for closed-loop results: Wilson (crash probability), bootstrap (RMSE), Spearman ranks.
 
 One run of a case on the edge of what a model can fly is a sample, not a
 number; an ensemble of runs from several seeds gives a distribution, and
@@ -77,3 +77,33 @@ def summarize(results: list[dict], metric: str = "rmse_position_m") -> dict:
            "median_ci95": list(bootstrap_ci(vals)) if len(vals) >= 2 else None,
            "min": float(min(vals)) if vals else None, "max": float(max(vals)) if vals else None}
     return out
+
+
+def rankdata(a) -> np.ndarray:
+    """Ranks 1..n of ``a`` (n,), ties given their average rank."""
+    a = np.asarray(a, dtype=float)
+    order = np.argsort(a, kind="mergesort")
+    ranks = np.empty(len(a))
+    ranks[order] = np.arange(1, len(a) + 1, dtype=float)
+    _, inverse, counts = np.unique(a, return_inverse=True, return_counts=True)
+    sums = np.bincount(inverse, weights=ranks)
+    return sums[inverse] / counts[inverse]
+
+
+def spearman(x, y) -> float | None:
+    """Spearman rank correlation of ``x`` and ``y`` (n,), or None.
+
+    None when fewer than 3 finite pairs remain or either variable is constant
+    (the correlation is undefined).
+    """
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = x[ok], y[ok]
+    if len(x) < 3:
+        return None
+    rx, ry = rankdata(x), rankdata(y)
+    rx, ry = rx - rx.mean(), ry - ry.mean()
+    den = np.sqrt(np.sum(rx * rx) * np.sum(ry * ry))
+    if den == 0.0:
+        return None
+    return float(np.sum(rx * ry) / den)
