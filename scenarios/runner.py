@@ -385,18 +385,19 @@ def cache_key(spec: RunSpec) -> str:
     return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
 
 
-def cached_result(spec: RunSpec, out_dir) -> dict | None:
+def cached_result(spec: RunSpec, out_dir, key: str | None = None) -> dict | None:
     """The saved result of ``spec`` under ``out_dir`` if it was flown with the same cache key, else None.
 
-    A saved run that could not start (its ``error`` is set, for example a
-    model file that failed the contract) is not reused.
+    ``key``: the spec's :func:`cache_key`, if already computed. A saved run
+    that could not start (its ``error`` is set, for example a model file that
+    failed the contract) is not reused.
     """
     path = Path(out_dir) / "runs" / f"{spec.run_id}.json"
     try:
         result = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
-    if result.get("cache_key") != cache_key(spec) or result.get("error"):
+    if result.get("cache_key") != (cache_key(spec) if key is None else key) or result.get("error"):
         return None     # another spec, model or code; or a run that could not start (tried again)
     if result.get("trace") and not (Path(out_dir) / result["trace"]).is_file():
         return None
@@ -404,15 +405,16 @@ def cached_result(spec: RunSpec, out_dir) -> dict | None:
 
 
 def _worker_init() -> None:
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[var] = "1"
+    from .engines import WORKER_ENV
+
+    os.environ.update(WORKER_ENV)
 
 
 def fly_for_sweep(spec: RunSpec) -> tuple[dict, dict]:
     """``fly(spec)`` for a sweep: a run that cannot fly is recorded (its error) and the sweep goes on.
 
-    The result carries its :func:`cache_key`. This is the unit of work of
-    every engine (a process-pool task, a Ray task).
+    This is the unit of work of every engine (a process-pool task, a Ray
+    task); the sweep stamps the result with its :func:`cache_key`.
     """
     try:
         result, trace = fly(spec)
@@ -420,7 +422,7 @@ def fly_for_sweep(spec: RunSpec) -> tuple[dict, dict]:
         result = {"run_id": spec.run_id, "scenario": spec.scenario, "controller": spec.controller,
                   "model": spec.model_name, **NOT_FLOWN, "error": f"{type(e).__name__}: {e}"}
         trace = {}
-    return {**result, "cache_key": cache_key(spec)}, trace
+    return result, trace
 
 
 def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True, engine: str = "process",
@@ -465,10 +467,11 @@ def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True, e
         raise ScenarioError(f"duplicate runs in the sweep: {sorted(dup)}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    keys = {s.run_id: cache_key(s) for s in specs}   # once per run: it hashes the model file and reads the code
     results: dict[str, dict] = {}
     if resume:
         for s in specs:
-            r = cached_result(s, out_dir)
+            r = cached_result(s, out_dir, keys[s.run_id])
             if r is not None:
                 results[s.run_id] = r
     todo = [s for s in specs if s.run_id not in results]
@@ -480,7 +483,7 @@ def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True, e
             bar.set_postfix_str(f"{len(results)} from the cache")
 
     def done(spec, result, trace):
-        results[spec.run_id] = save_run(result, trace, out_dir)
+        results[spec.run_id] = save_run({**result, "cache_key": keys[spec.run_id]}, trace, out_dir)
         if bar:
             bar.update()
         if on_result is not None:
