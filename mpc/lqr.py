@@ -74,10 +74,20 @@ def _check_weights(Q, R):
     return Q, R
 
 
+#: A Riccati solution is accepted when its smallest eigenvalue is at least -RICCATI_PSD_TOL times its largest
+#: magnitude, and the closed loop ``A - B K`` has a spectral radius below 1.
+RICCATI_PSD_TOL = 1e-9
+
+
 def lqr(A, B, Q, R) -> tuple[np.ndarray, np.ndarray]:
     """Gain ``K`` (4, 12) and Riccati solution ``P`` (12, 12) from ``control.dlqr``.
 
-    The control law is ``u = u_hover - K (x - x_ref)``.
+    The control law is ``u = u_hover - K (x - x_ref)``. The solution is
+    checked: for a pair that is not stabilizable (a mode the inputs cannot
+    move, such as a learned model whose torques do not reach its attitude)
+    ``control.dlqr`` may return a ``P`` that is not positive semidefinite
+    and a closed loop that is not stable, without an error. Then, and when
+    it fails outright, a :class:`ConfigurationError` says so.
     """
     import control
 
@@ -86,7 +96,17 @@ def lqr(A, B, Q, R) -> tuple[np.ndarray, np.ndarray]:
         K, P, _ = control.dlqr(A, B, Q, R)
     except Exception as e:  # python-control raises several types for a non-stabilizable pair
         raise ConfigurationError(f"no LQR gain for this hover linearization (control.dlqr: {e})") from e
-    return np.asarray(K), np.asarray(P)
+    K, P = np.asarray(K), np.asarray(P)
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(P))):
+        raise ConfigurationError("no LQR gain for this hover linearization: the Riccati solution is not finite")
+    ev = np.linalg.eigvalsh(0.5 * (P + P.T))
+    rho = float(np.max(np.abs(np.linalg.eigvals(A - B @ K))))
+    if ev[0] < -RICCATI_PSD_TOL * np.max(np.abs(ev)) or not rho < 1.0:
+        raise ConfigurationError(
+            f"no LQR gain for this hover linearization: it is not stabilizable (the Riccati solution's eigenvalues "
+            f"span {ev[0]:.3g} to {ev[-1]:.3g}, the closed loop's spectral radius is {rho:.10f}); the model says "
+            f"some mode at hover cannot be moved by the inputs")
+    return K, P
 
 
 class LQRController:

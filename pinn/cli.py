@@ -44,6 +44,18 @@ def register(sub) -> None:
     p.add_argument("--json", type=Path, default=None, help="output JSON (default FOLDER/evaluation.json)")
     p.set_defaults(handler=cmd_evaluate)
 
+    p = sub.add_parser("zoo", help="train the model zoo (open-loop quality from millimetres to divergence)",
+                       description="Train every run of the zoo (early checkpoints, small networks, scarce or noisy "
+                                   "data, the paper's failure modes, unbounded layers) and write OUT/NAME.onnx, "
+                                   "OUT/NAME.jac.onnx (float64) and OUT/manifest.json with the command, settings "
+                                   "and test metrics of each model. About 5 minutes with 2 jobs.")
+    p.add_argument("--out", type=Path, default=Path("models/zoo"), help="output folder (default models/zoo)")
+    p.add_argument("--only", nargs="+", default=None, metavar="RUN", help="train only these runs (names as listed "
+                   "by --list)")
+    p.add_argument("--jobs", type=int, default=1, help="parallel trainings, one torch thread each (default 1)")
+    p.add_argument("--list", action="store_true", help="list the runs and the models they yield, train nothing")
+    p.set_defaults(handler=cmd_zoo)
+
     p = sub.add_parser("ablation", help="Table III: train the five ablation configurations",
                        description="Baseline, +curriculum, +scheduled sampling, +dropout, +energy/smoothness "
                                    "(= proposed), same data and budget; 100-step position MAE on the test split.")
@@ -103,11 +115,11 @@ def test_metrics(model, ds) -> dict:
             "rollout_100_divergence_steps": roll["divergence_steps"]}
 
 
-def _update_manifest(folder: Path, name: str, entry: dict) -> Path:
-    """Set ``entry`` under ``name`` in ``folder/manifest.json`` (locked: trainings may run in parallel)."""
+def _update_manifest(folder: Path, name: str, entry: dict, file: str = "manifest.json") -> Path:
+    """Set ``entry`` under ``name`` in ``folder/file`` (locked: trainings may run in parallel)."""
     import fcntl
 
-    path = folder / "manifest.json"
+    path = folder / file
     with open(folder / ".manifest.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         data = json.loads(path.read_text()) if path.exists() else {}
@@ -181,6 +193,36 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     out = args.json or args.folder / "evaluation.json"
     write_json(out, result)
     print(f"\nwrote {out}")
+    return 0
+
+
+def cmd_zoo(args: argparse.Namespace) -> int:
+    """Handler of ``pinnmpc zoo``."""
+    from .zoo import RUNS, train_zoo
+
+    if args.list:
+        for r in RUNS:
+            print(f"{r.name:22s} {', '.join(r.model_names()):48s} {r.why}")
+        return 0
+    runs = RUNS
+    if args.only:
+        known = {r.name for r in RUNS}
+        bad = [n for n in args.only if n not in known]
+        if bad:
+            raise ValueError(f"--only: unknown zoo runs {bad}; known: {', '.join(sorted(known))}")
+        runs = tuple(r for r in RUNS if r.name in args.only)
+    if args.jobs < 1:
+        raise ValueError(f"--jobs must be >= 1; found {args.jobs}")
+    written = train_zoo(args.out, runs, args.jobs, progress=sys.stderr.isatty())
+    secs = written.pop("_seconds")
+    for name, e in written.items():
+        r = e["metrics"]["rollout_100_mae"]
+        print(f"{name:28s} 100-step position MAE {r['position']:10.4g} m, left the envelope "
+              f"{r['n_left_envelope']:3d}/{r['n_rollouts']}, diverged {r['n_diverged']}"
+              + (f"\n{'':28s} refused (not in the manifest, see refused.json): {e['refused']}" if "refused" in e else ""))
+    refused = sum("refused" in e for e in written.values())
+    print(f"trained {len(runs)} runs ({len(written)} models, {refused} refused) in {secs:.0f} s; "
+          f"manifest {args.out / 'manifest.json'}")
     return 0
 
 

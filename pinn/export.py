@@ -76,7 +76,7 @@ def _set_metadata(path: Path, meta: dict) -> None:
 
 
 def export_model(model, out_dir, name: str, training_config: dict, dataset_seed: int, test_metrics: dict,
-                 stats: dict | None = None) -> dict:
+                 stats: dict | None = None, torch_file: bool = True) -> dict:
     """Write ``<name>.onnx``, ``<name>.jac.onnx`` and ``<name>.pt`` into ``out_dir``.
 
     Parameters
@@ -95,11 +95,13 @@ def export_model(model, out_dir, name: str, training_config: dict, dataset_seed:
         Test-split metrics to store in the metadata.
     stats : dict, optional
         Normalization statistics, stored in the ``.pt`` file.
+    torch_file : bool
+        Write the ``.pt`` file (the zoo does not: its command retrains a model in seconds).
 
     Returns
     -------
     dict
-        Paths written: ``onnx``, ``jacobian``, ``torch``.
+        Paths written: ``onnx``, ``jacobian``, ``torch`` (if written).
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -125,6 +127,8 @@ def export_model(model, out_dir, name: str, training_config: dict, dataset_seed:
     _export(_Jac(m64), jac, ["x_next", "A", "B"])
     _set_metadata(path, meta)
     _set_metadata(jac, {k: meta[k] for k in ("pinnmpc.contract", "architecture", "config_hash")})
+    if not torch_file:
+        return {"onnx": path, "jacobian": jac}
     pt = out_dir / f"{name}.pt"
     torch.save({"arch": model.arch, "describe": model.describe(), "state_dict": model.state_dict(),
                 "training_config": training_config,
@@ -138,6 +142,8 @@ def load_torch_model(path):
     d = blob["describe"]
     sd = blob["state_dict"]
     stats = {"in_mean": sd["in_mean"], "in_std": sd["in_std"], "out_scale": sd["out_scale"]}
-    model = build_model(blob["arch"], stats, sd["log_theta"].exp(), d["hidden"], d["layers"], d["dropout"])
+    stats.update({k: sd[k] for k in ("abs_in_mean", "abs_in_std", "abs_out_mean", "abs_out_std") if k in sd})
+    model = build_model(blob["arch"], stats, sd["log_theta"].exp(), d["hidden"], d["layers"], d["dropout"],
+                        d.get("variant"))
     model.load_state_dict(sd)
     return model.eval(), blob

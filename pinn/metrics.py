@@ -14,6 +14,8 @@ from sim.params import NX, STATE_NAMES
 #: A rollout whose state leaves these bounds (or is not finite) has diverged.
 FINITE_RANGE = np.repeat([1e3, 1e3, 1e4, 1e3], 3)  # m, rad, rad/s, m/s
 POSITION = slice(0, 3)
+#: A rollout leaves the flight envelope when its position error exceeds this (m) or it diverges.
+ENVELOPE_POSITION_M = 1.0
 
 
 def one_step_mae(step, ds, split: str = "test", batch: int = 20000) -> dict:
@@ -60,8 +62,10 @@ def rollout_mae(step, ds, split: str = "test", horizon: int = 100, n_starts: int
     -------
     dict
         Per-state MAE, ``position`` (mean over x, y, z), ``n_rollouts``,
-        ``n_diverged``, ``divergence_steps`` (list, 1-based), and the
-        position MAE at each horizon step (``position_by_step``).
+        ``n_diverged``, ``divergence_steps`` (list, 1-based), the
+        position MAE at each horizon step (``position_by_step``), and
+        ``n_left_envelope``: rollouts whose position error exceeded
+        :data:`ENVELOPE_POSITION_M` at some step, or that diverged.
     """
     starts = rollout_starts(ds, split, horizon, n_starts, seed)
     ti, si = starts[:, 0], starts[:, 1]
@@ -80,8 +84,10 @@ def rollout_mae(step, ds, split: str = "test", horizon: int = 100, n_starts: int
         x = np.where(alive[:, None], nxt, x)
         err[:, k] = np.abs(x - ds.x_next[ti, si + k])
     mae = err.mean(axis=(0, 1))
+    left = ~alive | np.any(np.linalg.norm(err[:, :, POSITION], axis=2) > ENVELOPE_POSITION_M, axis=1)
     out = dict(zip(STATE_NAMES, map(float, mae)))
     out.update({
+        "n_left_envelope": int(left.sum()),
         "position": float(mae[POSITION].mean()),
         "n_rollouts": int(len(starts)),
         "n_diverged": int((~alive).sum()),

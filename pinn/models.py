@@ -35,13 +35,30 @@ ANGLE_STATES = (3, 4, 5)
 TRANSLATION_STATES = (0, 1, 2, 9, 10, 11)
 ROTATION_STATES = (3, 4, 5, 6, 7, 8)
 N_FEATURES = len(FEATURE_STATES) + NU
+#: Defaults of the zoo's variant settings (see :class:`ResidualPINN`); the shipped models use these.
+VARIANT_DEFAULTS = {"activation": "tanh", "gain": 1.0, "fourier_max": 8, "coupled": True}
+
+
+#: Hidden-layer activations. tanh (every shipped model) bounds each step's correction; softplus (a smooth relu)
+#: does not, which is one honest way for a learned model to diverge in a rollout. (relu itself is not offered: its
+#: kinks make the derivative graph disagree with the finite differences the model contract checks it against.)
+ACTIVATIONS = ("tanh", "softplus")
+
+
+def _softplus(z: torch.Tensor) -> torch.Tensor:
+    """log(1 + exp(z)), written with operations onnxruntime runs in float64 (it has no float64 Softplus)."""
+    return torch.clamp(z, min=0.0) + torch.log(1.0 + torch.exp(-torch.abs(z)))
 
 
 class MLP(nn.Module):
-    """Tanh multilayer perceptron with optional dropout and forward-mode tangents."""
+    """Multilayer perceptron (tanh or softplus) with optional dropout and forward-mode tangents."""
 
-    def __init__(self, n_in: int, n_out: int, hidden: int, layers: int, dropout: float = 0.0):
+    def __init__(self, n_in: int, n_out: int, hidden: int, layers: int, dropout: float = 0.0,
+                 activation: str = "tanh"):
         super().__init__()
+        if activation not in ACTIVATIONS:
+            raise ValueError(f"activation must be one of {', '.join(ACTIVATIONS)}; found {activation!r}")
+        self.softplus = activation == "softplus"
         sizes = [n_in] + [hidden] * layers
         self.hidden = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:]))
         self.out = nn.Linear(hidden, n_out)
@@ -53,7 +70,7 @@ class MLP(nn.Module):
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:
         for lin in self.hidden:
-            h = torch.tanh(lin(h))
+            h = _softplus(lin(h)) if self.softplus else torch.tanh(lin(h))
             if self.dropout is not None:
                 h = self.dropout(h)
         return self.out(h)
@@ -61,8 +78,14 @@ class MLP(nn.Module):
     def forward_tangent(self, h: torch.Tensor, T: torch.Tensor):
         """Value and tangent: ``T`` (B, n_in, k) -> (B, n_out, k). Evaluation mode only."""
         for lin in self.hidden:
-            h = torch.tanh(lin(h))
-            T = (1.0 - h * h).unsqueeze(-1) * torch.matmul(lin.weight, T)
+            if self.softplus:
+                z = lin(h)
+                h = _softplus(z)
+                slope = torch.sigmoid(z)
+            else:
+                h = torch.tanh(lin(h))
+                slope = 1.0 - h * h
+            T = slope.unsqueeze(-1) * torch.matmul(lin.weight, T)
         return self.out(h), torch.matmul(self.out.weight, T)
 
 
@@ -80,15 +103,30 @@ class ResidualPINN(nn.Module):
         Width and number of hidden layers.
     dropout : float
         Dropout probability between hidden layers (0 = none).
+    variant : dict, optional
+        Departures from the shipped design (keys of :data:`VARIANT_DEFAULTS`), used by the model zoo:
+        ``activation`` of the hidden layers, ``gain`` multiplying the residual scale ``s``,
+        ``fourier_max`` (Fourier: highest frequency 2**fourier_max rad^-1), ``coupled`` (Modular: False
+        hides the rotational states from the translation module).
     """
 
     arch = "base"
 
-    def __init__(self, stats: dict, theta_init, hidden: int = 128, layers: int = 5, dropout: float = 0.0):
+    def __init__(self, stats: dict, theta_init, hidden: int = 128, layers: int = 5, dropout: float = 0.0,
+                 variant: dict | None = None):
         super().__init__()
+        variant = dict(variant or {})
+        unknown = set(variant) - set(VARIANT_DEFAULTS)
+        if unknown:
+            raise ValueError(f"variant keys must be among {', '.join(VARIANT_DEFAULTS)}; found {sorted(unknown)}")
+        self.variant = {k: v for k, v in variant.items() if v != VARIANT_DEFAULTS[k]}
+        self.opt = {**VARIANT_DEFAULTS, **variant}
+        gain = float(self.opt["gain"])
+        if not gain > 0:
+            raise ValueError(f"variant gain must be > 0; found {gain}")
         self.register_buffer("in_mean", torch.as_tensor(stats["in_mean"], dtype=torch.float32).clone())
         self.register_buffer("in_std", torch.as_tensor(stats["in_std"], dtype=torch.float32).clone())
-        self.register_buffer("out_scale", torch.as_tensor(stats["out_scale"], dtype=torch.float32).clone())
+        self.register_buffer("out_scale", gain * torch.as_tensor(stats["out_scale"], dtype=torch.float32).clone())
         theta0 = torch.as_tensor(theta_init, dtype=torch.float32)
         if theta0.shape != (6,) or not bool(torch.all(theta0 > 0)):
             raise ValueError(f"theta_init must be 6 positive values {THETA_NAMES}; found {theta_init}")
@@ -146,9 +184,12 @@ class ResidualPINN(nn.Module):
         return x + self.out_scale * y, eye + J[..., :NX], J[..., NX:]
 
     def describe(self) -> dict:
-        """Architecture settings (for configs and metadata)."""
-        return {"arch": self.arch, "hidden": self.hidden_size, "layers": self.layers, "dropout": self.dropout_p,
-                "parameters": sum(p.numel() for n, p in self.named_parameters() if n != "log_theta")}
+        """Architecture settings (for configs and metadata); ``variant`` only when it departs from the default."""
+        out = {"arch": self.arch, "hidden": self.hidden_size, "layers": self.layers, "dropout": self.dropout_p,
+               "parameters": sum(p.numel() for n, p in self.named_parameters() if n != "log_theta")}
+        if self.variant:
+            out["variant"] = dict(self.variant)
+        return out
 
 
 class Baseline(ResidualPINN):
@@ -157,7 +198,7 @@ class Baseline(ResidualPINN):
     arch = "baseline"
 
     def build(self, hidden, layers, dropout):
-        self.mlp = MLP(N_FEATURES, NX, hidden, layers, dropout)
+        self.mlp = MLP(N_FEATURES, NX, hidden, layers, dropout, self.opt["activation"])
 
     def network(self, f):
         return self.mlp(f)
@@ -176,26 +217,46 @@ class Modular(ResidualPINN):
     """Separate translation (x, y, z, vx, vy, vz) and rotation (phi .. r) subnetworks.
 
     Each subnetwork sees all features; they share no weights and no gradient.
-    Widths are chosen so the total size is close to the baseline's.
+    Widths are chosen so the total size is close to the baseline's. With the
+    variant ``coupled=False`` (the paper's design) each module sees only its
+    own states and the inputs: the translation module cannot see the attitude
+    that tilts the thrust.
     """
 
     arch = "modular"
 
     def build(self, hidden, layers, dropout):
         sub = max(8, int(round(hidden / math.sqrt(2.0))))
-        self.trans = MLP(N_FEATURES, len(TRANSLATION_STATES), sub, layers, dropout)
-        self.rot = MLP(N_FEATURES, len(ROTATION_STATES), sub, layers, dropout)
+        act = self.opt["activation"]
+        if self.opt["coupled"]:
+            t_idx = r_idx = list(range(N_FEATURES))
+        else:
+            inputs = list(range(len(FEATURE_STATES), N_FEATURES))
+            t_idx = [FEATURE_STATES.index(i) for i in (9, 10, 11)] + inputs
+            r_idx = [FEATURE_STATES.index(i) for i in ROTATION_STATES] + inputs
+        self.register_buffer("t_idx", torch.tensor(t_idx, dtype=torch.long), persistent=False)
+        self.register_buffer("r_idx", torch.tensor(r_idx, dtype=torch.long), persistent=False)
+        self.trans = MLP(len(t_idx), len(TRANSLATION_STATES), sub, layers, dropout, act)
+        self.rot = MLP(len(r_idx), len(ROTATION_STATES), sub, layers, dropout, act)
         perm = torch.empty(NX, dtype=torch.long)
         perm[list(TRANSLATION_STATES)] = torch.arange(6)
         perm[list(ROTATION_STATES)] = torch.arange(6, 12)
         self.register_buffer("perm", perm)
 
+    def _views(self, f):
+        if self.opt["coupled"]:
+            return f, f
+        return f[..., self.t_idx], f[..., self.r_idx]
+
     def network(self, f):
-        return torch.cat([self.trans(f), self.rot(f)], dim=-1)[..., self.perm]
+        ft, fr = self._views(f)
+        return torch.cat([self.trans(ft), self.rot(fr)], dim=-1)[..., self.perm]
 
     def network_tangent(self, f, T):
-        yt, Tt = self.trans.forward_tangent(f, T)
-        yr, Tr = self.rot.forward_tangent(f, T)
+        ft, fr = self._views(f)
+        Tt_in, Tr_in = (T, T) if self.opt["coupled"] else (T[..., self.t_idx, :], T[..., self.r_idx, :])
+        yt, Tt = self.trans.forward_tangent(ft, Tt_in)
+        yr, Tr = self.rot.forward_tangent(fr, Tr_in)
         return torch.cat([yt, yr], dim=-1)[..., self.perm], torch.cat([Tt, Tr], dim=-2)[..., self.perm, :]
 
 
@@ -203,15 +264,17 @@ class Fourier(ResidualPINN):
     """Angles encoded as [sin(w_k a), cos(w_k a)] with log-spaced w_k = 1 .. 256 rad^-1.
 
     The other features (rates, velocities, inputs) are normalized as usual.
+    The variant ``fourier_max=n`` sets the highest frequency to 2**n rad^-1.
     """
 
     arch = "fourier"
     FREQS = tuple(2.0 ** k for k in range(9))  # 1, 2, ..., 256
 
     def build(self, hidden, layers, dropout):
-        self.register_buffer("freqs", torch.tensor(self.FREQS, dtype=torch.float32))
-        n_enc = len(ANGLE_STATES) * len(self.FREQS) * 2
-        self.mlp = MLP(n_enc + N_FEATURES - len(ANGLE_STATES), NX, hidden, layers, dropout)
+        freqs = tuple(2.0 ** k for k in range(int(self.opt["fourier_max"]) + 1))
+        self.register_buffer("freqs", torch.tensor(freqs, dtype=torch.float32))
+        n_enc = len(ANGLE_STATES) * len(freqs) * 2
+        self.mlp = MLP(n_enc + N_FEATURES - len(ANGLE_STATES), NX, hidden, layers, dropout, self.opt["activation"])
 
     def _encode(self, f):
         # f[..., 0:3] are normalized angles; recover radians for the encoding.
@@ -232,12 +295,53 @@ class Fourier(ResidualPINN):
         return self.mlp.forward_tangent(h, torch.cat([T_enc, T[..., 3:, :]], dim=-2))
 
 
-_CLASSES = {"baseline": Baseline, "modular": Modular, "fourier": Fourier, "proposed": Proposed}
+class Absolute(ResidualPINN):
+    """An MLP that outputs the next state itself, not an increment (a zoo variant, not a shipped design).
+
+    ``x_next = mu_y + sigma_y * NN((x, u) normalized)``: every state, positions
+    included, is a feature, and the output is scaled by the spread of the
+    next states rather than of their increments. This is the form the
+    residual design avoids: a one-step error is now a fraction of the state's
+    range, and the network must learn the identity.
+    """
+
+    arch = "absolute"
+
+    def __init__(self, stats: dict, theta_init, hidden: int = 128, layers: int = 5, dropout: float = 0.0,
+                 variant: dict | None = None):
+        super().__init__(stats, theta_init, hidden, layers, dropout, variant)
+        for key, n in (("abs_in_mean", NX + NU), ("abs_in_std", NX + NU), ("abs_out_mean", NX), ("abs_out_std", NX)):
+            if key not in stats:
+                raise ValueError(f"the absolute-state model needs the training statistic {key!r} ({n} values)")
+            self.register_buffer(key, torch.as_tensor(stats[key], dtype=torch.float32).clone())
+
+    def build(self, hidden, layers, dropout):
+        self.mlp = MLP(NX + NU, NX, hidden, layers, dropout, self.opt["activation"])
+
+    def forward(self, x, u):
+        f = (torch.cat([x, u], dim=-1) - self.abs_in_mean) / self.abs_in_std
+        return self.abs_out_mean + self.abs_out_std * self.mlp(f)
+
+    def increment(self, x, u):
+        return self.forward(x, u) - x
+
+    def forward_jacobian(self, x, u):
+        f = (torch.cat([x, u], dim=-1) - self.abs_in_mean) / self.abs_in_std
+        n = x.shape[0]
+        T0 = torch.diag(1.0 / self.abs_in_std).expand(n, NX + NU, NX + NU)
+        y, T = self.mlp.forward_tangent(f, T0)
+        J = self.abs_out_std.unsqueeze(-1) * T
+        return self.abs_out_mean + self.abs_out_std * y, J[..., :NX], J[..., NX:]
+
+
+_CLASSES = {"baseline": Baseline, "modular": Modular, "fourier": Fourier, "proposed": Proposed, "absolute": Absolute}
+#: Every class :func:`build_model` knows: the four architectures and the zoo's absolute-state variant.
+ALL_ARCHITECTURES = tuple(_CLASSES)
 
 
 def build_model(arch: str, stats: dict, theta_init, hidden: int = 128, layers: int = 5,
-                dropout: float = 0.0) -> ResidualPINN:
-    """Instantiate an architecture by name (one of :data:`ARCHITECTURES`)."""
+                dropout: float = 0.0, variant: dict | None = None) -> ResidualPINN:
+    """Instantiate an architecture by name (one of :data:`ALL_ARCHITECTURES`)."""
     if arch not in _CLASSES:
-        raise ValueError(f"arch must be one of {', '.join(ARCHITECTURES)}; found {arch!r}")
-    return _CLASSES[arch](stats, theta_init, hidden, layers, dropout)
+        raise ValueError(f"arch must be one of {', '.join(ALL_ARCHITECTURES)}; found {arch!r}")
+    return _CLASSES[arch](stats, theta_init, hidden, layers, dropout, variant)

@@ -37,6 +37,7 @@ the same number of steps, so the budgets are equal.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import time
@@ -47,7 +48,7 @@ import torch
 
 from sim.params import DT, THETA_NAMES, QuadParams
 
-from .models import ARCHITECTURES, build_model
+from .models import ALL_ARCHITECTURES, VARIANT_DEFAULTS, build_model
 from .physics import mechanical_energy, power_balance, rk4_increment, rotor_sq_from_wrench
 
 CURRICULUM_HORIZONS = (5, 10, 25, 50)
@@ -80,10 +81,24 @@ class TrainConfig:
     theta_bias: float = THETA_BIAS
     theta_warmup: float = 0.2    # fraction of the steps before theta-hat starts to move
     threads: int = 1
+    # Zoo variants (pinn.models.VARIANT_DEFAULTS): left out of to_dict() at their defaults, so the
+    # shipped models' recorded configurations and hashes are unchanged.
+    activation: str = "tanh"     # hidden-layer activation: tanh or softplus
+    gain: float = 1.0            # multiplies the residual scale s
+    fourier_max: int = 8         # Fourier: highest frequency 2**fourier_max rad^-1
+    coupled: bool = True         # Modular: False hides the rotational states from the translation module
+
+    def variant(self) -> dict:
+        """The zoo variant settings that depart from the shipped design."""
+        return {k: getattr(self, k) for k, v in VARIANT_DEFAULTS.items() if getattr(self, k) != v}
 
     def to_dict(self) -> dict:
-        """Plain dict (for JSON and hashing)."""
-        return dataclasses.asdict(self)
+        """Plain dict (for JSON and hashing); variant settings only where they depart from the default."""
+        d = dataclasses.asdict(self)
+        for k, v in VARIANT_DEFAULTS.items():
+            if d[k] == v:
+                del d[k]
+        return d
 
 
 #: Budget per profile: quick is for CI (< 60 s on 2 cores), full for the shipped models.
@@ -107,11 +122,11 @@ ABLATION = ("baseline", "baseline+curriculum", "baseline+curriculum+ss", "baseli
 
 def make_config(arch: str, profile: str = "quick", seed: int = 0, recipe: str | None = None, **overrides) -> TrainConfig:
     """Config for an architecture (and optionally an ablation recipe) under a budget profile."""
-    if arch not in ARCHITECTURES:
-        raise ValueError(f"arch must be one of {', '.join(ARCHITECTURES)}; found {arch!r}")
+    if arch not in ALL_ARCHITECTURES:
+        raise ValueError(f"arch must be one of {', '.join(ALL_ARCHITECTURES)}; found {arch!r}")
     if profile not in PROFILES:
         raise ValueError(f"profile must be one of {', '.join(PROFILES)}; found {profile!r}")
-    recipe = arch if recipe is None else recipe
+    recipe = (arch if arch in RECIPES else "baseline") if recipe is None else recipe
     if recipe not in RECIPES:
         raise ValueError(f"recipe must be one of {', '.join(RECIPES)}; found {recipe!r}")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
@@ -137,8 +152,13 @@ def training_stats(ds) -> dict:
     x, u, xn = ds.x[tr], ds.u[tr], ds.x_next[tr]
     feats = np.concatenate([x[..., 3:12], u], axis=-1).reshape(-1, 13)
     dx = (xn - x).reshape(-1, 12)
+    xu = np.concatenate([x, u], axis=-1).reshape(-1, 16)
+    y = xn.reshape(-1, 12)
     return {
         "in_mean": feats.mean(0), "in_std": feats.std(0) + 1e-8,
+        # for the zoo's absolute-state variant: every state and input, and the next state itself
+        "abs_in_mean": xu.mean(0), "abs_in_std": xu.std(0) + 1e-8,
+        "abs_out_mean": y.mean(0), "abs_out_std": y.std(0) + 1e-8,
         "out_scale": dx.std(0) + 1e-8,
         "feat_min": feats.min(0), "feat_max": feats.max(0),
         "n_sq_scale": (ds.rotor_speed[tr] ** 2).reshape(-1, 4).std(0) + 1e-12,
@@ -179,6 +199,8 @@ class TrainResult:
     history: list = field(default_factory=list)
     seconds: float = 0.0
     stats: dict = field(default_factory=dict)
+    #: {epoch count: evaluation-mode copy of the model after that many epochs} for the requested checkpoints
+    checkpoints: dict = field(default_factory=dict)
 
 
 def theta_errors_pct(theta: np.ndarray, truth: np.ndarray) -> dict:
@@ -302,7 +324,8 @@ def step_losses(model, states, us, ns, p_ss: float, colloc: torch.Tensor, p: Qua
     return out
 
 
-def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | None = None) -> TrainResult:
+def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | None = None,
+          checkpoints=()) -> TrainResult:
     """Train one model on a :class:`sim.excitation.Dataset`.
 
     Parameters
@@ -316,7 +339,13 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
     truth : QuadParams, optional
         True parameters, only to display theta-hat errors (default: the
         dataset's). Training never uses them.
+    checkpoints : sequence of int
+        Epoch counts (1 .. epochs) after which a copy of the model is kept
+        in :attr:`TrainResult.checkpoints` (the zoo's early-epoch models).
     """
+    checkpoints = sorted({int(c) for c in checkpoints})
+    if checkpoints and not (1 <= checkpoints[0] and checkpoints[-1] <= config.epochs):
+        raise ValueError(f"checkpoints must lie in 1 .. {config.epochs} epochs; found {checkpoints}")
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
     gen = torch.Generator().manual_seed(config.seed)
@@ -328,7 +357,7 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
     theta0 = ref.theta * (1.0 + config.theta_bias)
 
     st = training_stats(ds)
-    model = build_model(config.arch, st, theta0, config.hidden, config.layers, config.dropout)
+    model = build_model(config.arch, st, theta0, config.hidden, config.layers, config.dropout, config.variant())
     data = _TrainData(ds, gen)
     T = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
     feat_lo, feat_hi = T(st["feat_min"]), T(st["feat_max"])
@@ -349,6 +378,7 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
         opt, [lambda k: cosine(k, 0, total), lambda k: 0.0 if k < warm else cosine(k, warm, total)])
 
     history = []
+    kept = {}
     epochs = range(config.epochs)
     bar = None
     if progress:
@@ -380,9 +410,12 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
                "val": validation_loss(model, ds, st), "theta": th.tolist(),
                "theta_err_pct": theta_errors_pct(th, p.theta)}
         history.append(rec)
+        if e + 1 in checkpoints:
+            kept[e + 1] = copy.deepcopy(model).eval()
         if bar is not None:
             worst = max(rec["theta_err_pct"].items(), key=lambda kv: abs(kv[1]))
             bar.set_postfix_str(f"K={K} p={p_ss:.2f} data={rec['data']:.2e} phys={rec['phys']:.2e} "
                                 f"val={rec['val']:.2e} worst theta {worst[0]} {worst[1]:+.2f}%")
     model.eval()
-    return TrainResult(model=model, config=config, history=history, seconds=time.perf_counter() - t0, stats=st)
+    return TrainResult(model=model, config=config, history=history, seconds=time.perf_counter() - t0, stats=st,
+                       checkpoints=kept)

@@ -154,6 +154,23 @@ def test_lqr_gain_is_python_controls_dlqr():
     assert np.max(np.abs(K - K_ref)) / np.max(np.abs(K_ref)) < TOL["dlqr_gain"]
 
 
+def test_lqr_refuses_a_pair_that_is_not_stabilizable():
+    # The true hover linearization with the yaw torque removed from B: the yaw rate's integrator (eigenvalue 1)
+    # cannot be moved. python-control may return a Riccati solution for it without an error; lqr must not.
+    from mpc.errors import ConfigurationError
+    from mpc.lqr import lqr
+
+    x, u = hover_point(P)
+    fA, fB = central_jacobians(Simulator(P).step, x[None], u[None], h=1e-7)
+    Q, R = default_weights(P)
+    B = fB[0].copy()
+    B[:, 3] = 0.0
+    with pytest.raises(ConfigurationError, match="not stabilizable|no LQR gain"):
+        lqr(fA[0], B, Q, R)
+    K, Pr = lqr(fA[0], fB[0], Q, R)       # the full pair passes the check
+    assert np.max(np.abs(np.linalg.eigvals(fA[0] - fB[0] @ K))) < 1.0
+
+
 def test_lqr_brings_the_simulator_to_hover_with_feasible_inputs():
     c = LQRController()
     s = Simulator(P)

@@ -1,0 +1,218 @@
+"""The dose-response study: every model of the zoo flown as an ensemble, and which open-loop number predicts failure.
+
+``pinnmpc study [--models models/zoo] [--out results/zoo] [--members 10] [--jobs 2] [--engine ...]`` flies:
+
+* every zoo model with each controller of :data:`STUDY_CONTROLLERS` on
+  :data:`STUDY_SCENARIO`, from ``members`` ensemble members (crash
+  probability with a Wilson interval, median RMSE with a bootstrap interval);
+* every zoo model with the LTV-MPC up the figure-8 speed ladder (single
+  runs; the fastest rung flown without crash within the ladder's error bound
+  is the model's maximum trackable speed);
+* the oracle once on :data:`STUDY_SCENARIO` with the SQP: the states and
+  inputs a closed loop visits, on which each model's k-step error is measured.
+
+It then scores the open-loop candidates (:data:`CANDIDATES`) of every model
+as predictors of crash (ROC AUC) and of RMSE (Spearman), with bootstrap
+intervals over models, per controller, and writes ``OUT/study.json`` and a
+copy ``MODELS/study.json`` that the report of ``pinnmpc run`` shows. The runs
+are a resumable sweep (:func:`scenarios.runner.sweep`).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sim.files import write_json
+
+from .errors import ScenarioError
+from .library import ladder_names, ladder_speeds
+from .metrics import LADDER_RMSE_BOUND_M, max_trackable_speed
+from .predictors import jacobian_error, score_candidates
+from .runner import HORIZON, RunSpec, code_version, sweep
+from .stats import summarize
+
+STUDY_SCENARIO = "figure8-fast"
+STUDY_CONTROLLERS = ("ltv", "sqp")
+LADDER_CONTROLLER = "ltv"
+#: Steps of the closed-loop k-step error: the MPC's horizon.
+KSTEP = HORIZON
+#: Open-loop candidates (larger = worse), with what each measures.
+CANDIDATES = {
+    "one_step_mae_m": "1-step position MAE on the test split, m",
+    "rollout_100_mae_m": "100-step position MAE on the test split, m",
+    "envelope_exit_fraction": "fraction of 100-step test rollouts whose position error exceeds 1 m (or diverge)",
+    "jacobian_error": "relative error of [A B] against the true model along the figure-8 reference",
+    "closed_loop_kstep_m": f"{KSTEP}-step position error along the oracle's closed-loop flight of the figure-8, m",
+}
+
+
+def zoo_models(models_dir) -> dict[str, dict]:
+    """``{name: manifest entry}`` of the zoo in ``models_dir`` (its manifest.json), in manifest order."""
+    d = Path(models_dir)
+    try:
+        manifest = json.loads((d / "manifest.json").read_text())
+    except (OSError, ValueError) as e:
+        raise ScenarioError(f"{d}: needs the manifest.json written by pinnmpc zoo ({e})") from e
+    out = {}
+    for name, entry in manifest.items():
+        path = d / entry.get("files", {}).get("onnx", f"{name}.onnx")
+        if not path.is_file():
+            raise ScenarioError(f"{d}: the manifest lists {name} but {path.name} is missing")
+        out[name] = {**entry, "path": str(path)}
+    if not out:
+        raise ScenarioError(f"{d}: the manifest lists no model")
+    return out
+
+
+def study_specs(models: dict[str, dict], members: int = 10,
+                controllers=STUDY_CONTROLLERS) -> tuple[RunSpec, list[RunSpec], list[RunSpec]]:
+    """(oracle reference run, ensemble runs, speed-ladder runs) of the study."""
+    if isinstance(members, bool) or not isinstance(members, int) or members < 1:
+        raise ScenarioError(f"members must be an integer >= 1; found {members!r}")
+    oracle = RunSpec(STUDY_SCENARIO, "sqp", "oracle")
+    ens = [RunSpec(STUDY_SCENARIO, c, m["path"], member=k) for m in models.values() for c in controllers
+           for k in range(members)]
+    ladder = [RunSpec(s, LADDER_CONTROLLER, m["path"]) for m in models.values() for s in ladder_names()]
+    return oracle, ens, ladder
+
+
+def closed_loop_kstep_error(model, trace: dict, k: int = KSTEP, every: int = 5) -> float:
+    """Mean position error (m) of ``k``-step predictions along a flown trace, with the trace's own inputs.
+
+    From every ``every``-th period ``i`` of the trace, the model is rolled out
+    ``k`` steps from the true state ``x[i]`` with the applied inputs
+    ``u[i .. i+k-1]`` and compared with ``x[i+k]`` (Euclidean norm). A
+    non-finite prediction counts as an error of 1e3 m.
+    """
+    X = np.asarray(trace["x"], dtype=float)
+    U = np.asarray(trace["u"], dtype=float)
+    starts = np.arange(0, len(U) - k + 1, every)
+    if starts.size == 0:
+        raise ScenarioError(f"the trace has {len(U)} periods, fewer than k = {k}")
+    x = X[starts].copy()
+    with np.errstate(all="ignore"):
+        for j in range(k):
+            x = model.step(x, U[starts + j])
+            x = np.where(np.isfinite(x), x, 1e3)
+        err = np.linalg.norm(x[:, :3] - X[starts + k, :3], axis=1)
+    return float(np.mean(np.minimum(err, 1e3)))
+
+
+def _candidates(name: str, entry: dict, oracle_trace: dict) -> dict:
+    from mpc.models import load_model
+
+    r = entry["metrics"]["rollout_100_mae"]
+    model = load_model(entry["path"])
+    left = r.get("n_left_envelope")
+    return {"one_step_mae_m": entry["metrics"]["one_step_mae"]["position"],
+            "rollout_100_mae_m": r["position"],
+            "envelope_exit_fraction": None if left is None else left / r["n_rollouts"],
+            "jacobian_error": jacobian_error(model, STUDY_SCENARIO),
+            "closed_loop_kstep_m": closed_loop_kstep_error(model, oracle_trace)}
+
+
+def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10, jobs: int = 1,
+              controllers=STUDY_CONTROLLERS, progress: bool = True, publish: bool = True, **sweep_kwargs) -> dict:
+    """Fly the study (a resumable sweep), score the predictors and write ``study.json``.
+
+    Parameters
+    ----------
+    models_dir : path
+        The zoo (``manifest.json`` and its ONNX files).
+    out_dir : path
+        Results folder: runs, traces and ``study.json``.
+    members : int
+        Ensemble members per model and controller.
+    publish : bool
+        Also copy ``study.json`` into ``models_dir`` (where the report reads it).
+    sweep_kwargs
+        ``engine``, ``address``, ``resume`` of :func:`scenarios.runner.sweep`.
+    """
+    models = zoo_models(models_dir)
+    oracle, ens, ladder = study_specs(models, members, controllers)
+    t0 = time.perf_counter()
+    results = sweep([oracle, *ens, *ladder], out_dir, jobs=jobs, progress=progress, **sweep_kwargs)
+    wall = time.perf_counter() - t0
+    by_id = {r["run_id"]: r for r in results}
+    ref = by_id[oracle.run_id]
+    if ref.get("error") or ref.get("crashed") or not ref.get("trace"):
+        raise ScenarioError(f"the oracle's reference flight did not complete: {ref.get('error') or 'crashed'}")
+    with np.load(Path(out_dir) / ref["trace"]) as z:
+        oracle_trace = {"x": z["x"], "u": z["u"]}
+    speeds = ladder_speeds()
+    rows = {}
+    for name, entry in models.items():
+        row = {"run": entry.get("run"), "why": entry.get("why"), "epochs": entry.get("epochs"),
+               "architecture": entry.get("architecture"), "candidates": _candidates(name, entry, oracle_trace),
+               "ensembles": {}}
+        for c in controllers:
+            runs = [by_id[s.run_id] for s in ens if s.model == entry["path"] and s.controller == c]
+            row["ensembles"][c] = summarize(runs)
+            row["ensembles"][c]["errors"] = sum(bool(r.get("error")) for r in runs)
+        lad = [by_id[s.run_id] for s in ladder if s.model == entry["path"]]
+        row["max_speed"] = {"controller": LADDER_CONTROLLER, **max_trackable_speed(lad, ladder_names(), speeds),
+                            "rungs": {r["scenario"]: {"crashed": r.get("crashed"), "rmse_m": r.get("rmse_position_m")}
+                                      for r in lad}}
+        rows[name] = row
+    scores = {}
+    for c in controllers:
+        cands = {k: {m: rows[m]["candidates"][k] for m in rows} for k in CANDIDATES}
+        crash = {m: rows[m]["ensembles"][c]["crash_probability"] for m in rows}
+        rmse = {m: rows[m]["ensembles"][c]["median"] for m in rows}
+        scores[c] = score_candidates(cands, crash, rmse)
+        for s in scores[c]:
+            s["description"] = CANDIDATES[s["candidate"]]
+    out = {"scenario": STUDY_SCENARIO, "members": members, "controllers": list(controllers),
+           "ladder": {"controller": LADDER_CONTROLLER, "rungs": ladder_names(), "speeds_mps": speeds,
+                      "rmse_bound_m": LADDER_RMSE_BOUND_M},
+           "candidates": CANDIDATES, "kstep": KSTEP, "oracle_run": oracle.run_id,
+           "oracle_rmse_m": ref.get("rmse_position_m"), "models": rows, "scores": scores,
+           "runs": len(results), "code_version": code_version(),
+           "command": f"pinnmpc study --models {models_dir} --out {out_dir} --members {members}",
+           "wall_time_s": wall, "date": time.strftime("%Y-%m-%d")}
+    path = write_json(Path(out_dir) / "study.json", out)
+    if publish:
+        shutil.copyfile(path, Path(models_dir) / "study.json")
+    return out
+
+
+def best_predictor(scores: list[dict], key: str = "auc") -> dict | None:
+    """The candidate with the highest ``key`` (``auc`` or ``spearman``) among those defined."""
+    rows = [s for s in scores if s.get(key) is not None]
+    return max(rows, key=lambda s: s[key]) if rows else None
+
+
+def format_study(out: dict) -> str:
+    """Plain-text tables of a study: one row per model, then the predictor scores per controller."""
+    cs = out["controllers"]
+    lines = [f"{out['scenario']}, {out['members']} members per model and controller; "
+             f"oracle (SQP) RMSE {1e3 * out['oracle_rmse_m']:.2f} mm"]
+    head = f"{'model':26s}{'100-step MAE':>13}" + "".join(f"{c + ' crash p (95 %)':>26}{c + ' RMSE':>10}"
+                                                          for c in cs) + f"{'max speed':>11}"
+    lines.append(head)
+    for name, r in sorted(out["models"].items(), key=lambda kv: kv[1]["candidates"]["rollout_100_mae_m"]):
+        s = f"{name:26s}{r['candidates']['rollout_100_mae_m']:>13.4g}"
+        for c in cs:
+            e = r["ensembles"][c]
+            lo, hi = e["crash_probability_ci95"]
+            s += f"{e['crash_probability']:>12.2f} ({lo:.2f}-{hi:.2f})"
+            s += f"{'-' if e['median'] is None else format(e['median'], '.4f'):>10}"
+        v = r["max_speed"]["speed_mps"]
+        s += f"{'none' if v is None else format(v, '.2f') + ' m/s':>11}"
+        lines.append(s)
+    for c in cs:
+        lines.append(f"\npredictors, {c}:")
+        for p in out["scores"][c]:
+            auc = "undefined" if p["auc"] is None else f"{p['auc']:.2f}"
+            if p.get("auc_ci95"):
+                auc += f" ({p['auc_ci95'][0]:.2f}-{p['auc_ci95'][1]:.2f})"
+            sp = "undefined" if p["spearman"] is None else f"{p['spearman']:+.2f}"
+            if p.get("spearman_ci95"):
+                sp += f" ({p['spearman_ci95'][0]:+.2f} to {p['spearman_ci95'][1]:+.2f})"
+            lines.append(f"  {p['candidate']:26s} crash AUC {auc:20s} RMSE Spearman {sp}")
+    return "\n".join(lines)

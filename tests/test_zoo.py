@@ -1,0 +1,224 @@
+"""The model zoo: its variant architectures, its settings' bookkeeping, its metrics, and the study's pieces."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from pinn.metrics import ENVELOPE_POSITION_M, rollout_mae
+from pinn.models import VARIANT_DEFAULTS, build_model
+from pinn.train import make_config, train
+from pinn.zoo import RUNS, zoo_names
+from sim import NoiseModel, QuadParams
+
+TOL = {
+    "jacobian": 1e-10,      # forward-mode Jacobian vs autograd (float64, absolute)
+    "kstep_oracle": 1e-9,   # k-step error of the true model along its own noise-free flight, m
+}
+#: Every zoo variant setting that changes the network, with a non-default value.
+VARIANTS = [("baseline", {"activation": "softplus"}), ("baseline", {"activation": "softplus", "gain": 10.0}),
+            ("fourier", {"fourier_max": 12}), ("fourier", {"fourier_max": 12, "activation": "softplus"}),
+            ("modular", {"coupled": False}), ("absolute", {}), ("absolute", {"activation": "softplus"})]
+#: Acceptance of the zoo's size: at least this many models.
+MIN_ZOO = 24
+ZOO_DIR = Path(__file__).resolve().parents[1] / "models" / "zoo"
+P = QuadParams()
+
+torch.set_num_threads(1)
+
+
+def stats():
+    g = torch.Generator().manual_seed(0)
+    return {"in_mean": torch.randn(13, generator=g) * 0.1, "in_std": torch.rand(13, generator=g) + 0.5,
+            "out_scale": torch.rand(12, generator=g) * 0.1 + 0.01,
+            "abs_in_mean": torch.randn(16, generator=g) * 0.1, "abs_in_std": torch.rand(16, generator=g) + 0.5,
+            "abs_out_mean": torch.randn(12, generator=g) * 0.1, "abs_out_std": torch.rand(12, generator=g) + 0.5}
+
+
+def random_xu(n, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.randn(n, 12, generator=g, dtype=torch.float64) * 0.3,
+            torch.randn(n, 4, generator=g, dtype=torch.float64) * 0.3)
+
+
+@pytest.mark.parametrize("arch,variant", VARIANTS)
+def test_variant_jacobian_equals_autograd(arch, variant):
+    m = build_model(arch, stats(), P.theta, hidden=16, layers=2, variant=variant).double().eval()
+    x, u = random_xu(5, seed=3)
+    xn, A, B = m.forward_jacobian(x, u)
+    Jx, Ju = torch.autograd.functional.jacobian(lambda a, b: m(a, b), (x, u))
+    idx = torch.arange(5)
+    torch.testing.assert_close(xn, m(x, u))
+    torch.testing.assert_close(A, Jx[idx, :, idx, :], rtol=0, atol=TOL["jacobian"])
+    torch.testing.assert_close(B, Ju[idx, :, idx, :], rtol=0, atol=TOL["jacobian"])
+
+
+def test_decoupled_modular_translation_does_not_see_the_attitude():
+    m = build_model("modular", stats(), P.theta, hidden=16, layers=2, variant={"coupled": False}).double().eval()
+    x, u = random_xu(8)
+    tilted = x.clone()
+    tilted[:, 3:9] += 0.2          # angles and body rates
+    d = m(tilted, u) - tilted - (m(x, u) - x)
+    trans = [0, 1, 2, 9, 10, 11]
+    assert torch.all(d[:, trans] == 0)
+    assert torch.all(d[:, 3:9].abs().sum(1) > 0)     # the rotation module does see them
+    coupled = build_model("modular", stats(), P.theta, hidden=16, layers=2).double().eval()
+    dc = coupled(tilted, u) - tilted - (coupled(x, u) - x)
+    assert torch.all(dc[:, trans].abs().sum(1) > 0)
+
+
+def test_fourier_frequencies_and_softplus_is_unbounded():
+    f = build_model("fourier", stats(), P.theta, hidden=8, layers=1, variant={"fourier_max": 12})
+    assert f.freqs.tolist() == [2.0 ** k for k in range(13)]
+    assert build_model("fourier", stats(), P.theta, hidden=8, layers=1).freqs.tolist()[-1] == 256.0
+    out = {}
+    for act in ("tanh", "softplus"):
+        m = build_model("baseline", stats(), P.theta, hidden=8, layers=1, variant={"activation": act}).double()
+        with torch.no_grad():
+            m.mlp.out.weight.fill_(1.0)
+            m.mlp.hidden[0].weight.fill_(1.0)
+            m.mlp.hidden[0].bias.fill_(0.0)
+            out[act] = [m.mlp(torch.full((1, 13), s, dtype=torch.float64))[0, 0].item() for s in (1.0, 1e3)]
+    # 8 units of 13 s each: tanh saturates at 8, softplus(13 s) = 13 s for large s
+    assert out["tanh"][1] == pytest.approx(8.0) and out["softplus"][1] == pytest.approx(8 * 13e3)
+
+
+def test_variant_settings_stay_out_of_the_shipped_configs():
+    shipped = json.loads((ZOO_DIR.parent / "manifest.json").read_text())
+    for name in ("baseline", "proposed"):
+        cfg = make_config(name, "full", 0, threads=1).to_dict()
+        assert not set(VARIANT_DEFAULTS) & set(cfg)
+        assert shipped[name]["profile"] == "full"
+    cfg = make_config("baseline", "quick", 0, activation="softplus", gain=10.0).to_dict()
+    assert cfg["activation"] == "softplus" and cfg["gain"] == 10.0 and "coupled" not in cfg
+    with pytest.raises(ValueError, match="variant keys"):
+        build_model("baseline", stats(), P.theta, variant={"width": 3})
+    with pytest.raises(ValueError, match="activation"):
+        build_model("baseline", stats(), P.theta, variant={"activation": "relu"})
+
+
+def test_checkpoints_are_the_model_after_that_many_epochs():
+    from sim.excitation import make_dataset
+    ds = make_dataset("small", 6, 3.0, 0)
+    cfg = make_config("baseline", "quick", 0, epochs=3, steps_per_epoch=4, batch=64, n_colloc=16, hidden=16, layers=2)
+    full = train(ds, cfg, checkpoints=(1, 3))
+    short = train(ds, make_config("baseline", "quick", 0, epochs=3, steps_per_epoch=4, batch=64, n_colloc=16,
+                                  hidden=16, layers=2), checkpoints=(3,))
+    assert sorted(full.checkpoints) == [1, 3]
+    x, u = random_xu(4)
+    m3, m1 = full.checkpoints[3].double(), full.checkpoints[1].double()
+    torch.testing.assert_close(m3(x, u), short.model.double()(x, u), rtol=0, atol=0)
+    assert not torch.equal(m1(x, u), m3(x, u))
+    with pytest.raises(ValueError, match="checkpoints"):
+        train(ds, cfg, checkpoints=(4,))
+
+
+def test_envelope_exits_are_counted():
+    from sim.excitation import make_dataset
+    ds = make_dataset("small", 10, 3.0, 1, noise=NoiseModel.none())
+
+    from sim import Simulator
+    sim = Simulator(P)
+
+    def drifts(x, u):          # the true step plus 2 cm in x: 1 m of error after 50 steps, never diverged
+        y = sim.step(x, u)
+        y[:, 0] += 0.02
+        return y
+    r = rollout_mae(drifts, ds, horizon=100, n_starts=30)
+    assert r["n_diverged"] == 0 and r["n_left_envelope"] == 30
+    r = rollout_mae(drifts, ds, horizon=40, n_starts=30)     # 0.8 m at most: inside
+    assert 0.02 * 40 < ENVELOPE_POSITION_M and r["n_left_envelope"] == 0
+
+
+def test_zoo_definition():
+    names = zoo_names()
+    assert len(names) == len(set(names)) >= MIN_ZOO
+    assert len({r.name for r in RUNS}) == len(RUNS)
+    for r in RUNS:
+        cfg = make_config(r.arch, r.profile, 0, **r.overrides)
+        assert r.checkpoints[-1] == cfg.epochs, r.name
+        assert r.data_seed != 0 or (r.n_traj == 100 and r.noise_mult == 1.0), \
+            f"{r.name}: reduced or noisier data must not be drawn from the test data's seed"
+
+
+def test_closed_loop_kstep_error_of_the_true_model_is_zero():
+    from mpc.models import AnalyticModel
+    from scenarios.zoo import closed_loop_kstep_error
+    from sim import Simulator
+
+    sim = Simulator(P)
+    rng = np.random.default_rng(0)
+    X = [np.array([0, 0, -1.0, 0, 0, 0, 0, 0, 0, 0, 0, 0])]
+    U = P.m * P.g * np.array([1.0, 0, 0, 0]) + 0.01 * rng.standard_normal((80, 4)) * [1, 0.01, 0.01, 0.01]
+    for u in U:
+        X.append(sim.step(X[-1], u))
+    trace = {"x": np.array(X), "u": U}
+    assert closed_loop_kstep_error(AnalyticModel(), trace, k=30) < TOL["kstep_oracle"]
+    biased = AnalyticModel(QuadParams(m=1.2 * P.m))          # 20 % heavier: it sinks in 0.3 s
+    e = closed_loop_kstep_error(biased, trace, k=30)
+    # free-fall share g/6 for 0.3 s: 0.5 * (g - g / 1.2) * 0.3^2, to the RK4 step's accuracy
+    assert e == pytest.approx(0.5 * (P.g - P.g / 1.2) * 0.3 ** 2, rel=0.02)
+
+
+@pytest.mark.skipif(not (ZOO_DIR / "manifest.json").is_file(), reason="the zoo is not trained here")
+def test_shipped_zoo_spans_the_required_range_and_passes_the_contract():
+    from mpc.contract import check_model
+
+    manifest = json.loads((ZOO_DIR / "manifest.json").read_text())
+    refused = json.loads((ZOO_DIR / "refused.json").read_text()) if (ZOO_DIR / "refused.json").is_file() else {}
+    assert set(manifest) | set(refused) == set(zoo_names()) and not set(manifest) & set(refused)
+    assert len(manifest) >= MIN_ZOO
+    assert all("LQR" in e["reason"] and not (ZOO_DIR / f"{n}.onnx").exists() for n, e in refused.items())
+    mae = {n: e["metrics"]["rollout_100_mae"]["position"] for n, e in manifest.items()}
+    left = {n: e["metrics"]["rollout_100_mae"]["n_left_envelope"] / e["metrics"]["rollout_100_mae"]["n_rollouts"]
+            for n, e in manifest.items()}
+    assert min(mae.values()) <= 0.01 and max(mae.values()) >= 1.0
+    assert sum(0.01 <= v < 0.1 for v in mae.values()) >= 3 and sum(0.1 <= v < 1.0 for v in mae.values()) >= 3
+    assert sum(v >= 0.1 for v in left.values()) >= 3
+    size = sum(p.stat().st_size for p in ZOO_DIR.iterdir())
+    assert size < 40e6
+    for n, e in manifest.items():
+        info = check_model(ZOO_DIR / e["files"]["onnx"])
+        assert info.jacobian is not None, n
+
+
+#: One zoo model per network variant (absolute-state, decoupled modular, high-frequency softplus Fourier,
+#: absolute-state softplus): the default test run checks these; the slow test checks every model.
+VARIANT_MODELS = ("absolute_e8", "modular_decoupled_e8", "fourier_hf_softplus_e8", "absolute_softplus_e2")
+CONTROLLERS = ("lqr", "ltv", "sqp", "nmpc")
+
+
+def _first_inputs(name: str) -> dict:
+    from mpc.models import load_model
+    from scenarios.library import get_scenario
+    from scenarios.runner import make_controller
+
+    sc = get_scenario("figure8-fast")
+    model = load_model(str(ZOO_DIR / f"{name}.onnx"))
+    out = {}
+    for kind in CONTROLLERS:
+        ctrl = make_controller(kind, model, sc.reference())
+        ctrl.prepare(1.0, x0=np.array(sc.x0, dtype=float))
+        u, _ = ctrl(np.array(sc.x0, dtype=float), 0.0)
+        out[kind] = np.asarray(u)
+    return out
+
+
+def _assert_flyable(name: str):
+    for kind, u in _first_inputs(name).items():
+        assert u.shape == (4,) and np.all(np.isfinite(u)), f"{name} / {kind}: {u}"
+
+
+@pytest.mark.skipif(not (ZOO_DIR / "manifest.json").is_file(), reason="the zoo is not trained here")
+@pytest.mark.parametrize("name", VARIANT_MODELS)
+def test_every_controller_takes_each_zoo_variant(name):
+    _assert_flyable(name)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (ZOO_DIR / "manifest.json").is_file(), reason="the zoo is not trained here")
+def test_every_controller_takes_every_zoo_model():
+    for name in json.loads((ZOO_DIR / "manifest.json").read_text()):
+        _assert_flyable(name)
