@@ -79,6 +79,9 @@ def register(sub) -> None:
     p.add_argument("--address", default=None, metavar="ADDR", help="Ray cluster (with --engine ray)")
     p.add_argument("--fresh", action="store_true", help="fly every run again instead of reusing saved ones")
     p.add_argument("--no-publish", action="store_true", help="do not copy study.json into --models")
+    p.add_argument("--score-only", action="store_true",
+                   help="fly nothing: recompute the open-loop candidates and their scores of the study already in "
+                        "--out (after adding a candidate)")
     p.set_defaults(handler=cmd_study)
 
     p = sub.add_parser("bounds", help="write the CI bounds file from the results of pinnmpc run",
@@ -167,8 +170,12 @@ def cmd_study(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc study``."""
     import os
 
-    from .zoo import format_study, run_study
+    from .zoo import format_study, rescore_study, run_study
 
+    if args.score_only:
+        out = rescore_study(args.models, args.out, publish=not args.no_publish)
+        print(format_study(out))
+        return 0
     jobs = args.jobs if args.jobs is not None else (os.cpu_count() or 1)
     if jobs < 1 or args.members < 1:
         raise ValueError(f"--jobs and --members must be >= 1; found {jobs} and {args.members}")

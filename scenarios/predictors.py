@@ -7,7 +7,11 @@ Candidates for one prediction model (each a number, larger = worse):
   that diverged;
 * :func:`jacobian_error`: how far the model's linearization ``[A B]`` is
   from the true model's along a scenario's reference (states and the true
-  feed-forward wrench), the quantity an MPC actually uses.
+  feed-forward wrench), the quantity an MPC actually uses;
+* :func:`hover_chordal_distance`: the identification-for-control measure,
+  the largest chordal distance over frequency between the model's and the
+  true model's hover transfer matrices (Vinnicombe's nu-gap without its
+  winding-number condition, so a lower bound of it).
 
 Scores of a candidate over a set of models:
 
@@ -103,6 +107,50 @@ def jacobian_error(model, scenario: str, samples: int = 50) -> float:
     J0 = np.concatenate([A0, B0], axis=2) * col
     J = np.concatenate([A, B], axis=2) * col
     return float(np.mean(np.linalg.norm(J - J0, axis=(1, 2)) / np.linalg.norm(J0, axis=(1, 2))))
+
+
+#: Frequencies of the chordal distance, rad per control period (log-spaced up to Nyquist).
+CHORDAL_FREQUENCIES = np.logspace(-3, np.log10(np.pi), 200)
+
+
+def _inv_sqrt(M: np.ndarray) -> np.ndarray:
+    w, V = np.linalg.eigh(M)
+    return (V / np.sqrt(w)) @ V.conj().T
+
+
+def chordal_distance(A1, B1, A2, B2, out_scale=None, in_scale=None, freqs=CHORDAL_FREQUENCIES) -> float:
+    """Largest chordal distance over ``freqs`` between two discrete systems ``(A, B)`` with full-state output.
+
+    ``kappa(w) = sigma_max((I + P2 P2^H)^-1/2 (P2 - P1) (I + P1^H P1)^-1/2)`` with ``P_i = diag(1/out_scale)
+    (e^{jw} I - A_i)^-1 B_i diag(in_scale)``: each output in units of its acceptable deviation, each input in units
+    of its acceptable change. Between 0 (same frequency response) and 1. Without the winding-number condition of
+    the nu-gap it is a lower bound of it (they are equal when that condition holds).
+    """
+    A1, B1, A2, B2 = (np.asarray(a, dtype=float) for a in (A1, B1, A2, B2))
+    n, m = B1.shape
+    so = np.ones(n) if out_scale is None else np.asarray(out_scale, dtype=float)
+    si = np.ones(m) if in_scale is None else np.asarray(in_scale, dtype=float)
+    eye_n, eye_p = np.eye(n), np.eye(n)
+    worst = 0.0
+    for w in freqs:
+        z = np.exp(1j * w)
+        P1 = (np.linalg.solve(z * eye_n - A1, B1) * si) / so[:, None]
+        P2 = (np.linalg.solve(z * eye_n - A2, B2) * si) / so[:, None]
+        M = _inv_sqrt(eye_p + P2 @ P2.conj().T) @ (P2 - P1) @ _inv_sqrt(np.eye(m) + P1.conj().T @ P1)
+        worst = max(worst, float(np.linalg.norm(M, 2)))
+    return worst
+
+
+def hover_chordal_distance(model) -> float:
+    """:func:`chordal_distance` between the model's hover linearization and the true model's (scaled as the LQR's)."""
+    from mpc.lqr import DEFAULT_STATE_SCALE, hover_linearization, input_scale
+    from mpc.models import AnalyticModel
+    from mpc.spec import VehicleSpec
+
+    truth = AnalyticModel()
+    A0, B0 = hover_linearization(truth)
+    A, B = hover_linearization(model)
+    return chordal_distance(A0, B0, A, B, DEFAULT_STATE_SCALE, input_scale(VehicleSpec.from_model(truth)))
 
 
 def _evaluation_value(entry: dict, name: str) -> float | None:

@@ -32,7 +32,7 @@ from sim.files import write_json
 from .errors import ScenarioError
 from .library import ladder_names, ladder_speeds
 from .metrics import LADDER_RMSE_BOUND_M, max_trackable_speed
-from .predictors import jacobian_error, score_candidates
+from .predictors import hover_chordal_distance, jacobian_error, score_candidates
 from .runner import HORIZON, RunSpec, code_version, sweep
 from .stats import summarize
 
@@ -48,6 +48,8 @@ CANDIDATES = {
     "envelope_exit_fraction": "fraction of 100-step test rollouts whose position error exceeds 1 m (or diverge)",
     "jacobian_error": "relative error of [A B] against the true model along the figure-8 reference",
     "closed_loop_kstep_m": f"{KSTEP}-step position error along the oracle's closed-loop flight of the figure-8, m",
+    "hover_chordal_distance": "largest chordal distance over frequency between the model's and the true hover "
+                              "transfer matrices (a lower bound of the nu-gap), 0 to 1",
 }
 
 
@@ -113,7 +115,8 @@ def _candidates(name: str, entry: dict, oracle_trace: dict) -> dict:
             "rollout_100_mae_m": r["position"],
             "envelope_exit_fraction": None if left is None else left / r["n_rollouts"],
             "jacobian_error": jacobian_error(model, STUDY_SCENARIO),
-            "closed_loop_kstep_m": closed_loop_kstep_error(model, oracle_trace)}
+            "closed_loop_kstep_m": closed_loop_kstep_error(model, oracle_trace),
+            "hover_chordal_distance": hover_chordal_distance(model)}
 
 
 def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10, jobs: int = 1,
@@ -142,8 +145,7 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
     ref = by_id[oracle.run_id]
     if ref.get("error") or ref.get("crashed") or not ref.get("trace"):
         raise ScenarioError(f"the oracle's reference flight did not complete: {ref.get('error') or 'crashed'}")
-    with np.load(Path(out_dir) / ref["trace"]) as z:
-        oracle_trace = {"x": z["x"], "u": z["u"]}
+    oracle_trace = _oracle_trace(out_dir, ref)
     speeds = ladder_speeds()
     rows = {}
     for name, entry in models.items():
@@ -159,14 +161,7 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
                             "rungs": {r["scenario"]: {"crashed": r.get("crashed"), "rmse_m": r.get("rmse_position_m")}
                                       for r in lad}}
         rows[name] = row
-    scores = {}
-    for c in controllers:
-        cands = {k: {m: rows[m]["candidates"][k] for m in rows} for k in CANDIDATES}
-        crash = {m: rows[m]["ensembles"][c]["crash_probability"] for m in rows}
-        rmse = {m: rows[m]["ensembles"][c]["median"] for m in rows}
-        scores[c] = score_candidates(cands, crash, rmse)
-        for s in scores[c]:
-            s["description"] = CANDIDATES[s["candidate"]]
+    scores = _scores(rows, controllers)
     out = {"scenario": STUDY_SCENARIO, "members": members, "controllers": list(controllers),
            "ladder": {"controller": LADDER_CONTROLLER, "rungs": ladder_names(), "speeds_mps": speeds,
                       "rmse_bound_m": LADDER_RMSE_BOUND_M},
@@ -176,6 +171,52 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
            "command": f"pinnmpc study --models {models_dir} --out {out_dir} --members {members}",
            "wall_time_s": wall, "date": time.strftime("%Y-%m-%d")}
     path = write_json(Path(out_dir) / "study.json", out)
+    if publish:
+        shutil.copyfile(path, Path(models_dir) / "study.json")
+    return out
+
+
+def _oracle_trace(out_dir, ref: dict) -> dict:
+    with np.load(Path(out_dir) / ref["trace"]) as z:
+        return {"x": z["x"], "u": z["u"]}
+
+
+def _scores(rows: dict, controllers) -> dict:
+    scores = {}
+    for c in controllers:
+        cands = {k: {m: rows[m]["candidates"].get(k) for m in rows} for k in CANDIDATES}
+        crash = {m: rows[m]["ensembles"][c]["crash_probability"] for m in rows}
+        rmse = {m: rows[m]["ensembles"][c]["median"] for m in rows}
+        scores[c] = score_candidates(cands, crash, rmse)
+        for row in scores[c]:
+            row["description"] = CANDIDATES[row["candidate"]]
+    return scores
+
+
+def rescore_study(models_dir="models/zoo", out_dir="results/zoo", publish: bool = True) -> dict:
+    """Recompute every model's open-loop candidates and the scores of a flown study, flying nothing.
+
+    The closed-loop outcomes (ensembles, speed ladder) are read from
+    ``OUT/study.json``; the oracle's flight from its saved trace. Use it
+    after adding a candidate: the outcomes do not depend on it.
+    """
+    path = Path(out_dir) / "study.json"
+    try:
+        out = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise ScenarioError(f"{path}: needs the study.json of pinnmpc study ({e})") from e
+    models = zoo_models(models_dir)
+    missing = sorted(set(out["models"]) - set(models))
+    if missing:
+        raise ScenarioError(f"{models_dir}: the study flew models that are not in its manifest: {missing}")
+    ref = json.loads((Path(out_dir) / "runs" / f"{out['oracle_run']}.json").read_text())
+    oracle_trace = _oracle_trace(out_dir, ref)
+    for name, row in out["models"].items():
+        row["candidates"] = _candidates(name, models[name], oracle_trace)
+    out["candidates"] = CANDIDATES
+    out["scores"] = _scores(out["models"], out["controllers"])
+    out["rescored"] = time.strftime("%Y-%m-%d")
+    write_json(path, out)
     if publish:
         shutil.copyfile(path, Path(models_dir) / "study.json")
     return out

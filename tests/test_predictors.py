@@ -8,10 +8,12 @@ import pytest
 
 from mpc.models import AnalyticModel, OnnxModel, load_model
 from scenarios.errors import ScenarioError
-from scenarios.predictors import bootstrap_score_ci, jacobian_error, predictors_of, roc_auc, score_candidates
+from scenarios.predictors import (bootstrap_score_ci, chordal_distance, hover_chordal_distance, jacobian_error,
+                                 predictors_of, roc_auc, score_candidates)
 
 ROOT = Path(__file__).resolve().parents[1]
-TOL = {"exact": 1e-12}   # the oracle's Jacobian error against itself
+TOL = {"exact": 1e-12,   # the oracle's Jacobian error against itself
+       "chordal": 1e-12}  # the chordal distance against its closed form
 
 
 @pytest.mark.parametrize("scores,labels,expected", [
@@ -76,3 +78,18 @@ def test_predictors_of_a_results_folder(tmp_path):
     assert all(v > 0 for v in out["candidates"]["jacobian_error"].values())
     with pytest.raises(ScenarioError, match="no ideal-timing ltv run"):
         predictors_of(tmp_path, "ltv", "figure8-fast", ROOT / "models")
+
+
+@pytest.mark.parametrize("b1,b2", [(1.0, 2.0), (0.5, -0.5), (3.0, 3.0)])
+def test_chordal_distance_of_two_gains_is_the_closed_form(b1, b2):
+    # x+ = b u, y = x: P(z) = b / z, |P| = |b| at every frequency, so the distance is that of two gains.
+    d = chordal_distance([[0.0]], [[b1]], [[0.0]], [[b2]])
+    assert d == pytest.approx(abs(b2 - b1) / np.sqrt((1 + b1 ** 2) * (1 + b2 ** 2)), abs=TOL["chordal"])
+
+
+def test_hover_chordal_distance_is_zero_for_the_truth_and_grows_with_a_wrong_inertia():
+    from sim import QuadParams
+    P = QuadParams()
+    assert hover_chordal_distance(AnalyticModel()) < TOL["chordal"]
+    d = [hover_chordal_distance(AnalyticModel(QuadParams(Jxx=f * P.Jxx, Jyy=f * P.Jyy))) for f in (1.3, 1.6)]
+    assert 0 < d[0] < d[1] < 1

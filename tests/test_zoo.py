@@ -222,3 +222,33 @@ def test_every_controller_takes_each_zoo_variant(name):
 def test_every_controller_takes_every_zoo_model():
     for name in json.loads((ZOO_DIR / "manifest.json").read_text()):
         _assert_flyable(name)
+
+
+@pytest.mark.skipif(not (ZOO_DIR / "manifest.json").is_file(), reason="the zoo is not trained here")
+def test_study_of_a_two_model_zoo(tmp_path):
+    """The most and one of the least accurate zoo models, 2 members, LTV-MPC: outcomes, scores, rescoring, resume."""
+    import shutil
+
+    from scenarios.zoo import CANDIDATES, rescore_study, run_study
+
+    manifest = json.loads((ZOO_DIR / "manifest.json").read_text())
+    zoo = tmp_path / "zoo"
+    zoo.mkdir()
+    keep = {k: manifest[k] for k in ("baseline_long", "absolute_e8")}
+    for e in keep.values():
+        for f in e["files"].values():
+            shutil.copy(ZOO_DIR / f, zoo / f)
+    (zoo / "manifest.json").write_text(json.dumps(keep))
+    out = run_study(zoo, tmp_path / "res", members=2, jobs=1, controllers=("ltv",), progress=False)
+    assert out["runs"] == 1 + 2 * 2 + 2 * 6      # oracle, ensembles, ladder
+    assert json.loads((zoo / "study.json").read_text()) == json.loads((tmp_path / "res" / "study.json").read_text())
+    good, bad = out["models"]["baseline_long"], out["models"]["absolute_e8"]
+    assert good["ensembles"]["ltv"]["crash_probability"] == 0.0 and bad["ensembles"]["ltv"]["crash_probability"] == 1.0
+    assert bad["max_speed"]["speed_mps"] is None and good["max_speed"]["speed_mps"] > 0
+    # Every candidate ranks the 1.2 m model above the 9 mm one: AUC 1 over these two models.
+    assert {s["candidate"]: s["auc"] for s in out["scores"]["ltv"]} == {c: 1.0 for c in CANDIDATES}
+    again = rescore_study(zoo, tmp_path / "res")
+    assert again["scores"] == out["scores"] and again["models"] == out["models"]
+    runs_before = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "res" / "runs").iterdir()}
+    run_study(zoo, tmp_path / "res", members=2, jobs=1, controllers=("ltv",), progress=False)
+    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "res" / "runs").iterdir()} == runs_before
