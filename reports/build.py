@@ -10,6 +10,8 @@ from .headline import correlation_text, headline_data
 from .html import markdown_to_html
 from .inputs import load_inputs
 from .summary import summary_text
+from .zoo import (NO_STUDY, answer_text, dose_response_figure, max_speed_figure, predictor_table, provenance_text,
+                  zoo_table)
 from .tables import (closed_loop_table, ensemble_table, fisher_table, hover_table, ladder_table, provenance_section,
                      realtime_table, solve_time_table, table_one, table_three, table_two)
 
@@ -17,6 +19,10 @@ from .tables import (closed_loop_table, ensemble_table, fisher_table, hover_tabl
 TITLE = "pinn-mpc report"
 #: Section headings of the report, in order (Markdown ``##``, HTML ``<h2>``).
 SECTIONS = (
+    "Dose-response: open-loop error against closed-loop failure",
+    "Maximum trackable speed of the zoo",
+    "Which open-loop number predicts failure",
+    "The model zoo",
     "Summary",
     "Table I: one-step and 100-step accuracy",
     "Table II: parameter identification and Cramér-Rao bounds",
@@ -47,6 +53,21 @@ def _clear_figures(run_dir: Path) -> None:
             p.unlink()
 
 
+def _zoo_sections(study, d: Path, body: dict) -> None:
+    """The report's lead: the zoo study's answer, figures and tables (or how to produce them)."""
+    names = SECTIONS[:4]
+    if study is None:
+        for n in names:
+            body[n] = NO_STUDY
+        return
+    f = dose_response_figure(study, d)
+    body[names[0]] = "\n\n".join([provenance_text(study), answer_text(study)] + ([_figure_md(f)] if f else []))
+    f = max_speed_figure(study, d)
+    body[names[1]] = _figure_md(f) if f else "The study has no model."
+    body[names[2]] = predictor_table(study)
+    body[names[3]] = zoo_table(study)
+
+
 def report_markdown(run_dir) -> str:
     """Read ``run_dir``, write its figures and return the report as Markdown.
 
@@ -71,6 +92,7 @@ def report_markdown(run_dir) -> str:
     head = headline_data(inp.runs, inp.models_by_name())
     corr = correlation_text(head)
     body = {}
+    _zoo_sections(inp.study, d, body)
     body["Summary"] = summary_text(inp.runs, corr if head.points else None)
     body["Table I: one-step and 100-step accuracy"] = table_one(inp.evaluation)
     body["Table II: parameter identification and Cramér-Rao bounds"] = (
@@ -115,7 +137,7 @@ def build_report(run_dir) -> Path:
     run_dir : str or Path
         Results folder with ``results.json``, ``evaluation.json`` and
         ``fisher.json`` (required), and ``ablation.json``, ``provenance.json``,
-        ``traces/*.npz`` (optional).
+        ``study.json``, ``traces/*.npz`` (optional).
 
     Returns
     -------

@@ -2,8 +2,9 @@
 
 Required: ``results.json``, ``evaluation.json``, ``fisher.json`` (a missing or
 malformed one raises :class:`~reports.errors.ReportError` naming the file).
-Optional: ``ablation.json``, ``provenance.json`` and ``traces/<run_id>.npz``
-(missing ones are reported in the text instead).
+Optional: ``ablation.json``, ``provenance.json``, ``study.json`` (the zoo
+study, copied by ``pinnmpc run``) and ``traces/<run_id>.npz`` (missing ones
+are reported in the text instead; a malformed ``study.json`` raises).
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from .labels import run_key
 
 #: Keys every closed-loop result must have.
 RUN_KEYS = ("scenario", "controller", "model")
+#: Keys a study.json must have.
+STUDY_KEYS = ("scenario", "members", "controllers", "ladder", "models", "scores", "oracle_rmse_m")
 #: Trace arrays the figures use: t (K+1,) s, x and x_ref (K+1, 12), solve_s (K,) s.
 TRACE_KEYS = ("t", "x", "x_ref")
 
@@ -90,6 +93,8 @@ class Inputs:
         ``ablation.json`` (Table III), None when absent.
     provenance : dict or None
         ``provenance.json``, None when absent.
+    study : dict or None
+        ``study.json`` (the zoo's dose-response study), None when absent.
     """
 
     run_dir: Path
@@ -99,6 +104,7 @@ class Inputs:
     fisher: dict
     ablation: dict | None
     provenance: dict | None
+    study: dict | None = None
     _traces: dict = field(default_factory=dict, repr=False)
 
     def models_by_name(self) -> dict:
@@ -152,5 +158,10 @@ def load_inputs(run_dir) -> Inputs:
     provenance = _read_json(d / "provenance.json", False)
     if provenance is not None and not isinstance(provenance, dict):
         provenance = None
+    study = _read_json(d / "study.json", False)
+    if study is not None:
+        missing = [k for k in STUDY_KEYS if not isinstance(study, dict) or k not in study]
+        if missing:
+            raise ReportError(f"'study.json': not the output of pinnmpc study (lacks {', '.join(missing)})")
     plan = results.get("plan") if isinstance(results.get("plan"), dict) else {}
-    return Inputs(d, runs, plan, evaluation, fisher, ablation, provenance)
+    return Inputs(d, runs, plan, evaluation, fisher, ablation, provenance, study)

@@ -71,6 +71,20 @@ def zoo_models(models_dir) -> dict[str, dict]:
     return out
 
 
+def refused_models(models_dir) -> dict[str, dict]:
+    """The zoo's refused models (``refused.json`` of ``pinnmpc zoo``): what each is, its open-loop error, the reason."""
+    path = Path(models_dir) / "refused.json"
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except ValueError as e:
+        raise ScenarioError(f"{path}: not valid JSON ({e})") from e
+    return {n: {"why": e.get("why"), "reason": e.get("reason"),
+                "rollout_100_mae_m": e.get("metrics", {}).get("rollout_100_mae", {}).get("position")}
+            for n, e in data.items()}
+
+
 def study_specs(models: dict[str, dict], members: int = 10,
                 controllers=STUDY_CONTROLLERS) -> tuple[RunSpec, list[RunSpec], list[RunSpec]]:
     """(oracle reference run, ensemble runs, speed-ladder runs) of the study."""
@@ -167,6 +181,7 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
                       "rmse_bound_m": LADDER_RMSE_BOUND_M},
            "candidates": CANDIDATES, "kstep": KSTEP, "oracle_run": oracle.run_id,
            "oracle_rmse_m": ref.get("rmse_position_m"), "models": rows, "scores": scores,
+           "refused": refused_models(models_dir),
            "runs": len(results), "code_version": code_version(),
            "command": f"pinnmpc study --models {models_dir} --out {out_dir} --members {members}",
            "wall_time_s": wall, "date": time.strftime("%Y-%m-%d")}
@@ -215,6 +230,7 @@ def rescore_study(models_dir="models/zoo", out_dir="results/zoo", publish: bool 
         row["candidates"] = _candidates(name, models[name], oracle_trace)
     out["candidates"] = CANDIDATES
     out["scores"] = _scores(out["models"], out["controllers"])
+    out["refused"] = refused_models(models_dir)
     out["rescored"] = time.strftime("%Y-%m-%d")
     write_json(path, out)
     if publish:

@@ -19,6 +19,10 @@ from reports import ReportError, build_report
 # ---- constants of this module ----------------------------------------------------------------
 #: Section headings the report must have, in order.
 HEADINGS = (
+    "Dose-response: open-loop error against closed-loop failure",
+    "Maximum trackable speed of the zoo",
+    "Which open-loop number predicts failure",
+    "The model zoo",
     "Summary",
     "Table I: one-step and 100-step accuracy",
     "Table II: parameter identification and Cramér-Rao bounds",
@@ -71,6 +75,21 @@ OPEN_LOOP = {"alpha": 0.004, "beta": 0.03}
 ROW_ORDER = [(s, c, m) for s in ("hover", "figure8-slow", "hover+wind") for c in ("nmpc", "ltv")
              for m in ("oracle", "alpha", "beta")]
 CONTROLLER_LABELS = {"nmpc": "NMPC", "ltv": "LTV-MPC"}
+#: The synthetic zoo study: model -> (100-step MAE m, {controller: (crashes of 10, median RMSE m or None)}, max speed).
+STUDY_MODELS = {
+    "fine": (0.009, {"ltv": (0, 0.03), "sqp": (0, 0.028)}, 1.69),
+    "fair": (0.05, {"ltv": (2, 0.2), "sqp": (0, 0.15)}, 0.76),
+    "poor": (0.07, {"ltv": (8, 0.5), "sqp": (1, 0.3)}, None),
+    "bad": (0.3, {"ltv": (10, None), "sqp": (10, None)}, None),
+    "awful": (2.0, {"ltv": (10, None), "sqp": (10, None)}, None),
+}
+#: Its predictor scores: controller -> [(candidate, AUC, AUC interval, Spearman, Spearman interval)].
+STUDY_SCORES = {
+    "ltv": [("rollout_100_mae_m", 0.83, [0.5, 1.0], 0.5, [-1.0, 1.0]),
+            ("hover_chordal_distance", 0.97, [0.8, 1.0], 1.0, [1.0, 1.0])],
+    "sqp": [("rollout_100_mae_m", 0.875, [0.6, 1.0], 1.0, [0.2, 1.0]),
+            ("jacobian_error", 0.61, [0.3, 0.9], None, None)],
+}
 
 
 # ---- synthetic results folder ----------------------------------------------------------------
@@ -157,6 +176,33 @@ def results_dir(tmp_path):
     (d / "provenance.json").write_text(json.dumps({"git_commit": "0123456789abcdef", "model_sha256": {
         "alpha": "a" * 64}, "stage_seconds": {"report": 1.5}}))
     return d
+
+
+def _study() -> dict:
+    from scenarios.stats import wilson_interval
+
+    models = {}
+    for name, (mae, ens, speed) in STUDY_MODELS.items():
+        e = {}
+        for c, (k, med) in ens.items():
+            e[c] = {"runs": 10, "crashes": k, "crash_probability": k / 10, "crash_probability_ci95":
+                    list(wilson_interval(k, 10)), "metric": "rmse_position_m", "flown": 10 - k, "median": med,
+                    "median_ci95": None if med is None else [0.9 * med, 1.1 * med], "min": med, "max": med,
+                    "errors": 0}
+        models[name] = {"run": name, "why": f"the {name} one", "epochs": 8, "architecture": "baseline",
+                        "candidates": {"rollout_100_mae_m": mae, "envelope_exit_fraction": 0.1},
+                        "ensembles": e, "max_speed": {"controller": "ltv", "speed_mps": speed, "scenario": None,
+                                                      "failed_at": None, "complete": True, "rungs": {}}}
+    scores = {c: [{"candidate": n, "description": n, "models": 5, "crashed": 2, "auc": a, "auc_ci95": ai,
+                   "spearman": sp, "spearman_ci95": si} for n, a, ai, sp, si in rows]
+              for c, rows in STUDY_SCORES.items()}
+    return {"scenario": "figure8-fast", "members": 10, "controllers": ["ltv", "sqp"],
+            "ladder": {"controller": "ltv", "rungs": ["figure8-slow", "figure8-fast"],
+                       "speeds_mps": {"figure8-slow": 0.76, "figure8-fast": 1.52}, "rmse_bound_m": 0.1},
+            "candidates": {"rollout_100_mae_m": "100-step MAE"}, "kstep": 30, "oracle_run": "o",
+            "oracle_rmse_m": 4e-5, "models": models, "scores": scores, "runs": 123, "code_version": "x",
+            "command": "pinnmpc study --members 10", "wall_time_s": 600.0, "date": "2026-11-23",
+            "refused": {"stuck": {"why": "the stuck one", "reason": "no LQR gain", "rollout_100_mae_m": 0.23}}}
 
 
 # ---- parsing helpers ---------------------------------------------------------------------------
@@ -274,3 +320,46 @@ def test_ensemble_members_get_their_own_table_and_stay_out_of_the_others(results
     lo, hi = wilson_interval(1, 5)
     assert rows[0][4:7] == ["5", "1", f"0.20 ({lo:.2f}–{hi:.2f})"]
     assert rows[0][7].startswith("50.5 (") and rows[0][8] == "49.0–52.0"
+
+
+def test_the_zoo_study_leads_the_report(results_dir):
+    (results_dir / "study.json").write_text(json.dumps(_study()))
+    md = build_report(results_dir).read_text(encoding="utf-8")
+    assert md.index("\n## Dose-response") < md.index("\n## Summary")
+    lead = _section(md, HEADINGS[0])
+    assert "figures/dose_response.png" in lead and "pinnmpc study --members 10" in lead and "123 closed-loop" in lead
+    # answer: bands under 35 mm (fine) and from 80 mm (bad, awful); the best crash predictor and its AUC
+    assert "The 1 models under 35 mm crashed with probability 0.00 each" in lead
+    assert "the 2 models at 80 mm or more with 1.00 each" in lead
+    assert "hover chordal distance (nu-gap bound): AUC 0.97 (95 % 0.80–1.00), against 0.83 for the 100-step MAE" \
+        in lead
+    assert "Its interval includes 0.5" not in lead.split("**SQP.**")[0]
+    assert "100-step position MAE: AUC 0.88 (95 % 0.60–1.00)" in lead       # the SQP's best
+    for f in ("figures/dose_response.png", "figures/max_speed.png"):
+        assert (results_dir / f).read_bytes()[:8] == PNG_MAGIC
+    # predictor table: the exact numbers of the file
+    rows = [_cells(ln) for ln in _section(md, HEADINGS[2]).splitlines() if ln.startswith("| ")][1:]
+    assert [r[4] for r in rows] == ["0.83 (0.50–1.00)", "0.97 (0.80–1.00)", "0.88 (0.60–1.00)", "0.61 (0.30–0.90)"]
+    assert rows[0][5] == "+0.50 (-1.00 to +1.00)" and rows[3][5] == "undefined"
+    # zoo table: sorted by open-loop error, crash probabilities and speeds as given
+    rows = [_cells(ln) for ln in _section(md, HEADINGS[3]).splitlines() if ln.startswith("| ")][1:]
+    assert [r[0] for r in rows] == sorted(STUDY_MODELS, key=lambda n: STUDY_MODELS[n][0])
+    poor = next(r for r in rows if r[0] == "poor")
+    assert poor[4].startswith("0.8 (") and poor[5] == "500 (450–550)" and poor[-1] == "none"
+    assert next(r for r in rows if r[0] == "fine")[-1] == "1.69"
+    assert "Not flown: 1 trained models" in _section(md, HEADINGS[3]) and "stuck (the stuck one" in md
+
+
+def test_without_a_study_the_lead_says_how_to_make_one(results_dir):
+    md = build_report(results_dir).read_text(encoding="utf-8")
+    for h in HEADINGS[:4]:
+        assert "pinnmpc zoo" in _section(md, h) and "pinnmpc study" in _section(md, h)
+
+
+def test_a_malformed_study_is_named(results_dir):
+    (results_dir / "study.json").write_text(json.dumps({"scenario": "figure8-fast"}))
+    with pytest.raises(ReportError, match="study.json"):
+        build_report(results_dir)
+    (results_dir / "study.json").write_text("{not json")
+    with pytest.raises(ReportError, match="study.json"):
+        build_report(results_dir)
