@@ -1,7 +1,8 @@
 """Benchmark of the controllers: per-period solve time for each controller x prediction model.
 
 Run ``python -m mpc.bench [--models models] [--controllers nmpc,sqp,ltv,lqr] [--cases hover,figure8-fast]
-[--json FILE]``.
+[--json FILE]``, or ``python -m mpc.bench --derivatives [--models models] [--json FILE]`` for the cost and
+accuracy of the three ways to get a model's A and B over a 30-stage horizon (:func:`derivative_paths`).
 
 For the oracle and each shipped ONNX model, each controller flies a 5 s
 hover (from a 0.3 m offset) and two laps of ``figure8-fast`` (period 3 s,
@@ -115,14 +116,72 @@ def floor_us(model, repeat: int = 200, single: bool = False) -> float:
     return (time.perf_counter() - t0) / repeat * 1e6
 
 
+def _median_us(fn, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1e6 * float(np.median(times))
+
+
+def derivative_paths(path, stages: int = HORIZON, repeats: int = 200) -> dict:
+    """Median time (us) of A and B over ``stages`` states across the flight envelope, by each path, and the error
+    of the central differences against the derivative graph (relative Frobenius norm of ``[A B]``, max over stages).
+
+    Paths: the derivative graph in float64 and its float32 copy (onnxruntime), central differences of the model
+    (one onnxruntime call, 33 evaluations per stage), and CasADi's import of the model with its AD Jacobian
+    (mapped over the stages; None when CasADi cannot import the graph).
+    """
+    import shutil
+    import tempfile
+
+    import casadi as ca
+
+    from .contract import _envelope_batch
+    from .errors import ModelContractError
+    from .symbolic import casadi_step
+
+    x, u = _envelope_batch(stages, np.float64, seed=3)
+    graph = OnnxModel(path)
+    with tempfile.TemporaryDirectory() as d:
+        bare_path = Path(d) / Path(path).name
+        shutil.copy(path, bare_path)
+        bare = OnnxModel(bare_path)
+    out = {"graph_float64_us": _median_us(lambda: graph.linearize(x, u), repeats),
+           "graph_float32_us": _median_us(lambda: graph.linearize_single(x, u), repeats),
+           "differences_us": _median_us(lambda: bare.linearize(x, u), repeats)}
+    _, A0, B0 = graph.linearize(x, u)
+    _, A, B = bare.linearize(x, u)
+    J0, J = np.concatenate([A0, B0], axis=2), np.concatenate([A, B], axis=2)
+    out["differences_rel_error"] = float(np.max(np.linalg.norm(J - J0, axis=(1, 2)) / np.linalg.norm(J0, axis=(1, 2))))
+    try:
+        F = casadi_step(path)
+        xs, us = ca.MX.sym("x", NX), ca.MX.sym("u", 4)
+        jac = ca.Function("ab_of_model", [xs, us], [ca.jacobian(F(xs, us), ca.vertcat(xs, us))]).map(stages, "serial")
+        X, U = ca.DM(x.T), ca.DM(u.T)
+        out["casadi_import_us"] = _median_us(lambda: jac(X, U), max(10, repeats // 10))
+    except ModelContractError as e:
+        out["casadi_import_us"] = None
+        out["casadi_import_refused"] = str(e)[:200]
+    return out
+
+
 def main(argv=None) -> int:
     """Run the benchmark and print its figures."""
     ap = argparse.ArgumentParser(prog="python -m mpc.bench", description=__doc__.splitlines()[0])
     ap.add_argument("--models", type=Path, default=Path("models"))
     ap.add_argument("--controllers", default=",".join(CONTROLLERS))
     ap.add_argument("--cases", default="hover,figure8-fast")
-    ap.add_argument("--json", type=Path, default=Path("bench_mpc.json"))
+    ap.add_argument("--json", type=Path, default=None, help="output (default bench_mpc.json, or "
+                    "bench_derivatives.json with --derivatives)")
+    ap.add_argument("--derivatives", action="store_true",
+                    help="only compare the derivative paths (graph, float32 graph, central differences, CasADi import)")
     args = ap.parse_args(argv)
+    if args.derivatives:
+        return _main_derivatives(args)
+    args.json = args.json or Path("bench_mpc.json")
     kinds = [k for k in args.controllers.split(",") if k]
     bad = set(kinds) - set(CONTROLLERS)
     if bad:
@@ -169,6 +228,26 @@ def main(argv=None) -> int:
                   + "".join(f"{sp[k]:>12.2f}" for k in (*SPLIT, "python")))
     write_json(args.json, out)
     print(f"wrote {args.json}")
+    return 0
+
+
+def _main_derivatives(args) -> int:
+    if not args.models.is_dir():
+        raise SystemExit(f"--models: {str(args.models)!r} is not a folder")
+    files = sorted(p for p in args.models.glob("*.onnx") if not p.name.endswith(".jac.onnx"))
+    out = {"python": platform.python_version(), "cpus": os.cpu_count(), "stages": HORIZON, "models": {}}
+    print(f"A and B at {HORIZON} states across the flight envelope, median us per call "
+          f"(one call = one period's linearization of the LTV-MPC, or one SQP iteration's)")
+    print(f"{'model':<22}{'graph f64':>10}{'graph f32':>10}{'differences':>12}{'CasADi AD':>11}{'diff. error':>13}")
+    for f in files:
+        r = derivative_paths(f)
+        out["models"][f.stem] = r
+        cas = "refused" if r["casadi_import_us"] is None else f"{r['casadi_import_us']:.0f}"
+        print(f"{f.stem:<22}{r['graph_float64_us']:>10.0f}{r['graph_float32_us']:>10.0f}{r['differences_us']:>12.0f}"
+              f"{cas:>11}{r['differences_rel_error']:>13.1e}", flush=True)
+    path = args.json or Path("bench_derivatives.json")
+    write_json(path, out)
+    print(f"wrote {path}")
     return 0
 
 

@@ -10,40 +10,59 @@ from sim.files import write_json
 
 def register(sub) -> None:
     """Add this package's subcommands to the ``pinnmpc`` parser."""
-    p = sub.add_parser("check-model", help="validate an ONNX dynamics model against the model contract",
+    p = sub.add_parser("check-model", help="validate an ONNX dynamics model and say which controllers can fly it",
                        description="Check inputs x [B, 12] and u [B, 4], output x_next [B, 12], dynamic batch, "
-                                   "required metadata, a test evaluation with onnxruntime, and the derivative "
-                                   "graph <stem>.jac.onnx when present. Exit 0 when valid; otherwise exit 2 "
+                                   "the metadata 'dt' (the only required key; the others are checked where given), "
+                                   "a test evaluation with onnxruntime, and the derivative graph <stem>.jac.onnx "
+                                   "when present (against central differences, across the flight envelope). Then "
+                                   "print, for each controller, whether it can fly the model and how it gets the "
+                                   "model's derivatives; pinnmpc fly refuses exactly what this refuses. Exit 0 "
+                                   "when the file is valid (even if no controller can fly it); otherwise exit 2 "
                                    "with a message naming the defect.")
     p.add_argument("file", metavar="FILE", type=Path, help="the .onnx model file")
     p.add_argument("--json", metavar="FILE", type=Path, default=None, help="write what the model declares as JSON")
     p.set_defaults(handler=cmd_check_model)
 
 
-def format_model_info(info) -> str:
-    """Short human-readable summary of a :class:`mpc.contract.ModelInfo`."""
-    theta = " ".join(f"{k}={v:.4g}" for k, v in info.theta.items())
-    metrics = ", ".join(info.test_metrics) if info.test_metrics else "(none)"
-    jac = str(info.jacobian) if info.jacobian is not None else "none (derivatives by CasADi import or differencing)"
-    return "\n".join([
-        f"{info.path}: valid (contract {info.metadata.get('pinnmpc.contract')})",
+def format_model_info(info, ready=None) -> str:
+    """Short human-readable summary of a :class:`mpc.contract.ModelInfo` and, if given, the controllers' readiness."""
+    def opt(v, text=str):
+        return "(not given)" if v is None else text(v)
+
+    theta = opt(info.theta, lambda t: " ".join(f"{k}={v:.4g}" for k, v in t.items()))
+    if info.theta is None:
+        theta += " -> the vehicle spec uses the datasheet's m, J, kt, kq"
+    jac = str(info.jacobian) if info.jacobian is not None else "none (A and B by central differences of the model)"
+    lines = [
+        f"{info.path}: valid (contract {info.metadata.get('pinnmpc.contract', '2, minimal')})",
         f"  architecture    {info.architecture}",
         f"  dtype           {info.dtype.name}",
         f"  dt              {info.dt:g} s",
         f"  theta           {theta}",
         f"  jacobian graph  {jac}",
-        f"  dataset seed    {info.dataset_seed}, config hash {info.config_hash[:12]}, code {info.code_version}",
-        f"  test metrics    {metrics}",
-    ])
+        f"  provenance      dataset seed {opt(info.dataset_seed)}, config hash "
+        f"{opt(info.config_hash, lambda h: h[:12])}, code {opt(info.code_version)}",
+        f"  test metrics    {opt(info.test_metrics, lambda m: ', '.join(m) or '(none)')}",
+    ]
+    if ready:
+        lines.append("  controllers")
+        for r in ready.values():
+            lines.append(f"    {r.controller:<5} " + (f"flies: derivatives by {r.derivatives} ({r.reason})" if r.flies
+                                                      else f"cannot fly: {r.reason}"))
+    return "\n".join(lines)
 
 
 def cmd_check_model(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc check-model``."""
-    from .contract import check_model
+    from .models import OnnxModel
+    from .readiness import readiness
 
-    info = check_model(args.file)
-    print(format_model_info(info))
+    model = OnnxModel(args.file)
+    ready = readiness(model)
+    print(format_model_info(model.info, ready))
     if args.json:
-        write_json(args.json, info.to_dict())
+        write_json(args.json, {**model.info.to_dict(),
+                               "controllers": {c: {"flies": r.flies, "derivatives": r.derivatives, "reason": r.reason}
+                                               for c, r in ready.items()}})
         print(f"wrote {args.json}")
     return 0

@@ -7,13 +7,16 @@ A model file maps one control period of the quadrotor::
     output   x_next float[B, 12]   state after DT = 0.01 s
 
 ``B`` is a dynamic batch dimension; ``float`` is float32 or float64, the same
-for every tensor. ``metadata_props`` holds the keys of :data:`REQUIRED_METADATA`
-(strings; JSON where the value is structured).
+for every tensor. ``metadata_props`` must hold ``dt`` (the only required key);
+the keys of :data:`OPTIONAL_METADATA` are used where present (strings; JSON
+where the value is structured): ``theta`` feeds the vehicle spec, the training
+provenance is shown in reports.
 
 Exact derivatives are optionally shipped beside the model as a *derivative
 graph* ``<stem>.jac.onnx`` (see :func:`jacobian_path`) with the same inputs and
 the outputs ``x_next`` [B, 12], ``A`` = d x_next / d x [B, 12, 12] and
-``B`` = d x_next / d u [B, 12, 4].
+``B`` = d x_next / d u [B, 12, 4]. Without one, the controllers take A and B
+from batched central differences of the model (:func:`central_differences`).
 
 :func:`check_model` validates a file against all of this, runs it with
 onnxruntime, and raises :class:`mpc.errors.ModelContractError` (a
@@ -36,17 +39,21 @@ from sim.params import DT, INPUT_NAMES, STATE_NAMES, THETA_NAMES, QuadParams
 
 from .errors import ModelContractError
 
-#: Version written to the ``pinnmpc.contract`` metadata key.
-CONTRACT_VERSION = "1"
+#: Version written to the ``pinnmpc.contract`` metadata key: 2 requires only ``dt``.
+CONTRACT_VERSION = "2"
+#: Versions this code reads (1: every key of OPTIONAL_METADATA was required; the shipped models are version 1).
+READABLE_VERSIONS = ("1", "2")
 
-#: Metadata keys every model must carry (all values are strings):
-#: ``pinnmpc.contract`` (:data:`CONTRACT_VERSION`), ``architecture`` (name),
-#: ``dt`` (float, s), ``state_names`` / ``input_names`` (JSON lists),
-#: ``theta`` (JSON object over THETA_NAMES, SI units), ``training_config``
-#: (JSON object), ``config_hash`` (:func:`config_hash` of it), ``dataset_seed``
-#: (int), ``code_version`` (free text), ``test_metrics`` (JSON object).
-REQUIRED_METADATA = ("pinnmpc.contract", "architecture", "dt", "state_names", "input_names", "theta",
-                     "training_config", "config_hash", "dataset_seed", "code_version", "test_metrics")
+#: Metadata every model must carry: ``dt`` (float, s; equal to ``sim.params.DT``).
+REQUIRED_METADATA = ("dt",)
+#: Metadata used where present (all values are strings), each validated when given:
+#: ``pinnmpc.contract`` (one of READABLE_VERSIONS), ``architecture`` (name),
+#: ``state_names`` / ``input_names`` (JSON lists, must equal the conventions),
+#: ``theta`` (JSON object over THETA_NAMES, SI units: the vehicle spec's m, J, kt, kq),
+#: ``training_config`` (JSON object), ``config_hash`` (:func:`config_hash` of it),
+#: ``dataset_seed`` (int), ``code_version`` (free text), ``test_metrics`` (JSON object).
+OPTIONAL_METADATA = ("pinnmpc.contract", "architecture", "state_names", "input_names", "theta", "training_config",
+                     "config_hash", "dataset_seed", "code_version", "test_metrics")
 
 NX = len(STATE_NAMES)
 NU = len(INPUT_NAMES)
@@ -59,8 +66,12 @@ NU = len(INPUT_NAMES)
 DT_TOL = 1e-12
 JAC_XNEXT_RTOL = {"float64": 1e-9, "float32": 1e-5}
 JAC_FD_RTOL = 1e-3
-#: Relative finite-difference step (times max(1, |value|)) per model dtype.
+#: Relative central-difference step per model dtype: the step of variable i is FD_STEP * max(|z_i|, FD_SCALE[i]).
 FD_STEP = {"float64": 1e-6, "float32": 1e-3}
+#: Size below which a variable's step stops shrinking, in its own unit (m, rad, rad/s, m/s, N, N m): 1 for all.
+#: A smaller torque scale (hover torques are about 1e-3 N m) makes a float32 model's differences noisier than
+#: the quantity they measure (tested: a 10 % error of a float32 B then goes unseen); float64 does not need it.
+FD_SCALE = np.ones(NX + NU)
 #: Batch sizes of the test evaluations.
 TEST_BATCH_SIZES = (1, 3)
 
@@ -74,22 +85,22 @@ class ModelInfo:
     path : Path
         The model file.
     architecture : str
-        Architecture name from the metadata (e.g. ``"baseline"``).
+        Architecture name from the metadata (e.g. ``"baseline"``), else the file's stem.
     dt : float
         Period of one ``x -> x_next`` step, s (equals ``sim.params.DT``).
     dtype : numpy.dtype
         Element type of every tensor, float32 or float64.
-    theta : dict[str, float]
-        Identified parameters by name (THETA_NAMES order), SI units.
-    training_config : dict
+    theta : dict[str, float] or None
+        Identified parameters by name (THETA_NAMES order), SI units; None when not given.
+    training_config : dict or None
         Training configuration as stored.
-    config_hash : str
+    config_hash : str or None
         sha256 hex of the canonical JSON of ``training_config``.
-    dataset_seed : int
+    dataset_seed : int or None
         Seed of the training dataset.
-    code_version : str
+    code_version : str or None
         Version of the code that produced the file.
-    test_metrics : dict
+    test_metrics : dict or None
         Test-set metrics as stored.
     metadata : dict[str, str]
         Every ``metadata_props`` entry, raw strings.
@@ -101,12 +112,12 @@ class ModelInfo:
     architecture: str
     dt: float
     dtype: np.dtype
-    theta: dict
-    training_config: dict
-    config_hash: str
-    dataset_seed: int
-    code_version: str
-    test_metrics: dict
+    theta: dict | None
+    training_config: dict | None
+    config_hash: str | None
+    dataset_seed: int | None
+    code_version: str | None
+    test_metrics: dict | None
     metadata: dict
     jacobian: Path | None
 
@@ -114,7 +125,8 @@ class ModelInfo:
         """JSON-ready form: paths as strings, ``dtype`` as its name."""
         return {
             "path": str(self.path), "architecture": self.architecture, "dt": self.dt,
-            "dtype": self.dtype.name, "theta": dict(self.theta), "training_config": self.training_config,
+            "dtype": self.dtype.name, "theta": None if self.theta is None else dict(self.theta),
+            "training_config": self.training_config,
             "config_hash": self.config_hash, "dataset_seed": self.dataset_seed,
             "code_version": self.code_version, "test_metrics": self.test_metrics,
             "metadata": dict(self.metadata), "jacobian": None if self.jacobian is None else str(self.jacobian),
@@ -241,11 +253,13 @@ def check_model(path) -> ModelInfo:
     one element type (float32 or float64); the only output is ``x_next``
     [B, 12] of that type; the metadata of :data:`REQUIRED_METADATA` is present
     and consistent (contract version, ``dt == DT``, state and input names,
-    positive finite theta, config hash); onnxruntime evaluates hover-like
+    positive finite theta, config hash, where given); onnxruntime evaluates hover-like
     batches of size 1 and 3 to finite (B, 12) outputs. When the derivative
     graph :func:`jacobian_path` exists it is checked too: same inputs, outputs
     ``x_next``, ``A`` [B, 12, 12], ``B`` [B, 12, 4], ``x_next`` equal to the
-    model's and ``A``, ``B`` equal to central finite differences of the model.
+    model's and ``A``, ``B`` equal to central finite differences of the model,
+    on the hover-like batches and on :data:`ENVELOPE_SAMPLES` states across the
+    flight envelope (:func:`_envelope_batch`: tilts up to 0.8 rad).
 
     Parameters
     ----------
@@ -267,7 +281,7 @@ def check_model(path) -> ModelInfo:
     where = str(path)
     dtype = _check_io(model, where, {"x_next": (NX,)})
     meta = _metadata(model, where)
-    fields = _parse_metadata(meta, where)
+    fields = _parse_metadata(meta, where, path.stem)
 
     session = open_session(path)
     batches = []
@@ -279,6 +293,10 @@ def check_model(path) -> ModelInfo:
 
     jac = jacobian_path(path)
     if jac.exists():
+        x, u = _envelope_batch(ENVELOPE_SAMPLES, dtype)
+        (x_next,) = _run(session, x, u, where, ["x_next"])
+        if np.all(np.isfinite(x_next)):     # a model that is not finite out there is checked where it is
+            batches.append((x, u, x_next))
         _check_jacobian(jac, path, session, dtype, batches)
     else:
         jac = None
@@ -430,21 +448,21 @@ def _json(meta: dict, key: str, where: str, kind: type, what: str):
     return obj
 
 
-def _parse_metadata(meta: dict, where: str) -> dict:
-    """Validate the contract metadata; return the ModelInfo fields it fills."""
+def _parse_metadata(meta: dict, where: str, stem: str = "model") -> dict:
+    """Validate the contract metadata (``dt`` required, the rest where present); return the ModelInfo fields."""
     missing = [k for k in REQUIRED_METADATA if k not in meta]
     if missing:
-        raise ModelContractError(f"{where}: metadata_props is missing required key(s) {missing}; "
-                                 f"required: {list(REQUIRED_METADATA)}")
+        raise ModelContractError(f"{where}: metadata_props is missing required key(s) {missing}; the only "
+                                 f"required key is 'dt' (the period of one step, s: {DT!r})")
 
-    version = meta["pinnmpc.contract"]
-    if version != CONTRACT_VERSION:
-        raise ModelContractError(f"{where}: metadata 'pinnmpc.contract' must be {CONTRACT_VERSION!r} "
-                                 f"(the version this code reads); found {_short(version)!r}")
+    version = meta.get("pinnmpc.contract")
+    if version is not None and version not in READABLE_VERSIONS:
+        raise ModelContractError(f"{where}: metadata 'pinnmpc.contract' must be one of {list(READABLE_VERSIONS)} "
+                                 f"(the versions this code reads); found {_short(version)!r}")
 
-    architecture = meta["architecture"].strip()
+    architecture = meta.get("architecture", stem).strip()
     if not architecture:
-        raise ModelContractError(f"{where}: metadata 'architecture' must be a non-empty name; found "
+        raise ModelContractError(f"{where}: metadata 'architecture' must be a non-empty name when given; found "
                                  f"{meta['architecture']!r}")
 
     try:
@@ -456,41 +474,53 @@ def _parse_metadata(meta: dict, where: str) -> dict:
                                  f"(within {DT_TOL:g}); found {dt!r}")
 
     for key, want in (("state_names", STATE_NAMES), ("input_names", INPUT_NAMES)):
-        names = _json(meta, key, where, list, f"the JSON list {list(want)}")
-        if names != list(want):
-            raise ModelContractError(f"{where}: metadata {key!r} must be {list(want)}; found {names}")
+        if key in meta:
+            names = _json(meta, key, where, list, f"the JSON list {list(want)}")
+            if names != list(want):
+                raise ModelContractError(f"{where}: metadata {key!r} must be {list(want)}; found {names}")
 
-    theta_obj = _json(meta, "theta", where, dict, f"a JSON object with keys {list(THETA_NAMES)}")
-    if set(theta_obj) != set(THETA_NAMES):
-        lacking = [k for k in THETA_NAMES if k not in theta_obj]
-        extra = sorted(k for k in theta_obj if k not in THETA_NAMES)
-        found = ", ".join(part for part in (f"missing {lacking}" if lacking else "",
-                                            f"unexpected {extra}" if extra else "") if part)
-        raise ModelContractError(f"{where}: metadata 'theta' must have exactly the keys {list(THETA_NAMES)}; "
-                                 f"found {found}")
-    theta = {}
-    for name in THETA_NAMES:
-        v = theta_obj[name]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-            raise ModelContractError(f"{where}: metadata theta[{name!r}] must be a finite number > 0; found {v!r}")
-        theta[name] = float(v)
+    theta = None
+    if "theta" in meta:
+        theta_obj = _json(meta, "theta", where, dict, f"a JSON object with keys {list(THETA_NAMES)}")
+        if set(theta_obj) != set(THETA_NAMES):
+            lacking = [k for k in THETA_NAMES if k not in theta_obj]
+            extra = sorted(k for k in theta_obj if k not in THETA_NAMES)
+            found = ", ".join(part for part in (f"missing {lacking}" if lacking else "",
+                                                f"unexpected {extra}" if extra else "") if part)
+            raise ModelContractError(f"{where}: metadata 'theta' must have exactly the keys {list(THETA_NAMES)}; "
+                                     f"found {found}")
+        theta = {}
+        for name in THETA_NAMES:
+            v = theta_obj[name]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise ModelContractError(f"{where}: metadata theta[{name!r}] must be a finite number > 0; "
+                                         f"found {v!r}")
+            theta[name] = float(v)
 
-    training_config = _json(meta, "training_config", where, dict, "a JSON object")
-    test_metrics = _json(meta, "test_metrics", where, dict, "a JSON object")
+    training_config = _json(meta, "training_config", where, dict, "a JSON object") \
+        if "training_config" in meta else None
+    test_metrics = _json(meta, "test_metrics", where, dict, "a JSON object") if "test_metrics" in meta else None
 
-    h = config_hash(training_config)
-    if meta["config_hash"] != h:
-        raise ModelContractError(f"{where}: metadata config_hash does not match training_config: expected {h} "
-                                 f"(sha256 of its canonical JSON), found {_short(meta['config_hash'])!r}")
+    h = None
+    if "config_hash" in meta:
+        if training_config is None:
+            raise ModelContractError(f"{where}: metadata 'config_hash' is given without the 'training_config' it "
+                                     f"hashes")
+        h = config_hash(training_config)
+        if meta["config_hash"] != h:
+            raise ModelContractError(f"{where}: metadata config_hash does not match training_config: expected {h} "
+                                     f"(sha256 of its canonical JSON), found {_short(meta['config_hash'])!r}")
 
-    try:
-        dataset_seed = int(meta["dataset_seed"])
-    except ValueError as e:
-        raise ModelContractError(f"{where}: metadata 'dataset_seed' must be an integer; found "
-                                 f"{_short(meta['dataset_seed'])!r}") from e
+    dataset_seed = None
+    if "dataset_seed" in meta:
+        try:
+            dataset_seed = int(meta["dataset_seed"])
+        except ValueError as e:
+            raise ModelContractError(f"{where}: metadata 'dataset_seed' must be an integer; found "
+                                     f"{_short(meta['dataset_seed'])!r}") from e
 
     return {"architecture": architecture, "dt": dt, "theta": theta, "training_config": training_config,
-            "config_hash": h, "dataset_seed": dataset_seed, "code_version": meta["code_version"],
+            "config_hash": h, "dataset_seed": dataset_seed, "code_version": meta.get("code_version"),
             "test_metrics": test_metrics}
 
 
@@ -535,20 +565,68 @@ def _check_output(value: np.ndarray, shape: tuple, dtype: np.dtype, where: str, 
                                  f"{shape[0]} ({int(np.sum(~np.isfinite(value)))} non-finite entries)")
 
 
-def _fd_jacobians(session, x: np.ndarray, u: np.ndarray, dtype: np.dtype, where: str):
-    """Central finite differences of the model: A (B, 12, 12) and B (B, 12, 4), float64."""
-    z = np.concatenate([x, u], axis=1).astype(np.float64)                     # (b, n)
+def central_differences(run, x: np.ndarray, u: np.ndarray, dtype=np.float64):
+    """``(x_next (b, 12), A (b, 12, 12), B (b, 12, 4))`` of a model by central differences, in one batched call.
+
+    Parameters
+    ----------
+    run : callable
+        ``run(x (n, 12), u (n, 4)) -> x_next (n, 12)`` in the model's dtype (an onnxruntime session's call).
+    x, u : ndarray, shape (b, 12) and (b, 4)
+        Points of the linearization.
+    dtype : numpy dtype
+        The model's element type; it sets the step (:data:`FD_STEP`) and the rounding of the perturbed points.
+
+    The step of variable ``i`` is ``FD_STEP * max(|z_i|, FD_SCALE[i])``; the
+    difference is divided by the step the dtype can represent. The ``b``
+    centres and ``2 x 16 b`` perturbed points go to ``run`` as one batch.
+    Truncation error is O(step^2); rounding error about eps |x_next| / step
+    (float64: about 1e-10 relative; float32: about 1e-4).
+    """
+    dtype = np.dtype(dtype)
+    z = np.concatenate([np.asarray(x, dtype=np.float64), np.asarray(u, dtype=np.float64)], axis=1)   # (b, n)
     b, n = z.shape
-    h = FD_STEP[dtype.name] * np.maximum(1.0, np.abs(z))                       # (b, n)
+    h = FD_STEP[dtype.name] * np.maximum(np.abs(z), FD_SCALE[:n])                            # (b, n)
     eye = np.eye(n)
     zp = (z[:, None, :] + eye * h[:, None, :]).astype(dtype)                   # (b, n, n): perturb coordinate j
     zm = (z[:, None, :] - eye * h[:, None, :]).astype(dtype)
     step = np.einsum("bjj->bj", zp.astype(np.float64) - zm.astype(np.float64))  # steps actually representable
-    zz = np.concatenate([zp, zm], axis=1).reshape(-1, n)                      # (b * 2n, n)
-    (out,) = _run(session, np.ascontiguousarray(zz[:, :NX]), np.ascontiguousarray(zz[:, NX:]), where, ["x_next"])
-    out = np.asarray(out, dtype=np.float64).reshape(b, 2 * n, NX)
-    jac = ((out[:, :n] - out[:, n:]) / step[:, :, None]).transpose(0, 2, 1)   # (b, 12, n)
-    return jac[:, :, :NX], jac[:, :, NX:]
+    zz = np.concatenate([z[:, None, :].astype(dtype), zp, zm], axis=1).reshape(-1, n)   # (b * (1 + 2n), n)
+    out = np.asarray(run(np.ascontiguousarray(zz[:, :NX]), np.ascontiguousarray(zz[:, NX:])), dtype=np.float64)
+    out = out.reshape(b, 1 + 2 * n, NX)
+    jac = ((out[:, 1:n + 1] - out[:, n + 1:]) / step[:, :, None]).transpose(0, 2, 1)   # (b, 12, n)
+    return out[:, 0], jac[:, :, :NX], jac[:, :, NX:]
+
+
+def _fd_jacobians(session, x: np.ndarray, u: np.ndarray, dtype: np.dtype, where: str):
+    """Central differences of the model behind ``session``: A (b, 12, 12) and B (b, 12, 4), float64."""
+    _, A, B = central_differences(lambda xx, uu: _run(session, xx, uu, where, ["x_next"])[0], x, u, dtype)
+    return A, B
+
+
+def _envelope_batch(batch: int, dtype: np.dtype, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Seeded states and inputs across the flight envelope (batch, 12), (batch, 4), for the derivative check.
+
+    Roll and pitch within 0.8 rad (46 degrees), yaw within pi, body rates within
+    3 rad/s, velocities within 3 m/s, thrust from 0.3 to 1.8 times the hover
+    thrust, torques within 5e-3 N m: wider than any scenario's reference.
+    """
+    rng = np.random.default_rng([seed, batch, 1])
+    x = np.zeros((batch, NX))
+    x[:, 0:3] = rng.uniform(-1.0, 1.0, (batch, 3))
+    x[:, 2] -= 1.0
+    x[:, 3:5] = rng.uniform(-0.8, 0.8, (batch, 2))
+    x[:, 5] = rng.uniform(-np.pi, np.pi, batch)
+    x[:, 6:9] = rng.uniform(-3.0, 3.0, (batch, 3))
+    x[:, 9:12] = rng.uniform(-3.0, 3.0, (batch, 3))
+    u = np.zeros((batch, NU))
+    u[:, 0] = QuadParams().hover_thrust * rng.uniform(0.3, 1.8, batch)
+    u[:, 1:] = rng.uniform(-5e-3, 5e-3, (batch, NU - 1))
+    return x.astype(dtype), u.astype(dtype)
+
+
+#: Samples of the flight envelope on which a derivative graph is checked (beside the hover-like test batches).
+ENVELOPE_SAMPLES = 32
 
 
 def _check_jacobian(jac: Path, path: Path, model_session, dtype: np.dtype, batches: list) -> None:

@@ -90,6 +90,9 @@ class AnalyticModel(PredictionModel):
         from .contract import check_model
 
         info = check_model(path)
+        if info.theta is None:
+            raise ModelContractError(f"{path}: declares no identified parameters (metadata 'theta'); the analytic "
+                                     f"model needs them")
         params = QuadParams().with_theta([info.theta[n] for n in THETA_NAMES])
         return cls(params, name=f"analytic[{info.architecture}]")
 
@@ -142,38 +145,54 @@ def _numeric_functions(params: QuadParams):
     return _NUMERIC[key]
 
 
+#: How an ONNX model's A and B are obtained: its derivative graph, or central differences of the model.
+DERIVATIVE_PATHS = ("derivative graph", "central differences")
+
+
 class OnnxModel(PredictionModel):
-    """An ONNX dynamics model through onnxruntime, with its derivative graph.
+    """An ONNX dynamics model through onnxruntime, with its derivative graph or central differences.
 
     Parameters
     ----------
     path : path
-        Model file; it must pass :func:`mpc.contract.check_model` and have its
-        derivative graph ``<stem>.jac.onnx`` beside it.
+        Model file; it must pass :func:`mpc.contract.check_model`. With a
+        derivative graph ``<stem>.jac.onnx`` beside it, A and B come from that
+        graph; without one, from batched central differences of the model
+        (:func:`mpc.contract.central_differences`: one onnxruntime call per
+        linearization, 33 model evaluations per point).
     threads : int
         onnxruntime intra-op threads per session (default 1).
+
+    Attributes
+    ----------
+    derivatives : str
+        One of :data:`DERIVATIVE_PATHS`.
+    theta : ndarray (6,) or None
+        The model's declared ``(m, Jxx, Jyy, Jzz, kt, kq)``, None when the file gives none (the vehicle spec
+        then uses the datasheet).
 
     Raises
     ------
     ModelContractError
-        If the file violates the contract or has no derivative graph.
+        If the file violates the contract.
     """
 
     def __init__(self, path, threads: int = 1):
-        from .contract import check_model, jacobian_path, open_session
+        from .contract import check_model, open_session
 
         self.info = check_model(path)
-        if self.info.jacobian is None:
-            raise ModelContractError(
-                f"{path}: the MPC needs exact derivatives, but {jacobian_path(path)} does not exist "
-                "(export the derivative graph beside the model, see README 'Export')")
         self.path = self.info.path
         self.name = self.path.stem
-        self.theta = np.array([self.info.theta[n] for n in THETA_NAMES])
+        self.theta = None if self.info.theta is None else np.array([self.info.theta[n] for n in THETA_NAMES])
         self.dtype = self.info.dtype
         self._model = open_session(self.path, threads)
-        self._jac = open_session(self.info.jacobian, threads)
-        self._jac_single = self._single_precision_session(threads)
+        if self.info.jacobian is None:
+            self.derivatives = DERIVATIVE_PATHS[1]
+            self._jac = self._jac_single = None
+        else:
+            self.derivatives = DERIVATIVE_PATHS[0]
+            self._jac = open_session(self.info.jacobian, threads)
+            self._jac_single = self._single_precision_session(threads)
 
     def step(self, x, u) -> np.ndarray:
         """Next states (N, 12)."""
@@ -182,8 +201,14 @@ class OnnxModel(PredictionModel):
         return out.astype(float)
 
     def linearize(self, x, u):
-        """``(x_next, A, B)`` from the derivative graph, one onnxruntime call for the whole batch."""
+        """``(x_next, A, B)`` from the derivative graph (or central differences), one onnxruntime call for the batch."""
         x, u = _batch(x, u)
+        if self._jac is None:
+            from .contract import central_differences
+
+            def run(xx, uu):
+                return self._model.run(["x_next"], {"x": xx, "u": uu})[0]
+            return central_differences(run, x, u, self.dtype)
         xn, A, B = self._jac.run(["x_next", "A", "B"], {"x": x.astype(self.dtype), "u": u.astype(self.dtype)})
         return xn.astype(float), A.astype(float), B.astype(float)
 
@@ -197,7 +222,7 @@ class OnnxModel(PredictionModel):
         is loaded, else the float64 graph is used).
         """
         if self._jac_single is None:
-            return self.linearize(x, u)
+            return self.linearize(x, u)     # float32 model, no derivative graph, or a float32 copy that disagrees
         x, u = _batch(x, u)
         xn = self._model.run(["x_next"], {"x": x.astype(self.dtype), "u": u.astype(self.dtype)})[0]
         A, B = self._jac_single.run(["A", "B"], {"x": x.astype(np.float32), "u": u.astype(np.float32)})

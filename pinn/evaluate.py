@@ -77,26 +77,36 @@ def crlb_train_split(ds) -> dict:
     return {n: float(v) for n, v in zip(THETA_NAMES, res.crlb_std)}
 
 
+def _spec_of(info) -> dict:
+    """The training data spec recorded in a model's metadata (a model without one needs ``--data``)."""
+    if info.training_config is None:
+        raise ValueError(f"{info.path}: its metadata has no 'training_config' to regenerate its data from; "
+                         f"give the test data with --data FILE.npz")
+    return data_spec(info.training_config)
+
+
 def evaluate_model(path, ds=None, crlb: dict | None = None, n_starts: int = 200, info=None) -> dict:
     """Table I and II entries of one ONNX model (``info``: its :func:`check_model` result, if already known)."""
     info = check_model(path) if info is None else info
     if ds is None:
-        ds = regenerate(data_spec(info.training_config))
+        ds = regenerate(_spec_of(info))
     step = onnx_step(path)
     truth = QuadParams(**ds.meta["params"]).theta
-    theta = np.array([info.theta[n] for n in THETA_NAMES])
-    err = 100.0 * (theta - truth) / truth
     out = {
         "name": Path(path).stem,
         "architecture": info.architecture,
-        "recipe": info.training_config.get("recipe", info.architecture),
+        "recipe": (info.training_config or {}).get("recipe", info.architecture),
         "regime": ds.meta["regime"],
         "one_step": one_step_mae(step, ds),
         "rollout_100": rollout_mae(step, ds, horizon=100, n_starts=n_starts),
-        "theta": dict(zip(THETA_NAMES, map(float, theta))),
         "theta_true": dict(zip(THETA_NAMES, map(float, truth))),
-        "theta_err_pct": dict(zip(THETA_NAMES, map(float, err))),
     }
+    if info.theta is None:      # a model that identifies no parameters: Table I only
+        return out
+    theta = np.array([info.theta[n] for n in THETA_NAMES])
+    err = 100.0 * (theta - truth) / truth
+    out["theta"] = dict(zip(THETA_NAMES, map(float, theta)))
+    out["theta_err_pct"] = dict(zip(THETA_NAMES, map(float, err)))
     if crlb is not None:
         out["crlb_std"] = crlb
         out["err_over_crlb"] = {n: float(abs(theta[i] - truth[i]) / crlb[n]) for i, n in enumerate(THETA_NAMES)}
@@ -124,7 +134,7 @@ def evaluate_dir(folder, data_path=None, progress: bool = False) -> dict:
                 ds = load_dataset(data_path)
                 cache[key] = (ds, crlb_train_split(ds))
         else:
-            spec = data_spec(info.training_config)
+            spec = _spec_of(info)
             key = json.dumps(spec, sort_keys=True)
             if key not in cache:
                 ds = regenerate(spec)

@@ -122,8 +122,13 @@ def cmd_fly(args: argparse.Namespace) -> int:
             raise ValueError(f"--{name} {str(path)!r} is a folder; give a file name")
     if args.plot is not None and args.plot.suffix.lower() != ".png":
         raise ValueError(f"--plot must name a .png file; found {str(args.plot)!r}")
+    from mpc.models import load_model
+    from mpc.readiness import require
+
     spec = RunSpec(args.scenario, args.controller, args.model, args.seed, args.horizon, args.timing)
-    result, trace = fly(spec, progress=sys.stderr.isatty())
+    model = load_model(spec.model)
+    require(model, spec.controller)         # the same verdict as pinnmpc check-model prints
+    result, trace = fly(spec, progress=sys.stderr.isatty(), model=model)
     for k in FLY_FIELDS:
         print(f"{k:<22}{_fmt(result[k])}")
     if result["crashed"]:
@@ -141,7 +146,7 @@ def cmd_fly(args: argparse.Namespace) -> int:
         from .plot import plot_run
         plot_run(result, trace, args.plot)
         print(f"wrote {args.plot}")
-    return 0
+    return 2 if result["error"] else 0     # a run that could not start is a failure of the command
 
 
 def cmd_run(args: argparse.Namespace) -> int:

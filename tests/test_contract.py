@@ -16,7 +16,7 @@ import pytest
 from onnx import helper, numpy_helper
 
 from mpc.contract import (
-    CONTRACT_VERSION, REQUIRED_METADATA, ModelInfo, _fd_jacobians, _probe_batch, check_model, config_hash,
+    CONTRACT_VERSION, OPTIONAL_METADATA, REQUIRED_METADATA, ModelInfo, _fd_jacobians, _probe_batch, check_model, config_hash,
     jacobian_path, open_session,
 )
 from mpc.errors import ModelContractError
@@ -162,7 +162,7 @@ def test_jacobian_path_and_config_hash():
     assert config_hash({}) == "44136fa355b3678a1146ad16f7e8649e94fb4fc21fe77e8310c060f61caaff8a"
     assert config_hash({"b": 1, "a": [1, 2]}) == config_hash({"a": [1, 2], "b": 1})
     assert config_hash({"a": 1}) != config_hash({"a": 2})
-    assert len(REQUIRED_METADATA) == 11 and "config_hash" in REQUIRED_METADATA
+    assert REQUIRED_METADATA == ("dt",)
 
 
 def test_open_session_rejects_bad_thread_count(valid):
@@ -193,7 +193,7 @@ def test_valid_model_passes_and_reports_its_metadata(valid):
     assert list(info.theta) == list(THETA_NAMES)
     assert info.training_config == TRAINING_CONFIG and info.config_hash == config_hash(TRAINING_CONFIG)
     assert info.dataset_seed == 3 and info.code_version == "0.1.0+test" and info.test_metrics == TEST_METRICS
-    assert set(info.metadata) == set(REQUIRED_METADATA)
+    assert set(info.metadata) == set(REQUIRED_METADATA) | set(OPTIONAL_METADATA)
     d = info.to_dict()
     assert json.loads(json.dumps(d)) == d and d["dtype"] == "float64" and d["jacobian"].endswith("toy.jac.onnx")
 
@@ -212,6 +212,21 @@ def test_valid_float32_model_with_jacobian_graph(tmp_path):
     a_fd, b_fd = _fd_jacobians(open_session(path), x, u, np.dtype(np.float32), str(path))
     a_ref, b_ref = analytic_jacobian(x.astype(float), u.astype(float))
     assert np.linalg.norm(a_fd - a_ref) <= TOL["fd_float32"] * np.linalg.norm(a_ref)
+
+
+def test_only_dt_is_required_and_each_optional_key_may_be_left_out(tmp_path):
+    info = check_model(build_model(tmp_path / "min.onnx", meta={"dt": "0.01"}))
+    assert (info.theta, info.training_config, info.config_hash, info.dataset_seed, info.code_version,
+            info.test_metrics) == (None,) * 6
+    assert info.architecture == "min"       # the file's stem
+    assert json.loads(json.dumps(info.to_dict()))["theta"] is None
+    for i, key in enumerate(OPTIONAL_METADATA):
+        meta = _metadata(**{key: None})
+        if key == "training_config":
+            del meta["config_hash"]          # a hash needs the configuration it hashes
+        check_model(build_model(tmp_path / f"m{i}.onnx", meta=meta))
+    # the shipped models are contract version 1, still read
+    assert check_model(REPO / "models" / "baseline.onnx").metadata["pinnmpc.contract"] == "1"
 
 
 def test_extra_metadata_keys_are_allowed(tmp_path):
@@ -241,8 +256,11 @@ DEFECTS = {
     "x/u dtype": (dict(u_dtype=np.float32), "must have the same element type (float32 or float64); found x float64, "
                                             "u float32"),
     "integer dtype": (dict(dtype=np.int64), "must have element type float32 or float64; found int64"),
-    "missing key": (dict(meta=_metadata(theta=None)), "missing required key(s) ['theta']"),
-    "contract version": (dict(meta=_metadata(**{"pinnmpc.contract": "2"})), "'pinnmpc.contract' must be '1'"),
+    "missing dt": (dict(meta=_metadata(dt=None)), "missing required key(s) ['dt']"),
+    "contract version": (dict(meta=_metadata(**{"pinnmpc.contract": "3"})),
+                         "'pinnmpc.contract' must be one of ['1', '2']"),
+    "hash without config": (dict(meta=_metadata(training_config=None)), "'config_hash' is given without the "
+                                                                         "'training_config'"),
     "dt": (dict(meta=_metadata(dt="0.02")), "metadata 'dt' must equal sim.params.DT = 0.01 s"),
     "dt not a number": (dict(meta=_metadata(dt="fast")), "metadata 'dt' must be a number"),
     "state names": (dict(meta=_metadata(state_names=_swapped_state_names())), "metadata 'state_names' must be"),

@@ -130,10 +130,13 @@ def test_a_float32_model_uses_its_own_derivative_graph(tmp_path):
         assert np.array_equal(a, b)
 
 
-def test_onnx_model_without_derivative_graph_is_refused(tmp_path):
+def test_onnx_model_without_derivative_graph_uses_central_differences(tmp_path):
     shutil.copy(BASELINE, tmp_path / "lonely.onnx")
-    with pytest.raises(ModelContractError, match="derivative graph"):
-        OnnxModel(tmp_path / "lonely.onnx")
+    m = OnnxModel(tmp_path / "lonely.onnx")
+    assert m.derivatives == "central differences" and m._jac is None
+    x, u = feasible_samples(4)
+    for a, b in zip(m.linearize_single(x, u), m.linearize(x, u)):   # no float32 graph to use: the same path
+        assert np.array_equal(a, b)
 
 
 def test_analytic_model_with_identified_parameters():
