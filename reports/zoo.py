@@ -59,12 +59,12 @@ def answer_text(study: dict) -> str:
         mid = [n for n, r in models.items() if lo_band <= _mae(r) < hi_band]
         s = f"**{controller_label(c)}.** "
         if low:
-            s += f"The {len(low)} models under {1e3 * lo_band:.0f} mm crashed with probability {_span(low)}; "
+            s += f"The {_models(len(low))} under {1e3 * lo_band:.0f} mm crashed with probability {_span(low)}; "
         if high:
-            s += f"the {len(high)} models at {1e3 * hi_band:.0f} mm or more with {_span(high)}; "
+            s += f"the {_models(len(high))} at {1e3 * hi_band:.0f} mm or more with {_span(high)}; "
         if mid:
             flown = sum(p[n] == 0 for n in mid)
-            s += f"in between, {flown} of {len(mid)} models flew every member. "
+            s += f"in between, {flown} of {_models(len(mid))} flew every member. "
         best = _best(study["scores"][c], "auc")
         base = next((r for r in study["scores"][c] if r["candidate"] == "rollout_100_mae_m"), None)
         if best is None:
@@ -83,6 +83,10 @@ def answer_text(study: dict) -> str:
                   f" (Spearman {bs['spearman']:+.2f}, 95 % {_ci(bs['spearman_ci95'], '+.2f', ' to ')}).")
         lines.append(s)
     return "\n\n".join(lines)
+
+
+def _models(n: int) -> str:
+    return f"{n} model" + ("" if n == 1 else "s")
 
 
 def _span(values) -> str:

@@ -329,7 +329,7 @@ def test_the_zoo_study_leads_the_report(results_dir):
     lead = _section(md, HEADINGS[0])
     assert "figures/dose_response.png" in lead and "pinnmpc study --members 10" in lead and "123 closed-loop" in lead
     # answer: bands under 35 mm (fine) and from 80 mm (bad, awful); the best crash predictor and its AUC
-    assert "The 1 models under 35 mm crashed with probability 0.00 each" in lead
+    assert "The 1 model under 35 mm crashed with probability 0.00 each" in lead
     assert "the 2 models at 80 mm or more with 1.00 each" in lead
     assert "hover chordal distance (nu-gap bound): AUC 0.97 (95 % 0.80–1.00), against 0.83 for the 100-step MAE" \
         in lead
