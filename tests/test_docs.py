@@ -8,8 +8,9 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 #: Largest README, bytes.
 README_MAX_BYTES = 8000
-#: References to material outside the repository (the development notes it was built from).
-OUTSIDE = re.compile(r"shared/|DESIGN section|issue [0-9]")
+#: References to material outside the repository (the development notes it was built from), written in parts so
+#: that this file does not match itself.
+OUTSIDE = re.compile("|".join(["sha" + "red/", "DESIGN" + " section", "issue" + " [0-9]"]))
 #: Files searched for such references: every text file of the project (binary files and caches skipped).
 TEXT_SUFFIXES = {".py", ".md", ".toml", ".json", ".txt", ".cfg", ".ini", ".yml", ".yaml", ".html", ".sh", ""}
 
@@ -30,7 +31,7 @@ def test_no_file_points_outside_the_repository():
         except UnicodeDecodeError:
             continue
         for i, line in enumerate(text.splitlines(), 1):
-            if OUTSIDE.search(line) and p.name != "test_docs.py":
+            if OUTSIDE.search(line):
                 hits.append(f"{p.relative_to(REPO)}:{i}: {line.strip()[:100]}")
     assert not hits, "\n".join(hits)
 
