@@ -33,7 +33,17 @@ def small_ds():
 def fake_stats():
     g = torch.Generator().manual_seed(0)
     return {"in_mean": torch.randn(13, generator=g) * 0.1, "in_std": torch.rand(13, generator=g) + 0.5,
-            "out_scale": torch.rand(12, generator=g) * 0.1 + 0.01}
+            "out_scale": torch.rand(12, generator=g) * 0.1 + 0.01,
+            # the zoo's absolute-state variant: every state and input, and the next state
+            "abs_in_mean": torch.randn(16, generator=g) * 0.1, "abs_in_std": torch.rand(16, generator=g) + 0.5,
+            "abs_out_mean": torch.randn(12, generator=g) * 0.1, "abs_out_std": torch.rand(12, generator=g) + 0.5}
+
+
+#: The four architectures, and the model zoo's variants of them (pinn.models.VARIANT_DEFAULTS).
+JACOBIAN_CASES = [(a, None) for a in ARCHITECTURES] + [
+    ("baseline", {"activation": "softplus"}), ("baseline", {"activation": "softplus", "gain": 10.0}),
+    ("fourier", {"fourier_max": 12}), ("fourier", {"fourier_max": 12, "activation": "softplus"}),
+    ("modular", {"coupled": False}), ("absolute", None), ("absolute", {"activation": "softplus"})]
 
 
 def random_xu(n, seed=0, dtype=torch.float64):
@@ -127,9 +137,9 @@ def test_forward_residual_form_and_positive_parameters(arch):
                                P.theta * 1.3, rtol=1e-6)
 
 
-@pytest.mark.parametrize("arch", ARCHITECTURES)
-def test_forward_jacobian_equals_autograd(arch):
-    m = build_model(arch, fake_stats(), P.theta).double().eval()
+@pytest.mark.parametrize("arch,variant", JACOBIAN_CASES)
+def test_forward_jacobian_equals_autograd(arch, variant):
+    m = build_model(arch, fake_stats(), P.theta, variant=variant).double().eval()
     x, u = random_xu(5, seed=4)
     xn, A, B = m.forward_jacobian(x, u)
     Jx, Ju = torch.autograd.functional.jacobian(lambda a, b: m(a, b), (x, u))
