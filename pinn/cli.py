@@ -30,7 +30,14 @@ def register(sub) -> None:
     src.add_argument("--regime", default="small", choices=("small", "aggressive"),
                      help="without --data: generate the default dataset of this regime (100 x 10 s)")
     p.add_argument("--data-seed", type=int, default=0, help="seed of the generated dataset (default 0)")
-    p.add_argument("--name", default=None, help="file stem (default: ARCH, or ARCH_REGIME off the small regime)")
+    p.add_argument("--fidelity", default="nominal", choices=("nominal", "high"),
+                   help="without --data: simulator of the generated dataset (high: motor lag, rotor drag and "
+                        "rotor gyroscopic torque, which no model contains)")
+    p.add_argument("--inputs", default="commanded", choices=("commanded", "realized"),
+                   help="without --data: log the wrench command (default) or the wrench the rotors realized, "
+                        "i.e. commands kept inside the rotor limits (nominal fidelity only)")
+    p.add_argument("--name", default=None, help="file stem (default: ARCH, then _REGIME off the small regime, "
+                                                 "_highfi and _realized off the defaults)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     p.add_argument("--out", type=Path, required=True, help="output folder, e.g. models/")
     p.set_defaults(handler=cmd_train)
@@ -83,10 +90,29 @@ def _dataset(args):
         spec = {"file": str(args.data), "regime": m["regime"], "n_traj": m["n_traj"], "duration_s": m["duration_s"],
                 "seed": m["seed"], "noise": noise, "fingerprint": ds.fingerprint()}
         return ds, spec
-    ds = make_dataset(args.regime, 100, 10.0, args.data_seed)
-    spec = {"regime": args.regime, "n_traj": 100, "duration_s": 10.0, "seed": args.data_seed, "noise": "default",
-            "fingerprint": ds.fingerprint()}
+    from sim.params import FIDELITIES
+
+    fidelity = getattr(args, "fidelity", "nominal")
+    inputs = getattr(args, "inputs", "commanded")
+    ds = make_dataset(args.regime, 100, 10.0, args.data_seed, fidelity=FIDELITIES[fidelity], inputs=inputs)
+    spec = {"regime": args.regime, "n_traj": 100, "duration_s": 10.0, "seed": args.data_seed, "noise": "default"}
+    # Recorded only off their defaults, so that the description (and hash) of older models stays as it was.
+    if fidelity != "nominal":
+        spec["fidelity"] = fidelity
+    if inputs != "commanded":
+        spec["inputs"] = inputs
+    spec["fingerprint"] = ds.fingerprint()
     return ds, spec
+
+
+def default_name(arch: str, spec: dict) -> str:
+    """File stem of a trained model: ARCH, then _REGIME off the small regime, _highfi, _realized."""
+    name = arch if spec["regime"] == "small" else f"{arch}_{spec['regime']}"
+    if spec.get("fidelity", "nominal") == "high":
+        name += "_highfi"
+    if spec.get("inputs", "commanded") == "realized":
+        name += "_realized"
+    return name
 
 
 def torch_step(model):
@@ -149,13 +175,15 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.threads < 1:
         raise ValueError(f"--threads must be >= 1; found {args.threads}")
     ds, spec = _dataset(args)
-    name = args.name or (args.arch if spec["regime"] == "small" else f"{args.arch}_{spec['regime']}")
+    name = args.name or default_name(args.arch, spec)
     res, metrics = _train_one(ds, args.arch, args.profile, args.seed, args.threads, None,
                               progress=sys.stderr.isatty())
     training_config = {"name": name, "recipe": args.arch, "train": res.config.to_dict(), "data": spec}
     paths = export_model(res.model, args.out, name, training_config, spec["seed"], metrics, res.stats)
     cmd = (f"pinnmpc train --arch {args.arch} --profile {args.profile} --seed {args.seed} "
-           + (f"--data {args.data} " if args.data else f"--regime {spec['regime']} --data-seed {spec['seed']} ")
+           + (f"--data {args.data} " if args.data else f"--regime {spec['regime']} --data-seed {spec['seed']} "
+              + (f"--fidelity {spec['fidelity']} " if "fidelity" in spec else "")
+              + (f"--inputs {spec['inputs']} " if "inputs" in spec else ""))
            + f"--threads {args.threads} " + (f"--name {args.name} " if args.name else "") + f"--out {args.out}")
     last = res.history[-1]
     entry = {

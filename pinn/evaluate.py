@@ -56,9 +56,15 @@ def data_spec(training_config: dict) -> dict:
 def regenerate(spec: dict):
     """Rebuild the dataset of ``spec`` and check its fingerprint."""
     from sim.excitation import make_dataset
+    from sim.params import FIDELITIES
 
     noise = NoiseModel() if spec.get("noise", "default") == "default" else NoiseModel.none()
-    ds = make_dataset(spec["regime"], int(spec["n_traj"]), float(spec["duration_s"]), int(spec["seed"]), noise=noise)
+    fidelity = spec.get("fidelity", "nominal")
+    if fidelity not in FIDELITIES:
+        raise ValueError(f"the model's data description names fidelity {fidelity!r}; this code knows "
+                         f"{', '.join(FIDELITIES)}")
+    ds = make_dataset(spec["regime"], int(spec["n_traj"]), float(spec["duration_s"]), int(spec["seed"]), noise=noise,
+                      fidelity=FIDELITIES[fidelity], inputs=spec.get("inputs", "commanded"))
     fp = spec.get("fingerprint")
     if fp and ds.fingerprint() != fp:
         raise ValueError(f"regenerated {spec['regime']} dataset (seed {spec['seed']}) does not match the "
@@ -70,9 +76,12 @@ def crlb_train_split(ds) -> dict:
     """CRLB standard deviation of each parameter for the training split of ``ds`` (default noise)."""
     from sim.excitation import make_dataset
     from sim.fisher import fisher_from_dataset
+    from sim.params import Fidelity
 
     m = ds.meta
-    clean = make_dataset(m["regime"], m["n_traj"], m["duration_s"], m["seed"], noise=NoiseModel.none())
+    # The same flights without noise (the bound is evaluated at the true states), through the nominal model.
+    clean = make_dataset(m["regime"], m["n_traj"], m["duration_s"], m["seed"], noise=NoiseModel.none(),
+                         fidelity=Fidelity(**m.get("fidelity", {})))
     res = fisher_from_dataset(clean.subset(clean.split == 0), "wrench", NoiseModel(**m["noise"]))
     return {n: float(v) for n, v in zip(THETA_NAMES, res.crlb_std)}
 

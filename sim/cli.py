@@ -23,6 +23,9 @@ def register(sub) -> None:
                    help="measurement noise: the stated default (1 mm, 1 mrad, 5 mrad/s, 5 mm/s, 0.01 RU) or none")
     p.add_argument("--fidelity", choices=("nominal", "high"), default="nominal",
                    help="simulator fidelity (high adds motor lag, rotor drag, rotor gyroscopic torque)")
+    p.add_argument("--inputs", choices=("commanded", "realized"), default="commanded",
+                   help="log the wrench command (default) or the wrench the rotors realized (a command kept "
+                        "inside the rotor limits; nominal fidelity only)")
     p.add_argument("--out", required=True, type=Path, help="output file, .npz")
     p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
     p.set_defaults(handler=cmd_data)
@@ -40,13 +43,13 @@ def register(sub) -> None:
 def cmd_data(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc data``."""
     from .excitation import make_dataset
-    from .params import HIGH_FIDELITY, NOMINAL, NoiseModel
+    from .params import FIDELITIES, NoiseModel
 
     if args.out.suffix != ".npz":
         raise ValueError(f"--out must end in .npz; found {str(args.out)!r}")
     ds = make_dataset(args.regime, args.n_traj, args.duration, args.seed,
                       noise=NoiseModel() if args.noise == "default" else NoiseModel.none(),
-                      fidelity=HIGH_FIDELITY if args.fidelity == "high" else NOMINAL,
+                      fidelity=FIDELITIES[args.fidelity], inputs=args.inputs,
                       progress=sys.stderr.isatty())
     ds.save(args.out)
     s = ds.summary()

@@ -42,6 +42,8 @@ from .simulator import Simulator
 FORMAT_VERSION = 1
 SPLIT_NAMES = ("train", "val", "test")
 SPLIT_FRACTIONS = (0.70, 0.15, 0.15)
+#: What a dataset's ``u`` can log (``make_dataset(inputs=...)``).
+INPUT_LOGS = ("commanded", "realized")
 
 
 @dataclass(frozen=True)
@@ -362,7 +364,7 @@ def _split(n: int, rng: np.random.Generator) -> np.ndarray:
 
 def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.0, seed: int = 0, *,
                  noise: NoiseModel | None = None, fidelity: Fidelity = NOMINAL,
-                 params: QuadParams | None = None, progress: bool = False) -> Dataset:
+                 params: QuadParams | None = None, inputs: str = "commanded", progress: bool = False) -> Dataset:
     """Fly seeded excitation trajectories and log them.
 
     Parameters
@@ -382,6 +384,13 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
         Simulator fidelity (nominal by default).
     params : QuadParams, optional
         True parameters; reference values when omitted.
+    inputs : {"commanded", "realized"}
+        What ``u`` logs: the controller's wrench command (default; where a
+        rotor saturates it is not the wrench applied), or the wrench the
+        rotors realized, i.e. a command kept inside the rotor limits. The
+        flights are the same either way; only the logged input differs.
+        ``"realized"`` needs a simulator without motor lag (with lag the
+        wrench changes within a period).
     progress : bool
         Show a progress bar on stderr.
 
@@ -397,6 +406,12 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
     noise = NoiseModel() if noise is None else noise
     if not isinstance(noise, NoiseModel):
         raise SimInputError(f"noise must be a NoiseModel; found {type(noise).__name__}")
+    inputs = choice(inputs, "inputs", INPUT_LOGS)
+    if not isinstance(fidelity, Fidelity):
+        raise SimInputError(f"fidelity must be a Fidelity; found {type(fidelity).__name__}")
+    if inputs == "realized" and fidelity.motor_tau > 0:
+        raise SimInputError("inputs='realized' needs a simulator without motor lag (fidelity.motor_tau = 0); "
+                            f"found motor_tau {fidelity.motor_tau} s")
     p = QuadParams() if params is None else params
     n_steps = int(round(duration / DT))
     if n_steps < 1:
@@ -458,8 +473,11 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
         "seed": int(seed),
         "noise": dataclasses.asdict(noise),
         "fidelity": dataclasses.asdict(fidelity),
+        "inputs": inputs,
         "params": dataclasses.asdict(p),
         "split_fractions": list(SPLIT_FRACTIONS),
     }
+    if inputs == "realized":
+        u = wrench.copy()
     return Dataset(x=meas[:, :-1].copy(), u=u, rotor_speed=n_meas, x_next=meas[:, 1:].copy(),
                    wrench=wrench, saturated=sat, split=_split(n_traj, split_rng), meta=meta)

@@ -36,6 +36,7 @@ Input parameterizations:
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass
 
 import casadi as ca
@@ -46,6 +47,10 @@ from .dynamics_casadi import step_function
 from .errors import SimInputError
 from .params import NX, THETA_NAMES, NoiseModel, QuadParams
 from .rotors import allocate, mixer
+
+#: Threads of a mapped CasADi evaluation of the sensitivities (each sample is computed alone, so the result
+#: does not depend on the count).
+MAP_THREADS = max(1, min(2, os.cpu_count() or 1))
 
 INPUT_KINDS = ("wrench", "motor")
 #: Eigenvalues below this fraction of the largest count as zero (rank).
@@ -135,22 +140,26 @@ class FisherResult:
 _FUNCS: dict = {}
 
 
-def _jac_function(p: QuadParams, inputs: str) -> ca.Function:
-    """CasADi function (x, u, theta) -> (dF/dtheta (12, 6), dF/dx (12, 12)), cached."""
-    key = (p, inputs)
+def _jac_function(p: QuadParams, inputs: str, state: bool = True) -> ca.Function:
+    """CasADi function (x, u, theta) -> (dF/dtheta (12, 6), dF/dx (12, 12)), or dF/dtheta alone; cached."""
+    # theta is an input of the function, so one function serves every theta with the same constants.
+    key = (p.with_theta(QuadParams().theta), inputs, state)
     if key not in _FUNCS:
         F = step_function(p, symbolic_theta=True, inputs=inputs)
         x, u, th = ca.SX.sym("x", NX), ca.SX.sym("u", 4), ca.SX.sym("theta", 6)
         xn = F(x, u, th)
-        _FUNCS[key] = ca.Function("sens", [x, u, th], [ca.jacobian(xn, th), ca.jacobian(xn, x)])
+        outs = [ca.jacobian(xn, th)] + ([ca.jacobian(xn, x)] if state else [])
+        _FUNCS[key] = ca.Function("sens", [x, u, th], outs)
     return _FUNCS[key]
 
 
 def _map_eval(f: ca.Function, x: np.ndarray, u: np.ndarray, theta: np.ndarray):
     """Evaluate ``f`` on N samples with one mapped CasADi call; outputs (N, rows, cols)."""
     n = x.shape[0]
-    fm = f.map(n, "serial")
+    fm = f.map(n, "thread", MAP_THREADS)
     outs = fm(x.T, u.T, np.repeat(theta[:, None], n, axis=1))
+    if f.n_out() == 1:
+        outs = (outs,)
     res = []
     for k, o in enumerate(outs):
         rows, cols = f.size1_out(k), f.size2_out(k)
@@ -159,7 +168,7 @@ def _map_eval(f: ca.Function, x: np.ndarray, u: np.ndarray, theta: np.ndarray):
 
 
 def sensitivities(x, u, p: QuadParams | None = None, inputs: str = "wrench",
-                  chunk: int = 5000) -> tuple[np.ndarray, np.ndarray]:
+                  chunk: int = 5000, state: bool = True):
     """Sensitivities of one control period to the parameters and to the state.
 
     Parameters
@@ -175,13 +184,15 @@ def sensitivities(x, u, p: QuadParams | None = None, inputs: str = "wrench",
         Meaning of ``u``.
     chunk : int
         Samples per CasADi call (memory bound).
+    state : bool
+        Also return ``A``; without it the call costs about a third.
 
     Returns
     -------
     S : numpy.ndarray, shape (N, 12, 6)
         ``d x_next / d theta`` in absolute units (per unit of each parameter).
     A : numpy.ndarray, shape (N, 12, 12)
-        ``d x_next / d x``.
+        ``d x_next / d x`` (only with ``state``).
     """
     p = QuadParams() if p is None else p
     inputs = choice(inputs, "inputs", INPUT_KINDS)
@@ -189,13 +200,10 @@ def sensitivities(x, u, p: QuadParams | None = None, inputs: str = "wrench",
     u = np.atleast_2d(as_batch(u, "u", 4))
     x, u = broadcast_batch(x, u)
     x, u = x.reshape(-1, NX), u.reshape(-1, 4)
-    f = _jac_function(p, inputs)
-    S, A = [], []
-    for lo in range(0, x.shape[0], chunk):
-        s, a = _map_eval(f, x[lo:lo + chunk], u[lo:lo + chunk], p.theta)
-        S.append(s)
-        A.append(a)
-    return np.concatenate(S), np.concatenate(A)
+    f = _jac_function(p, inputs, state)
+    parts = [_map_eval(f, x[lo:lo + chunk], u[lo:lo + chunk], p.theta) for lo in range(0, x.shape[0], chunk)]
+    S = np.concatenate([q[0] for q in parts])
+    return (S, np.concatenate([q[1] for q in parts])) if state else S
 
 
 def rotor_sensitivities(w, p: QuadParams | None = None) -> tuple[np.ndarray, np.ndarray]:

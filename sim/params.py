@@ -117,6 +117,8 @@ class Fidelity:
 
 NOMINAL = Fidelity()
 HIGH_FIDELITY = Fidelity(motor_tau=0.03, rotor_drag=1.2e-3, rotor_gyro=5e-6)
+#: Named fidelities (command-line ``--fidelity`` and the data description stored with a trained model).
+FIDELITIES = {"nominal": NOMINAL, "high": HIGH_FIDELITY}
 
 
 @dataclass(frozen=True)
