@@ -12,6 +12,9 @@ import sys
 from pathlib import Path
 
 from sim.files import write_json
+from sim.params import FIDELITIES
+
+FIDELITY_NAMES = tuple(FIDELITIES)
 
 ARCHS = ("baseline", "modular", "fourier", "proposed")
 
@@ -30,12 +33,16 @@ def register(sub) -> None:
     src.add_argument("--regime", default="small", choices=("small", "aggressive"),
                      help="without --data: generate the default dataset of this regime (100 x 10 s)")
     p.add_argument("--data-seed", type=int, default=0, help="seed of the generated dataset (default 0)")
-    p.add_argument("--fidelity", default="nominal", choices=("nominal", "high"),
+    p.add_argument("--fidelity", default="nominal", choices=FIDELITY_NAMES,
                    help="without --data: simulator of the generated dataset (high: motor lag, rotor drag and "
-                        "rotor gyroscopic torque, which no model contains)")
+                        "rotor gyroscopic torque, which no model contains; motor-lag, rotor-drag, rotor-gyro: one "
+                        "of them)")
     p.add_argument("--inputs", default="commanded", choices=("commanded", "realized"),
                    help="without --data: log the wrench command (default) or the wrench the rotors realized, "
-                        "i.e. commands kept inside the rotor limits (nominal fidelity only)")
+                        "i.e. commands kept inside the rotor limits (not with motor lag)")
+    p.add_argument("--dropout-until", type=float, default=1.0, metavar="F",
+                   help="recipes with dropout: switch it off after this fraction of the epochs (default 1: on "
+                        "throughout, the paper's recipe)")
     p.add_argument("--name", default=None, help="file stem (default: ARCH, then _REGIME off the small regime, "
                                                  "_highfi and _realized off the defaults)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
@@ -49,6 +56,7 @@ def register(sub) -> None:
     p.add_argument("--data", type=Path, default=None,
                    help="dataset .npz (default: regenerate each model's training dataset from its metadata)")
     p.add_argument("--json", type=Path, default=None, help="output JSON (default FOLDER/evaluation.json)")
+    p.add_argument("--jobs", type=int, default=1, help="datasets evaluated in parallel processes (default 1)")
     p.set_defaults(handler=cmd_evaluate)
 
     p = sub.add_parser("zoo", help="train the model zoo (open-loop quality from millimetres to divergence)",
@@ -90,8 +98,6 @@ def _dataset(args):
         spec = {"file": str(args.data), "regime": m["regime"], "n_traj": m["n_traj"], "duration_s": m["duration_s"],
                 "seed": m["seed"], "noise": noise, "fingerprint": ds.fingerprint()}
         return ds, spec
-    from sim.params import FIDELITIES
-
     fidelity = getattr(args, "fidelity", "nominal")
     inputs = getattr(args, "inputs", "commanded")
     ds = make_dataset(args.regime, 100, 10.0, args.data_seed, fidelity=FIDELITIES[fidelity], inputs=inputs)
@@ -106,10 +112,11 @@ def _dataset(args):
 
 
 def default_name(arch: str, spec: dict) -> str:
-    """File stem of a trained model: ARCH, then _REGIME off the small regime, _highfi, _realized."""
+    """File stem of a trained model: ARCH, then _REGIME off the small regime, _highfi (or the effect), _realized."""
     name = arch if spec["regime"] == "small" else f"{arch}_{spec['regime']}"
-    if spec.get("fidelity", "nominal") == "high":
-        name += "_highfi"
+    fidelity = spec.get("fidelity", "nominal")
+    if fidelity != "nominal":
+        name += "_highfi" if fidelity == "high" else "_" + fidelity.replace("-", "_")
     if spec.get("inputs", "commanded") == "realized":
         name += "_realized"
     return name
@@ -154,10 +161,11 @@ def _update_manifest(folder: Path, name: str, entry: dict, file: str = "manifest
     return path
 
 
-def _train_one(ds, arch: str, profile: str, seed: int, threads: int, recipe: str | None, progress: bool):
+def _train_one(ds, arch: str, profile: str, seed: int, threads: int, recipe: str | None, progress: bool,
+               **overrides):
     from .train import make_config, train
 
-    cfg = make_config(arch, profile, seed, recipe=recipe, threads=threads)
+    cfg = make_config(arch, profile, seed, recipe=recipe, threads=threads, **overrides)
     res = train(ds, cfg, progress=progress)
     return res, test_metrics(res.model, ds)
 
@@ -174,16 +182,20 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     if args.threads < 1:
         raise ValueError(f"--threads must be >= 1; found {args.threads}")
+    if not 0.0 <= args.dropout_until <= 1.0:
+        raise ValueError(f"--dropout-until must lie in [0, 1]; found {args.dropout_until}")
+    overrides = {"dropout_until": args.dropout_until} if args.dropout_until != 1.0 else {}
     ds, spec = _dataset(args)
     name = args.name or default_name(args.arch, spec)
     res, metrics = _train_one(ds, args.arch, args.profile, args.seed, args.threads, None,
-                              progress=sys.stderr.isatty())
+                              progress=sys.stderr.isatty(), **overrides)
     training_config = {"name": name, "recipe": args.arch, "train": res.config.to_dict(), "data": spec}
     paths = export_model(res.model, args.out, name, training_config, spec["seed"], metrics, res.stats)
     cmd = (f"pinnmpc train --arch {args.arch} --profile {args.profile} --seed {args.seed} "
            + (f"--data {args.data} " if args.data else f"--regime {spec['regime']} --data-seed {spec['seed']} "
               + (f"--fidelity {spec['fidelity']} " if "fidelity" in spec else "")
               + (f"--inputs {spec['inputs']} " if "inputs" in spec else ""))
+           + (f"--dropout-until {args.dropout_until:g} " if overrides else "")
            + f"--threads {args.threads} " + (f"--name {args.name} " if args.name else "") + f"--out {args.out}")
     last = res.history[-1]
     entry = {
@@ -216,7 +228,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc evaluate``."""
     from .evaluate import evaluate_dir, format_tables
 
-    result = evaluate_dir(args.folder, args.data, progress=sys.stderr.isatty())
+    if args.jobs < 1:
+        raise ValueError(f"--jobs must be >= 1; found {args.jobs}")
+    result = evaluate_dir(args.folder, args.data, progress=sys.stderr.isatty(), jobs=args.jobs)
     print(format_tables(result))
     out = args.json or args.folder / "evaluation.json"
     write_json(out, result)

@@ -7,7 +7,9 @@ import sys
 from pathlib import Path
 
 from .files import write_json
-from .params import THETA_NAMES
+from .params import FIDELITIES, THETA_NAMES
+
+FIDELITY_NAMES = tuple(FIDELITIES)
 
 
 def register(sub) -> None:
@@ -21,11 +23,12 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     p.add_argument("--noise", choices=("default", "none"), default="default",
                    help="measurement noise: the stated default (1 mm, 1 mrad, 5 mrad/s, 5 mm/s, 0.01 RU) or none")
-    p.add_argument("--fidelity", choices=("nominal", "high"), default="nominal",
-                   help="simulator fidelity (high adds motor lag, rotor drag, rotor gyroscopic torque)")
+    p.add_argument("--fidelity", choices=FIDELITY_NAMES, default="nominal",
+                   help="simulator fidelity: high adds motor lag, rotor drag and rotor gyroscopic torque; "
+                        "motor-lag, rotor-drag, rotor-gyro add one of them")
     p.add_argument("--inputs", choices=("commanded", "realized"), default="commanded",
                    help="log the wrench command (default) or the wrench the rotors realized (a command kept "
-                        "inside the rotor limits; nominal fidelity only)")
+                        "inside the rotor limits; not with motor lag)")
     p.add_argument("--out", required=True, type=Path, help="output file, .npz")
     p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
     p.set_defaults(handler=cmd_data)

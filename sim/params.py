@@ -117,8 +117,12 @@ class Fidelity:
 
 NOMINAL = Fidelity()
 HIGH_FIDELITY = Fidelity(motor_tau=0.03, rotor_drag=1.2e-3, rotor_gyro=5e-6)
-#: Named fidelities (command-line ``--fidelity`` and the data description stored with a trained model).
-FIDELITIES = {"nominal": NOMINAL, "high": HIGH_FIDELITY}
+#: Named fidelities (command-line ``--fidelity`` and the data description stored with a trained model): nominal,
+#: high (all three effects) and each effect of the high-fidelity simulator alone.
+FIDELITIES = {"nominal": NOMINAL, "high": HIGH_FIDELITY,
+              "motor-lag": Fidelity(motor_tau=HIGH_FIDELITY.motor_tau),
+              "rotor-drag": Fidelity(rotor_drag=HIGH_FIDELITY.rotor_drag),
+              "rotor-gyro": Fidelity(rotor_gyro=HIGH_FIDELITY.rotor_gyro)}
 
 
 @dataclass(frozen=True)
