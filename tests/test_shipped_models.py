@@ -13,13 +13,24 @@ ROOT = Path(__file__).resolve().parents[1]
 MODELS = ROOT / "models"
 MANIFEST = json.loads((MODELS / "manifest.json").read_text())
 NAMES = sorted(MANIFEST)
+#: The identification study's models (models/identification), with their own manifest.
+IDENT = MODELS / "identification"
+IDENT_MANIFEST = json.loads((IDENT / "manifest.json").read_text())
+#: Every shipped model as (folder, name).
+ALL = [(MODELS, n) for n in NAMES] + [(IDENT, n) for n in sorted(IDENT_MANIFEST)]
+IDS = [f"{d.name}/{n}" for d, n in ALL]
 
 TOL = {
     "parity": 1e-5,        # torch vs onnxruntime, relative to each state's spread of x_next - x
     "fd": 1e-3,            # exported A, B vs central differences of the model (relative, per sample)
     "reproduce": 0.05,     # retrained metrics vs the manifest's
+    "reproduce_theta": 0.05,   # retrained theta-hat error vs the manifest's (relative, plus 0.01 point)
 }
 REQUIRED = {"baseline", "modular", "fourier", "proposed", "baseline_aggressive", "proposed_aggressive"}
+#: The identification study: Baseline and Proposed on each data cell off the shipped ones, both with two more
+#: training seeds, and the Proposed recipe with dropout switched off for the last quarter of the epochs.
+REQUIRED_IDENT = {f"{a}_{c}" for a in ("baseline", "proposed")
+                     for c in ("highfi", "aggressive_highfi", "aggressive_realized", "seed1", "seed2")} | {"proposed_dropout75"}
 
 
 def envelope_inputs(n, seed=0):
@@ -30,41 +41,46 @@ def envelope_inputs(n, seed=0):
     return x, u
 
 
+def _manifest(folder):
+    return MANIFEST if folder == MODELS else IDENT_MANIFEST
+
+
 def test_every_required_model_is_shipped():
     assert REQUIRED <= set(NAMES)
-    for name in NAMES:
-        for f in MANIFEST[name]["files"].values():
-            assert (MODELS / f).is_file(), f
+    assert REQUIRED_IDENT <= set(IDENT_MANIFEST)
+    for folder, name in ALL:
+        for f in _manifest(folder)[name]["files"].values():
+            assert (folder / f).is_file(), f
 
 
-@pytest.mark.parametrize("name", NAMES)
-def test_shipped_model_passes_the_contract_and_matches_its_manifest(name):
-    info = check_model(MODELS / f"{name}.onnx")
-    assert info.jacobian == jacobian_path(MODELS / f"{name}.onnx")
-    assert info.config_hash == MANIFEST[name]["config_hash"]
-    assert info.test_metrics["rollout_100_mae"] == MANIFEST[name]["metrics"]["rollout_100_mae"]
+@pytest.mark.parametrize("folder, name", ALL, ids=IDS)
+def test_shipped_model_passes_the_contract_and_matches_its_manifest(folder, name):
+    info = check_model(folder / f"{name}.onnx")
+    assert info.jacobian == jacobian_path(folder / f"{name}.onnx")
+    assert info.config_hash == _manifest(folder)[name]["config_hash"]
+    assert info.test_metrics["rollout_100_mae"] == _manifest(folder)[name]["metrics"]["rollout_100_mae"]
 
 
-@pytest.mark.parametrize("name", NAMES)
-def test_torch_and_onnxruntime_agree(name):
+@pytest.mark.parametrize("folder, name", ALL, ids=IDS)
+def test_torch_and_onnxruntime_agree(folder, name):
     import torch
 
     from pinn.export import load_torch_model
 
-    model, _ = load_torch_model(MODELS / f"{name}.pt")
+    model, _ = load_torch_model(folder / f"{name}.pt")
     x, u = envelope_inputs(1000)
     with torch.no_grad():
         ref = model.double()(torch.tensor(x), torch.tensor(u)).numpy()
-    got = open_session(MODELS / f"{name}.onnx").run(["x_next"], {"x": x, "u": u})[0]
+    got = open_session(folder / f"{name}.onnx").run(["x_next"], {"x": x, "u": u})[0]
     scale = np.std(ref - x, axis=0)
     assert np.max(np.abs(got - ref) / scale) < TOL["parity"]
 
 
-@pytest.mark.parametrize("name", NAMES)
-def test_exported_derivatives_match_central_differences(name):
+@pytest.mark.parametrize("folder, name", ALL, ids=IDS)
+def test_exported_derivatives_match_central_differences(folder, name):
     x, u = envelope_inputs(20, seed=1)
-    model = open_session(MODELS / f"{name}.onnx")
-    _, A, B = open_session(jacobian_path(MODELS / f"{name}.onnx")).run(["x_next", "A", "B"], {"x": x, "u": u})
+    model = open_session(folder / f"{name}.onnx")
+    _, A, B = open_session(jacobian_path(folder / f"{name}.onnx")).run(["x_next", "A", "B"], {"x": x, "u": u})
 
     def f(xx, uu):
         return model.run(["x_next"], {"x": xx, "u": uu})[0]
@@ -99,3 +115,24 @@ def test_retraining_reproduces_the_shipped_metrics(tmp_path):
         for key in ("position", "z", "phi", "vz"):
             old, now = entry["metrics"][group][key], new[group][key]
             assert abs(now - old) <= TOL["reproduce"] * old, (group, key, old, now)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(IDENT_MANIFEST))
+def test_retraining_an_identification_model_reproduces_it(tmp_path, name):
+    """Run a models/identification manifest command into a temporary folder (5-8 minutes each)."""
+    from scenarios.cli import main
+
+    entry = IDENT_MANIFEST[name]
+    args = shlex.split(entry["command"])[1:]
+    args[args.index("--out") + 1] = str(tmp_path)
+    assert main(args) == 0
+    new = json.loads((tmp_path / "manifest.json").read_text())[name]
+    assert new["data"]["fingerprint"] == entry["data"]["fingerprint"]
+    for group in ("one_step_mae", "rollout_100_mae"):
+        for key in ("position", "z", "phi", "vz"):
+            old, now = entry["metrics"][group][key], new["metrics"][group][key]
+            assert abs(now - old) <= TOL["reproduce"] * old, (group, key, old, now)
+    for key, old in entry["theta_err_pct"].items():
+        now = new["theta_err_pct"][key]
+        assert abs(now - old) <= TOL["reproduce_theta"] * abs(old) + 0.01, (key, old, now)
