@@ -51,11 +51,13 @@ def register(sub) -> None:
 
     p = sub.add_parser("evaluate", help="Tables I and II of the ONNX models in a folder",
                        description="1-step and 100-step MAE on the test split and identified parameters "
-                                   "against truth and Cramer-Rao bounds, beside the paper's numbers.")
-    p.add_argument("folder", type=Path)
+                                   "against truth and Cramer-Rao bounds, beside the paper's numbers, and the "
+                                   "classical estimator fitted to each model's training data.")
+    p.add_argument("folder", type=Path, nargs="+", help="folders of models (e.g. models models/identification)")
     p.add_argument("--data", type=Path, default=None,
                    help="dataset .npz (default: regenerate each model's training dataset from its metadata)")
-    p.add_argument("--json", type=Path, default=None, help="output JSON (default FOLDER/evaluation.json)")
+    p.add_argument("--json", type=Path, default=None, help="output JSON (default: evaluation.json in the first "
+                                                            "folder)")
     p.add_argument("--jobs", type=int, default=1, help="datasets evaluated in parallel processes (default 1)")
     p.set_defaults(handler=cmd_evaluate)
 
@@ -232,7 +234,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         raise ValueError(f"--jobs must be >= 1; found {args.jobs}")
     result = evaluate_dir(args.folder, args.data, progress=sys.stderr.isatty(), jobs=args.jobs)
     print(format_tables(result))
-    out = args.json or args.folder / "evaluation.json"
+    out = args.json or args.folder[0] / "evaluation.json"
     write_json(out, result)
     print(f"\nwrote {out}")
     return 0

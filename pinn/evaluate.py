@@ -28,6 +28,8 @@ PAPER_TABLE1 = {  # 1-step and 100-step MAE: z (m), phi (rad)
     "proposed": {"z_1": 0.026, "phi_1": 0.0002, "z_100": 0.029, "phi_100": 0.001},
 }
 PAPER_TABLE2 = {"m": 0.0, "kt": 0.0, "kq": 0.0, "Jxx": 5.0, "Jyy": 5.0, "Jzz": 5.0}  # error, %
+#: Section VI: inertia identification error, %, with small-angle data and with aggressive (45-60 deg) data.
+PAPER_TABLE6 = {"small": 5.0, "aggressive": 46.0}
 PAPER_TABLE3 = {  # 100-step position MAE, m
     "baseline": 1.49, "baseline+curriculum": 0.82, "baseline+curriculum+ss": 0.45,
     "baseline+curriculum+ss+dropout": 0.12, "proposed": 0.029,
@@ -53,8 +55,8 @@ def data_spec(training_config: dict) -> dict:
     return spec
 
 
-def regenerate(spec: dict):
-    """Rebuild the dataset of ``spec`` and check its fingerprint."""
+def regenerate(spec: dict, with_clean: bool = False):
+    """Rebuild the dataset of ``spec`` and check its fingerprint (with ``with_clean``: and its noise-free twin)."""
     from sim.excitation import make_dataset
     from sim.params import FIDELITIES
 
@@ -64,24 +66,38 @@ def regenerate(spec: dict):
         raise ValueError(f"the model's data description names fidelity {fidelity!r}; this code knows "
                          f"{', '.join(FIDELITIES)}")
     ds = make_dataset(spec["regime"], int(spec["n_traj"]), float(spec["duration_s"]), int(spec["seed"]), noise=noise,
-                      fidelity=FIDELITIES[fidelity], inputs=spec.get("inputs", "commanded"))
+                      fidelity=FIDELITIES[fidelity], inputs=spec.get("inputs", "commanded"), with_clean=with_clean)
+    ds, clean = ds if with_clean else (ds, None)
     fp = spec.get("fingerprint")
     if fp and ds.fingerprint() != fp:
         raise ValueError(f"regenerated {spec['regime']} dataset (seed {spec['seed']}) does not match the "
                          f"fingerprint stored with the model; the data generator has changed since training")
-    return ds
+    return (ds, clean) if with_clean else ds
 
 
-def crlb_train_split(ds) -> dict:
-    """CRLB standard deviation of each parameter for the training split of ``ds`` (default noise)."""
+def fidelity_name(fidelity: dict) -> str:
+    """Name of a dataset's simulator fidelity (``"nominal"``, ``"high"``), or ``"custom"``."""
+    import dataclasses
+
+    from sim.params import FIDELITIES
+
+    return next((n for n, f in FIDELITIES.items() if dataclasses.asdict(f) == dict(fidelity)), "custom")
+
+
+def crlb_train_split(ds, clean=None) -> dict:
+    """CRLB standard deviation of each parameter for the training split of ``ds`` (its noise model).
+
+    ``clean``: the same flights without noise, if already at hand (flown again from ``ds``'s description if not).
+    """
     from sim.excitation import make_dataset
     from sim.fisher import fisher_from_dataset
     from sim.params import Fidelity
 
     m = ds.meta
     # The same flights without noise (the bound is evaluated at the true states), through the nominal model.
-    clean = make_dataset(m["regime"], m["n_traj"], m["duration_s"], m["seed"], noise=NoiseModel.none(),
-                         fidelity=Fidelity(**m.get("fidelity", {})))
+    if clean is None:
+        clean = make_dataset(m["regime"], m["n_traj"], m["duration_s"], m["seed"], noise=NoiseModel.none(),
+                             fidelity=Fidelity(**m.get("fidelity", {})), inputs=m.get("inputs", "commanded"))
     res = fisher_from_dataset(clean.subset(clean.split == 0), "wrench", NoiseModel(**m["noise"]))
     return {n: float(v) for n, v in zip(THETA_NAMES, res.crlb_std)}
 
@@ -106,6 +122,8 @@ def evaluate_model(path, ds=None, crlb: dict | None = None, n_starts: int = 200,
         "architecture": info.architecture,
         "recipe": (info.training_config or {}).get("recipe", info.architecture),
         "regime": ds.meta["regime"],
+        "fidelity": fidelity_name(ds.meta.get("fidelity", {})),
+        "inputs": ds.meta.get("inputs", "commanded"),
         "one_step": one_step_mae(step, ds),
         "rollout_100": rollout_mae(step, ds, horizon=100, n_starts=n_starts),
         "theta_true": dict(zip(THETA_NAMES, map(float, truth))),
@@ -122,36 +140,135 @@ def evaluate_model(path, ds=None, crlb: dict | None = None, n_starts: int = 200,
     return out
 
 
-def evaluate_dir(folder, data_path=None, progress: bool = False) -> dict:
-    """Evaluate every model ``*.onnx`` (not ``*.jac.onnx``) in ``folder``."""
-    folder = Path(folder)
-    files = sorted(p for p in folder.glob("*.onnx") if not p.name.endswith(".jac.onnx"))
+def data_summary(ds, crlb: dict, estimate: bool = True) -> dict:
+    """What one training dataset allows: its saturation, the CRLB of its training split and the classical fit.
+
+    The classical estimator (:func:`sim.estimate.estimate_theta`) is fitted to the training split, the data the
+    PINNs train on; its error is given in % and as a multiple of the same CRLB standard deviation as theirs.
+    """
+    import time
+
+    from sim.estimate import estimate_theta
+
+    tr = ds.split == 0
+    out = {"regime": ds.meta["regime"], "fidelity": fidelity_name(ds.meta.get("fidelity", {})),
+           "fidelity_detail": dict(ds.meta.get("fidelity", {})), "inputs": ds.meta.get("inputs", "commanded"),
+           "n_traj": int(ds.meta["n_traj"]), "duration_s": float(ds.meta["duration_s"]), "seed": int(ds.meta["seed"]),
+           "saturated_fraction": float(np.mean(np.any(ds.saturated[tr], axis=-1))),
+           "crlb_std": crlb}
+    truth = QuadParams(**ds.meta["params"]).theta
+    out["theta_true"] = dict(zip(THETA_NAMES, map(float, truth)))
+    if estimate:
+        t0 = time.perf_counter()
+        est = estimate_theta(ds)
+        err = est.theta - truth
+        out["estimator"] = {
+            "method": "weighted nonlinear least squares through the nominal model (Gauss-Newton)",
+            "theta": est.as_dict(),
+            "theta_err_pct": dict(zip(THETA_NAMES, map(float, 100.0 * err / truth))),
+            "err_over_crlb": {n: float(abs(err[i]) / crlb[n]) for i, n in enumerate(THETA_NAMES)},
+            "std_pct": dict(zip(THETA_NAMES, map(float, 100.0 * est.std_rel))),
+            "iterations": est.iterations, "converged": est.converged,
+            "n_transitions": est.n_transitions, "seconds": round(time.perf_counter() - t0, 1)}
+    return out
+
+
+#: Datasets the main job studies with the classical estimator although no shipped model is trained on them: the
+#: small regime flown with each effect of the high-fidelity simulator alone (which effect moves which parameter).
+#: 30 flights (the first 30 of the 100 the models train on; a flight does not depend on how many are made), to
+#: keep the main job's time.
+EFFECT_SPECS = tuple({"regime": "small", "n_traj": 30, "duration_s": 10.0, "seed": 0, "noise": "default",
+                      "fidelity": f} for f in ("motor-lag", "rotor-drag", "rotor-gyro"))
+
+
+def _spec_task(task) -> tuple[dict, list[dict]]:
+    """Worker: one dataset (regenerated from its spec or read from a file), its summary and its models' rows."""
+    import sim  # noqa: F401  (pins the BLAS kernel and threads in a fresh worker)
+
+    spec, data_path, files, threads = task
+    import sim.fisher
+
+    if threads is not None:
+        sim.fisher.MAP_THREADS = threads     # a pool's workers share the cores: one thread each
+    if data_path is not None:
+        from sim.excitation import load_dataset
+        ds, clean = load_dataset(data_path), None
+    else:
+        ds, clean = regenerate(spec, with_clean=True)
+    crlb = crlb_train_split(ds, clean)
+    # A noise-free dataset gives the weighted fit nothing to weight by: it is summarized without it.
+    summary = data_summary(ds, crlb, estimate=not NoiseModel(**ds.meta["noise"]).is_zero)
+    if data_path is None:
+        summary["spec"] = {k: v for k, v in spec.items() if k != "fingerprint"}
+    rows = [evaluate_model(f, ds, crlb) for f in files]
+    return summary, rows
+
+
+def evaluate_dir(folder, data_path=None, progress: bool = False, jobs: int = 1, extra_specs=()) -> dict:
+    """Evaluate every model ``*.onnx`` (not ``*.jac.onnx``) in ``folder`` (a folder or a list of folders).
+
+    Models trained on the same data share one regenerated dataset, one CRLB and one run of the classical
+    estimator (``datasets`` in the result). ``extra_specs`` adds datasets (data descriptions as stored with a
+    model) that no model was trained on; ``jobs`` datasets are handled in parallel processes.
+    """
+    folders = [Path(f) for f in ([folder] if isinstance(folder, (str, Path)) else folder)]
+    files = [p for d in folders for p in sorted(d.glob("*.onnx")) if not p.name.endswith(".jac.onnx")]
     if not files:
-        raise ValueError(f"no .onnx models in {str(folder)!r}")
-    cache: dict = {}
-    rows = []
-    it = files
+        raise ValueError(f"no .onnx models in {', '.join(repr(str(d)) for d in folders)}")
+    groups: dict[str, list] = {}
+    specs: dict[str, dict] = {}
+    for f in files:
+        if data_path is not None:
+            key, spec = str(data_path), None
+        else:
+            spec = _spec_of(check_model(f))
+            key = json.dumps({k: v for k, v in spec.items() if k != "file"}, sort_keys=True)
+        specs.setdefault(key, spec)
+        groups.setdefault(key, []).append(f)
+    for spec in extra_specs:
+        key = json.dumps(spec, sort_keys=True)
+        specs.setdefault(key, spec)
+        groups.setdefault(key, [])
+    threads = 1 if jobs > 1 and len(groups) > 1 else None
+    tasks = [(specs[k], data_path, groups[k], threads) for k in groups]
+    # Largest groups first, so that the pool's last task is a short one.
+    order = sorted(range(len(tasks)), key=lambda i: -len(tasks[i][2]))
+    results: dict[int, tuple] = {}
+    bar = None
     if progress:
         from tqdm import tqdm
-        it = tqdm(files, desc="evaluate", unit="model", leave=False)
-    for f in it:
-        info = check_model(f)
-        if data_path is not None:
-            key = str(data_path)
-            if key not in cache:
-                from sim.excitation import load_dataset
-                ds = load_dataset(data_path)
-                cache[key] = (ds, crlb_train_split(ds))
-        else:
-            spec = _spec_of(info)
-            key = json.dumps(spec, sort_keys=True)
-            if key not in cache:
-                ds = regenerate(spec)
-                cache[key] = (ds, crlb_train_split(ds))
-        ds, crlb = cache[key]
-        rows.append(evaluate_model(f, ds, crlb, info=info))
-    return {"models": rows, "paper": {"table1": PAPER_TABLE1, "table2_err_pct": PAPER_TABLE2,
-                                      "table3_position_mae_m": PAPER_TABLE3}}
+        bar = tqdm(total=len(files) + len(extra_specs), desc="evaluate", unit="model", leave=False)
+    if jobs > 1 and len(tasks) > 1:
+        import concurrent.futures as cf
+        import multiprocessing as mp
+
+        from scenarios.runner import _worker_init
+
+        _worker_init()      # one BLAS thread per worker, as in the closed-loop sweep (inherited at spawn)
+        with cf.ProcessPoolExecutor(min(jobs, len(tasks)), mp_context=mp.get_context("spawn"),
+                                    initializer=_worker_init) as pool:
+            futs = {pool.submit(_spec_task, tasks[i]): i for i in order}
+            for fut in cf.as_completed(futs):
+                results[futs[fut]] = fut.result()
+                if bar is not None:
+                    bar.update(max(1, len(tasks[futs[fut]][2])))
+    else:
+        for i in order:
+            results[i] = _spec_task(tasks[i])
+            if bar is not None:
+                bar.update(max(1, len(tasks[i][2])))
+    if bar is not None:
+        bar.close()
+    by_file = {str(r_f): row for i in results for r_f, row in zip(tasks[i][2], results[i][1])}
+    rows = [by_file[str(f)] for f in files]
+    datasets = []
+    for i in range(len(tasks)):
+        summary = results[i][0]
+        summary["models"] = [Path(f).stem for f in tasks[i][2]]
+        datasets.append(summary)
+    return {"models": rows, "datasets": datasets,
+            "paper": {"table1": PAPER_TABLE1, "table2_err_pct": PAPER_TABLE2, "table3_position_mae_m": PAPER_TABLE3,
+                      "table6_inertia_err_pct": PAPER_TABLE6}}
 
 
 def _g(v, fmt=".3g"):
@@ -172,16 +289,36 @@ def format_tables(result: dict) -> str:
             f"{_g(k['z']):>12} | {_g(pap.get('z_100')):<7}{_g(k['phi']):>12} | {_g(pap.get('phi_100')):<7}"
             f"{_g(k['position']):>18}{k['n_diverged']:>6}/{k['n_rollouts']}")
     lines += ["", "Table II: identified parameters (error %, |error| / CRLB std) | paper error %", ""]
-    head = f"{'model':<22}" + "".join(f"{n:>22}" for n in THETA_NAMES)
+    head = f"{'model':<30}" + "".join(f"{n:>22}" for n in THETA_NAMES)
     lines += [head, "-" * len(head)]
     for r in result["models"]:
-        row = f"{r['name']:<22}"
+        if "theta_err_pct" not in r:
+            continue
+        row = f"{r['name']:<30}"
         for n in THETA_NAMES:
             e = r["theta_err_pct"][n]
             c = r.get("err_over_crlb", {}).get(n)
             row += f"{e:>+9.2f}% {_g(c, '.1f'):>5}σ | {PAPER_TABLE2[n]:>3g}%"
         lines.append(row)
+    for d in result.get("datasets", []):
+        est = d.get("estimator")
+        if not est:
+            continue
+        row = f"{'classical, ' + data_label(d):<30}"
+        for n in THETA_NAMES:
+            row += f"{est['theta_err_pct'][n]:>+9.2f}% {est['err_over_crlb'][n]:>5.1f}σ       "
+        lines.append(row)
     return "\n".join(lines)
+
+
+def data_label(d: dict) -> str:
+    """Short name of a dataset entry: regime, fidelity off nominal, realized inputs."""
+    parts = [d["regime"]]
+    if d.get("fidelity", "nominal") != "nominal":
+        parts.append("high fidelity" if d["fidelity"] == "high" else d["fidelity"])
+    if d.get("inputs", "commanded") != "commanded":
+        parts.append(f"{d['inputs']} inputs")
+    return ", ".join(parts)
 
 
 def markdown_tables(result: dict, ablation: dict | None = None) -> str:

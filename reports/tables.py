@@ -95,17 +95,26 @@ def table_one(evaluation: dict) -> str:
 
 def table_two(evaluation: dict) -> str:
     """Table II: identification error (%) with its multiple of the CRLB std, the paper's row, the CRLB rows."""
-    models = [m for m in evaluation.get("models", []) if isinstance(m, dict)]
+    # The paper's setting: data from the nominal simulator with the command logged (Table VI has the others).
+    def nominal(d):
+        return d.get("fidelity", "nominal") == "nominal" and d.get("inputs", "commanded") == "commanded"
+    models = [m for m in evaluation.get("models", []) if isinstance(m, dict) and nominal(m)]
+    fits = [d for d in evaluation.get("datasets", []) if isinstance(d, dict) and nominal(d) and d.get("estimator")]
     paper = (evaluation.get("paper") or {}).get("table2_err_pct") or {}
     names = theta_names(paper, *[m.get("theta_err_pct") for m in models])
     if not names:
         return "`evaluation.json` holds no identified parameters."
     rows = []
+
+    def cells(err, sig):
+        return [f"{fmt(err.get(n), '+.2f')} %" + (f" ({fmt(sig.get(n), '.1f')} σ)" if n in sig else "")
+                if n in err else MISSING for n in names]
     for m in models:
-        err, sig = m.get("theta_err_pct") or {}, m.get("err_over_crlb") or {}
-        rows.append([m.get("name", MISSING)] + [
-            f"{fmt(err.get(n), '+.2f')} %" + (f" ({fmt(sig.get(n), '.1f')} σ)" if n in sig else "")
-            if n in err else MISSING for n in names])
+        rows.append([m.get("name", MISSING)] + cells(m.get("theta_err_pct") or {}, m.get("err_over_crlb") or {}))
+    for d in fits:
+        est = d["estimator"]
+        rows.append([f"classical estimator, {d.get('regime', MISSING)} regime data"]
+                    + cells(est.get("theta_err_pct") or {}, est.get("err_over_crlb") or {}))
     if paper:
         rows.append(["paper (Table II)"] + [f"{fmt(paper.get(n), 'g')} %" if n in paper else MISSING for n in names])
     seen = []
@@ -117,7 +126,10 @@ def table_two(evaluation: dict) -> str:
         rows.append([f"CRLB σ, {reg} regime ({m.get('name', MISSING)} training data; % of truth)"] + [
             f"{fmt(100.0 * crlb[n] / true[n], '.3f')} %" if n in crlb and true.get(n) else MISSING for n in names])
     text = ("Identification error of each parameter, % of the true value, and in brackets |error| as a "
-            "multiple of the Cramér-Rao standard deviation for that model's training data (σ).")
+            "multiple of the Cramér-Rao standard deviation for that model's training data (σ). Models trained on "
+            "data from the nominal simulator with the command logged, as in the paper; the classical estimator "
+            "(weighted nonlinear least squares through the nominal model, no network) is fitted to the same "
+            "training splits.")
     return text + "\n\n" + md_table(["model"] + names, rows)
 
 
@@ -165,29 +177,56 @@ def fisher_table(fisher: dict) -> str:
     return text + "\n\n" + md_table(header, rows)
 
 
-def table_three(ablation: dict | None) -> str:
-    """Table III: the ablation rows, or a sentence when ``ablation.json`` is missing."""
+def table_three(ablation: dict | None, evaluation: dict | None = None) -> str:
+    """Table III: the ablation rows, or a sentence when ``ablation.json`` is missing.
+
+    With ``evaluation`` (for the CRLB of the ablation's training data) each row also gives its inertia errors in
+    CRLB standard deviations: the step of the recipe that moves them is the cause of a bias.
+    """
     if not ablation:
         return "No `ablation.json` in this results folder, so Table III is not shown."
     rows = [r for r in ablation.get("rows", []) if isinstance(r, dict)]
     if not rows:
         return "`ablation.json` holds no rows, so Table III is not shown."
-    header = ["configuration", "100-step position MAE (m)", "improvement", "diverged", "paper MAE (m)",
-              "paper improvement"]
+    data = ablation.get("data") or {}
+    crlb = _ablation_crlb(evaluation, data)
+    inertias = ("Jxx", "Jyy", "Jzz")
+    header = (["configuration", "100-step position MAE (m)", "improvement", "diverged", "paper MAE (m)",
+               "paper improvement"] + ([f"{n} error" for n in inertias] if crlb else []))
+
+    def theta_cells(r):
+        err = r.get("theta_err_pct") or {}
+        return [f"{fmt(err.get(n), '+.2f')} % ({fmt(abs(err[n]) / crlb[n], '.1f')} σ)"
+                if n in err and crlb.get(n) else MISSING for n in inertias]
     body = [[r.get("configuration", MISSING), fmt(r.get("position_mae_100_m"), ".4f"),
              f"{fmt(r.get('improvement_pct'), '+.0f')} %", fmt(r.get("n_diverged"), "d"),
              fmt(r.get("paper_position_mae_100_m"), "g"), f"{fmt(r.get('paper_improvement_pct'), '.0f')} %"]
-            for r in rows]
-    data = ablation.get("data") or {}
+            + (theta_cells(r) if crlb else []) for r in rows]
     parts = [f"{k} {ablation[k]}" for k in ("profile", "seed") if k in ablation]
     if data:
         parts.append("data " + ", ".join(f"{k} {data[k]}" for k in ("regime", "n_traj", "duration_s", "seed")
                                          if k in data))
     text = ("100-step position MAE of each training configuration and its improvement over the first row, "
             "beside the paper's claims.")
+    if crlb:
+        text += (" The last columns give each configuration's inertia errors, % of the truth and in Cramér-Rao "
+                 "standard deviations of the training split.")
     if parts:
         text += " Settings: " + "; ".join(parts) + "."
     return text + "\n\n" + md_table(header, body)
+
+
+def _ablation_crlb(evaluation: dict | None, data: dict) -> dict:
+    """CRLB std of each inertia, % of truth, for the ablation's training data (from a matching dataset entry)."""
+    for d in (evaluation or {}).get("datasets", []):
+        spec = d.get("spec") or {}
+        if (isinstance(d.get("crlb_std"), dict) and spec.get("regime") == data.get("regime")
+                and spec.get("seed") == data.get("seed") and spec.get("n_traj") == data.get("n_traj")
+                and "fidelity" not in spec and "inputs" not in spec):
+            true = d.get("theta_true") or {}
+            return {n: 100.0 * d["crlb_std"][n] / true[n] for n in ("Jxx", "Jyy", "Jzz")
+                    if n in d["crlb_std"] and true.get(n)}
+    return {}
 
 
 def crash_text(run: dict) -> str:

@@ -61,6 +61,18 @@ NMPC_MODELS = ("oracle",)
 ENSEMBLE_SCENARIOS = ("figure8-fast",)
 ENSEMBLE_CONTROLLERS = ("ltv", "sqp")
 ENSEMBLE_MEMBERS = 10
+#: The high-fidelity plant: these scenarios flown by HIGHFI_CONTROLLERS with the oracle and with the models of
+#: HIGHFI_MODELS (paths under the models folder; those present), HIGHFI_MEMBERS ensemble members each on
+#: figure8-fast+highfi and one run on hover+highfi. The models trained on the plant's own data
+#: (``identification/*_highfi``) fly beside their twins trained on the nominal simulator's.
+HIGHFI_SCENARIOS = {"hover+highfi": 1, "figure8-fast+highfi": 5}
+HIGHFI_CONTROLLERS = ("sqp",)
+HIGHFI_MODELS = ("baseline.onnx", "proposed.onnx", "identification/baseline_highfi.onnx",
+                 "identification/proposed_highfi.onnx")
+#: Sub-folder of the models folder with the models of the identification study (Tables II and VI: other data
+#: cells, other seeds, a recipe variant); evaluated by the main job beside the shipped models, flown only on the
+#: high-fidelity plant.
+IDENTIFICATION_DIR = "identification"
 #: Time-dependent provenance fields (excluded when two runs are compared).
 PROVENANCE_TIMING = ("started", "finished", "wall_time_s", "stage_seconds")
 
@@ -74,6 +86,12 @@ def shipped_models(models_dir) -> list[str]:
     if not files:
         raise ScenarioError(f"no .onnx models in {str(d)!r}")
     return files
+
+
+def identification_models(models_dir) -> list[str]:
+    """Paths of the identification study's models (``IDENTIFICATION_DIR`` under ``models_dir``; none if it is absent)."""
+    d = Path(models_dir) / IDENTIFICATION_DIR
+    return sorted(str(p) for p in d.glob("*.onnx") if not p.name.endswith(".jac.onnx")) if d.is_dir() else []
 
 
 def main_scenarios(full: bool = False) -> list[str]:
@@ -107,6 +125,24 @@ def main_plan(models_dir="models", full: bool = False, scenarios: list[str] | No
     if full:
         specs += [RunSpec(sc, c, m, member=k) for sc in names if sc in ENSEMBLE_SCENARIOS
                   for c in ENSEMBLE_CONTROLLERS for m in models for k in range(ENSEMBLE_MEMBERS)]
+    if scenarios is None:
+        have = {s.run_id for s in specs}
+        specs += [s for s in highfi_plan(models_dir) if s.run_id not in have]
+    return specs
+
+
+def highfi_plan(models_dir="models") -> list[RunSpec]:
+    """The high-fidelity plant's runs (see :data:`HIGHFI_SCENARIOS`): ensembles where a scenario has members."""
+    d = Path(models_dir)
+    models = ["oracle"] + [str(d / m) for m in HIGHFI_MODELS if (d / m).is_file()]
+    specs = []
+    for sc, members in HIGHFI_SCENARIOS.items():
+        for c in HIGHFI_CONTROLLERS:
+            for m in models:
+                if members == 1:
+                    specs.append(RunSpec(sc, c, m))
+                else:
+                    specs += [RunSpec(sc, c, m, member=k) for k in range(members)]
     return specs
 
 
@@ -135,7 +171,7 @@ def provenance(models_dir) -> dict:
     """Versions, machine, commit, model hashes and the manifest's training seeds."""
     from .runner import _sha256
 
-    models = {Path(m).stem: _sha256(m) for m in shipped_models(models_dir)}
+    models = {Path(m).stem: _sha256(m) for m in shipped_models(models_dir) + identification_models(models_dir)}
     manifest = Path(models_dir) / "manifest.json"
     seeds = {}
     if manifest.is_file():
@@ -176,9 +212,10 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
     stage("Fisher information and Cramer-Rao bounds")
     from sim.fisher import fisher_table
     write_json(out / "fisher.json", fisher_table(progress=False))
-    stage("open-loop evaluation of the shipped models (Tables I, II)")
-    from pinn.evaluate import evaluate_dir
-    write_json(out / "evaluation.json", evaluate_dir(models_dir, progress=progress))
+    stage("open-loop evaluation and identification (Tables I, II, VI; the classical estimator on each dataset)")
+    from pinn.evaluate import EFFECT_SPECS, evaluate_dir
+    folders = [models_dir] + ([Path(models_dir) / IDENTIFICATION_DIR] if identification_models(models_dir) else [])
+    write_json(out / "evaluation.json", evaluate_dir(folders, progress=progress, jobs=jobs, extra_specs=EFFECT_SPECS))
     ablation = Path(models_dir) / "ablation.json"
     if ablation.is_file():
         shutil.copyfile(ablation, out / "ablation.json")

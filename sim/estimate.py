@@ -45,7 +45,7 @@ class Estimate:
     iterations : int
         Gauss-Newton iterations made.
     converged : bool
-        Whether the last relative step was below the tolerance.
+        Whether the last step was below the tolerance (in standard deviations of each parameter).
     cost : float
         Half the sum of squared whitened residuals at ``theta``.
     n_transitions, n_rotor_readings : int
@@ -93,27 +93,33 @@ def _jacobian(theta, S, L, u, use, noise: NoiseModel, base: QuadParams):
     return np.concatenate([J_dyn.reshape(-1, 6), J_rot[use]])
 
 
-def _gauss_newton(theta, data, noise, base, max_iter: int, tol: float, L=None):
+def _gauss_newton(theta, data, noise, base, max_iter: int, tol: float, L=None, S=None):
     """Gauss-Newton in relative coordinates from ``theta``; returns (theta, J, r, iterations, converged).
 
+    Converged when a step is below ``tol`` standard deviations (from the Gauss-Newton covariance at the
+    iterate it starts from) for every parameter; that step is taken and the last linearization stands.
+
     Without ``L`` the residual weights are evaluated anew at each iterate; with ``L`` they stay fixed
-    (and only the parameter sensitivities are evaluated, about a third of the cost).
+    (and only the parameter sensitivities are evaluated, about a third of the cost; ``S``: those at ``theta``,
+    if already known).
     """
     x, u, y, n_meas, use = data
     fixed = L is not None
 
-    def linearize(th):
+    def linearize(th, S_known=None):
         nonlocal L
         if fixed:
-            S = sensitivities(x, u, base.with_theta(th), "wrench", state=False)
+            S_th = S_known if S_known is not None else sensitivities(x, u, base.with_theta(th), "wrench",
+                                                                      state=False)
         else:
-            S, L = _weights(th, x, u, noise, base)
-        return _jacobian(th, S, L, u, use, noise, base), _residuals(th, L, x, u, y, n_meas, use, noise, base)
+            S_th, L = _weights(th, x, u, noise, base)
+        return _jacobian(th, S_th, L, u, use, noise, base), _residuals(th, L, x, u, y, n_meas, use, noise, base)
 
-    J, r = linearize(theta)
+    J, r = linearize(theta, S)
     for it in range(1, max_iter + 1):
         cost = 0.5 * float(r @ r)
         delta = np.linalg.lstsq(J, -r, rcond=None)[0]
+        std = np.sqrt(np.diag(np.linalg.inv(J.T @ J)))
         step = 1.0
         while True:   # halve a step that does not lower the cost (under this iterate's weights)
             trial = theta * (1.0 + step * delta)
@@ -123,19 +129,21 @@ def _gauss_newton(theta, data, noise, base, max_iter: int, tol: float, L=None):
                     break
             step *= 0.5
         theta = trial
+        if np.max(np.abs(step * delta) / std) < tol:
+            return theta, J, r_t, it, True
         J, r = linearize(theta)
-        if np.max(np.abs(step * delta)) < tol:
-            return theta, J, r, it, True
     return theta, J, r, max_iter, False
 
 
 #: Transitions of the first stage: Gauss-Newton on every k-th transition (k = N // PILOT_SIZE) brings theta
 #: close; the full data then need a few iterations with fixed weights.
 PILOT_SIZE = 7000
+#: The pilot stops when its last step is below this many of its own standard deviations.
+PILOT_TOL = 0.1
 
 
 def estimate_theta(ds, theta0=None, noise: NoiseModel | None = None, split: str = "train", max_iter: int = 30,
-                   tol: float = 1e-8) -> Estimate:
+                   tol: float = 1e-2) -> Estimate:
     """Fit ``theta`` to a :class:`sim.excitation.Dataset` by weighted nonlinear least squares.
 
     Parameters
@@ -149,7 +157,8 @@ def estimate_theta(ds, theta0=None, noise: NoiseModel | None = None, split: str 
     split : {"train", "val", "test"}
         Trajectories used.
     max_iter, tol : int, float
-        Gauss-Newton iteration limit, and the largest relative step that counts as converged.
+        Gauss-Newton iteration limit, and the largest step, in the estimate's own standard deviations of each
+        parameter, that counts as converged.
 
     Returns
     -------
@@ -188,9 +197,9 @@ def estimate_theta(ds, theta0=None, noise: NoiseModel | None = None, split: str 
         # Pilot on a thinned sample, then the full data with the weights of the pilot's estimate (a consistent
         # estimate, so the weighted fit keeps its efficiency) held fixed.
         pilot = tuple(a[::k] for a in data)
-        theta, _, _, it1, _ = _gauss_newton(theta, pilot, noise, base, max_iter, max(tol, 1e-6))
-        _, L = _weights(theta, x, u, noise, base)
-        theta, J, r, it2, converged = _gauss_newton(theta, data, noise, base, max_iter, tol, L=L)
+        theta, _, _, it1, _ = _gauss_newton(theta, pilot, noise, base, max_iter, max(tol, PILOT_TOL))
+        S, L = _weights(theta, x, u, noise, base)
+        theta, J, r, it2, converged = _gauss_newton(theta, data, noise, base, max_iter, tol, L=L, S=S)
         it = it1 + it2
     else:
         theta, J, r, it, converged = _gauss_newton(theta, data, noise, base, max_iter, tol)

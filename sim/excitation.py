@@ -364,7 +364,8 @@ def _split(n: int, rng: np.random.Generator) -> np.ndarray:
 
 def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.0, seed: int = 0, *,
                  noise: NoiseModel | None = None, fidelity: Fidelity = NOMINAL,
-                 params: QuadParams | None = None, inputs: str = "commanded", progress: bool = False) -> Dataset:
+                 params: QuadParams | None = None, inputs: str = "commanded", progress: bool = False,
+                 with_clean: bool = False):
     """Fly seeded excitation trajectories and log them.
 
     Parameters
@@ -393,10 +394,13 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
         wrench changes within a period).
     progress : bool
         Show a progress bar on stderr.
+    with_clean : bool
+        Also return the same flights without measurement noise (what the Fisher information is evaluated on),
+        without flying them again.
 
     Returns
     -------
-    Dataset
+    Dataset, or (Dataset, Dataset) with ``with_clean``: the measured one and its noise-free twin.
     """
     reg = REGIMES[choice(regime, "regime", REGIMES)]
     n_traj = positive_int(n_traj, "n_traj")
@@ -479,5 +483,12 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
     }
     if inputs == "realized":
         u = wrench.copy()
-    return Dataset(x=meas[:, :-1].copy(), u=u, rotor_speed=n_meas, x_next=meas[:, 1:].copy(),
-                   wrench=wrench, saturated=sat, split=_split(n_traj, split_rng), meta=meta)
+    split = _split(n_traj, split_rng)
+    ds = Dataset(x=meas[:, :-1].copy(), u=u, rotor_speed=n_meas, x_next=meas[:, 1:].copy(),
+                 wrench=wrench, saturated=sat, split=split, meta=meta)
+    if not with_clean:
+        return ds
+    clean = Dataset(x=x_true[:, :-1].copy(), u=u, rotor_speed=n_log, x_next=x_true[:, 1:].copy(), wrench=wrench,
+                    saturated=sat, split=split.copy(),
+                    meta={**meta, "noise": dataclasses.asdict(NoiseModel.none())})
+    return ds, clean

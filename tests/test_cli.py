@@ -77,6 +77,11 @@ def test_train_check_and_evaluate_round_trip(tmp_path, capsys):
     assert set(row["err_over_crlb"]) == {"m", "Jxx", "Jyy", "Jzz", "kt", "kq"}
     text = capsys.readouterr().out
     assert "Table I" in text and "Table II" in text and "paper" in text
+    # The classical estimator ran on the same training split, and sits within 3 CRLB sigma of the truth.
+    (fit,) = ev["datasets"]
+    assert fit["models"] == ["baseline"] and fit["crlb_std"] == row["crlb_std"]
+    assert max(fit["estimator"]["err_over_crlb"].values()) < 3.0
+    assert "classical, small" in text
     # The ablation can take this run instead of training the same configuration again.
     from pinn.cli import _reusable
     hit = _reusable(out, "baseline", entry["data"], "quick", 0)

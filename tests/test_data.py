@@ -10,6 +10,7 @@ from sim.excitation import REGIMES, load_dataset, make_dataset
 
 TOL = {
     "noise_std": 0.05,   # sample std of the logged noise vs the stated std (50k samples per state)
+    "realized_rounding": 1e-12,   # command vs realized wrench off saturation (N, and mN m for the torques)
 }
 
 
@@ -124,3 +125,20 @@ def test_load_rejects_foreign_files(tmp_path):
         load_dataset(f)
     with pytest.raises(ValueError, match="does not exist"):
         load_dataset(tmp_path / "nope.npz")
+
+
+def test_the_noise_free_twin_is_the_same_flights_made_without_noise():
+    noisy, clean = make_dataset("aggressive", 3, 2.0, 5, with_clean=True)
+    assert noisy.fingerprint() == make_dataset("aggressive", 3, 2.0, 5).fingerprint()
+    assert clean.fingerprint() == make_dataset("aggressive", 3, 2.0, 5, noise=NoiseModel.none()).fingerprint()
+
+
+def test_realized_inputs_log_the_applied_wrench_of_the_same_flights():
+    cmd = make_dataset("aggressive", 4, 5.0, 1)
+    real = make_dataset("aggressive", 4, 5.0, 1, inputs="realized")
+    assert np.array_equal(cmd.x, real.x) and np.array_equal(cmd.rotor_speed, real.rotor_speed)
+    assert np.array_equal(real.u, cmd.wrench) and real.meta["inputs"] == "realized"
+    # The command and the realized wrench differ where a rotor saturated, and only by rounding elsewhere.
+    sat = np.any(cmd.saturated, axis=-1)
+    gap = np.max(np.abs(cmd.u - real.u) / np.array([1.0, 1e-3, 1e-3, 1e-3]), axis=-1)
+    assert sat.any() and np.all(gap[~sat] < TOL["realized_rounding"]) and np.all(gap[sat] > 1e3 * TOL["realized_rounding"])

@@ -358,6 +358,8 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
     specs = main_plan(MODELS)
+    highfi = [s for s in specs if s.scenario.endswith("+highfi")]
+    specs = [s for s in specs if not s.scenario.endswith("+highfi")]
     ideal = [s for s in specs if s.timing == "ideal"]
     nmpc = {(s.scenario, s.model_name) for s in ideal if s.controller == "nmpc"}
     assert nmpc == {("figure8-fast", "oracle")}
@@ -372,6 +374,16 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     assert realtime == {("figure8-fast", c, m) for c in ("sqp", "ltv", "nmpc") for m in models}
     assert {s.scenario for s in main_plan(MODELS, full=True) if s.controller == "nmpc"} == set(scenario_names())
     assert len(models) == 1 + len(list(MODELS.glob("*.jac.onnx")))
+    # The high-fidelity plant: the oracle, the nominal-trained twins and the models trained on its own data, with
+    # ensemble members where the scenario has them, and no run twice.
+    from scenarios.campaign import HIGHFI_MODELS, HIGHFI_SCENARIOS
+    expect = {(sc, "oracle" if m == "oracle" else Path(m).stem, k)
+              for sc, n in HIGHFI_SCENARIOS.items() for m in ("oracle",) + HIGHFI_MODELS
+              for k in ([None] if n == 1 else range(n))}
+    assert {(s.scenario, s.model_name, s.member) for s in highfi} == expect
+    assert {s.controller for s in highfi} == {"sqp"} and all(s.timing == "ideal" for s in highfi)
+    full = main_plan(MODELS, full=True)
+    assert len({s.run_id for s in full}) == len(full)
 
 
 def test_perturbed_starts_of_a_well_posed_case_agree():

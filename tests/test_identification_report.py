@@ -1,0 +1,104 @@
+"""Table VI and the high-fidelity closed-loop table, from synthetic evaluation entries with known answers."""
+
+import re
+
+import pytest
+
+from reports.identification import NO_DATASETS, highfi_table, mismatch_text, table_six
+
+TRUTH = {"m": 0.068, "Jxx": 6.86e-5, "Jyy": 9.2e-5, "Jzz": 1.366e-4, "kt": 0.01, "kq": 7.83e-4}
+
+
+def _dataset(regime, fidelity, inputs, est_err, crlb_pct=0.1, sat=0.0):
+    crlb = {n: crlb_pct / 100 * v for n, v in TRUTH.items()}
+    return {"regime": regime, "fidelity": fidelity, "inputs": inputs, "saturated_fraction": sat, "n_traj": 100,
+            "duration_s": 10.0,
+            "crlb_std": crlb, "theta_true": TRUTH,
+            "estimator": {"theta_err_pct": est_err,
+                          "err_over_crlb": {n: abs(e) / crlb_pct for n, e in est_err.items()}}}
+
+
+def _model(name, arch, regime, fidelity, inputs, err, crlb_pct=0.1):
+    return {"name": name, "architecture": arch, "regime": regime, "fidelity": fidelity, "inputs": inputs,
+            "theta_err_pct": err, "err_over_crlb": {n: abs(e) / crlb_pct for n, e in err.items()}}
+
+
+def zero(**kw):
+    return {**{n: 0.0 for n in TRUTH}, **kw}
+
+
+@pytest.fixture
+def evaluation():
+    return {
+        "datasets": [
+            _dataset("small", "nominal", "commanded", zero(Jxx=0.05)),
+            _dataset("small", "high", "commanded", zero(Jxx=50.0, Jzz=0.2, kq=24.0)),
+            _dataset("aggressive", "nominal", "commanded", zero(), crlb_pct=0.05, sat=0.06),
+            _dataset("aggressive", "nominal", "realized", zero(), crlb_pct=0.05, sat=0.06),
+            _dataset("aggressive", "high", "commanded", zero(Jxx=40.0)),
+            _dataset("small", "motor-lag", "commanded", zero(Jyy=48.0)),
+        ],
+        "models": [
+            _model("proposed_aggressive", "proposed", "aggressive", "nominal", "commanded", zero(Jxx=20.0)),
+            _model("proposed_aggressive_realized", "proposed", "aggressive", "nominal", "realized", zero(Jxx=1.0)),
+            _model("baseline_highfi", "baseline", "small", "high", "commanded", zero(Jxx=49.0)),
+            _model("baseline", "baseline", "small", "nominal", "commanded", zero()),
+        ],
+        "paper": {"table6_inertia_err_pct": {"small": 5.0, "aggressive": 46.0}},
+    }
+
+
+def test_every_cell_has_its_crlb_row_estimator_and_models(evaluation):
+    md = table_six(evaluation)
+    rows = [line for line in md.splitlines() if line.startswith("| ")]
+    assert len(rows) == 1 + 6 * 2 + 4          # header, per cell a CRLB and an estimator row, the four models
+    assert sum("CRLB σ" in r for r in rows) == 6
+    high = next(r for r in rows if r.startswith("| small, high-fidelity simulator"))
+    assert "0.100 %" in high                    # CRLB sigma, % of truth
+    est = rows[rows.index(high) + 1]
+    assert "+50.00 % (500.0 σ)" in est and "50.0 %" in est.split("|")[-3]
+    nominal = next(r for r in rows if r.startswith("| small, nominal simulator"))
+    assert nominal.rstrip(" |").endswith("5 %")          # the paper's claim sits beside its cell
+    assert "6.0 %" in next(r for r in rows if r.startswith("| aggressive, nominal simulator |"))
+
+
+def test_the_causes_are_read_off_the_numbers(evaluation):
+    text = mismatch_text(evaluation)
+    fid = next(line for line in text.splitlines() if "high-fidelity simulator" in line and "Fidelity" in line)
+    # moved by more than 3 sigma (0.3 points at 0.1 %): Jxx by 49.95, kq by 24; Jzz's 0.2 points is within
+    assert "Jxx +50.0 points" in fid and "kq +24.0 points" in fid and "Jzz" not in fid
+    lag = next(line for line in text.splitlines() if "motor lag only" in line)
+    assert "Jyy +48.0 points" in lag
+    sat = next(line for line in text.splitlines() if "Saturation" in line)
+    assert "6.0 %" in sat and "proposed_aggressive against proposed_aggressive_realized: Jxx +19.0 points" in sat
+    obs = next(line for line in text.splitlines() if "Observability" in line)
+    assert "Jxx 2.0×" in obs
+
+
+def test_without_datasets_the_section_says_how_to_get_them():
+    assert table_six({"models": []}) == NO_DATASETS
+    assert mismatch_text({"models": []}) == ""
+
+
+def _run(scenario, model, rmse, member=None, crashed=False):
+    return {"scenario": scenario, "controller": "sqp", "model": model, "rmse_position_m": rmse,
+            "crashed": crashed, "member": member}
+
+
+def test_highfi_table_compares_each_model_with_its_nominal_twin(evaluation):
+    runs = ([_run("figure8-fast+highfi", "oracle", 0.03, k) for k in range(3)]
+            + [_run("figure8-fast+highfi", "baseline", r, k) for k, r in enumerate((0.05, 0.04, 0.06))]
+            + [_run("figure8-fast+highfi", "baseline_highfi", r, k) for k, r in enumerate((0.045, 0.035, 0.05))]
+            + [_run("hover+highfi", "baseline_highfi", 0.02), _run("hover+highfi", "baseline", 0.02, crashed=True)])
+    md = highfi_table(runs, evaluation)
+    row = next(r for r in md.splitlines() if r.startswith("| figure8-fast+highfi | sqp | baseline_highfi"))
+    assert "high-fidelity simulator" in row and "0.0450" in row and "0.0350–0.0500" in row
+    line = next(r for r in md.splitlines() if r.startswith("- figure8-fast+highfi, sqp: baseline_highfi"))
+    # median 0.045 against 0.05: -10 %
+    assert "0.0450 m against baseline 0.0500 m (-10 %)" in line
+    assert re.search(r"Jxx \+49 %", line)
+    assert "crashed 0/1, baseline 1/1" in md
+
+
+def test_highfi_table_without_runs():
+    assert "No run on a `+highfi` scenario" in highfi_table([], {"models": []})
