@@ -58,7 +58,9 @@ def test_every_cell_has_its_crlb_row_estimator_and_models(evaluation):
     est = rows[rows.index(high) + 1]
     assert "+50.00 % (500.0 σ)" in est and "50.0 %" in est.split("|")[-3]
     nominal = next(r for r in rows if r.startswith("| small, nominal simulator"))
-    assert nominal.rstrip(" |").endswith("5 %")          # the paper's claim sits beside its cell
+    assert nominal.rstrip(" |").endswith("5 %")          # the paper's claim sits beside every cell of its regime
+    assert high.rstrip(" |").endswith("5 %")
+    assert next(r for r in rows if r.startswith("| aggressive, high")).rstrip(" |").endswith("46 %")
     assert "6.0 %" in next(r for r in rows if r.startswith("| aggressive, nominal simulator |"))
 
 
