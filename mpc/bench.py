@@ -33,6 +33,7 @@ from sim import Simulator
 from sim.files import write_json
 from sim.params import DT, NX
 
+from .contract import model_files
 from .controller import collector_paused, hover_reference
 from .lqr import LQRController
 from .ltv import LTVMPC, LTVSettings
@@ -196,7 +197,7 @@ def main(argv=None) -> int:
         raise SystemExit(f"--cases: unknown {sorted(bad)}; choose from {', '.join(all_cases)}")
     if not args.models.is_dir():
         raise SystemExit(f"--models: {str(args.models)!r} is not a folder")
-    files = sorted(p for p in args.models.glob("*.onnx") if not p.name.endswith(".jac.onnx"))
+    files = model_files(args.models)
     models = [("oracle", AnalyticModel())] + [(f.stem, OnnxModel(f)) for f in files]
     out = {"python": platform.python_version(), "cpus": os.cpu_count(), "horizon": HORIZON, "cases": []}
     print(f"{'controller':<6}{'model':<22}{'case':<14}{'median':>8}{'p95':>8}{'max':>8}{'max*':>8} ms"
@@ -234,7 +235,7 @@ def main(argv=None) -> int:
 def _main_derivatives(args) -> int:
     if not args.models.is_dir():
         raise SystemExit(f"--models: {str(args.models)!r} is not a folder")
-    files = sorted(p for p in args.models.glob("*.onnx") if not p.name.endswith(".jac.onnx"))
+    files = model_files(args.models)
     out = {"python": platform.python_version(), "cpus": os.cpu_count(), "stages": HORIZON, "models": {}}
     print(f"A and B at {HORIZON} states across the flight envelope, median us per call "
           f"(one call = one period's linearization of the LTV-MPC, or one SQP iteration's)")

@@ -155,6 +155,11 @@ def config_hash(config: dict) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
+def model_files(folder) -> list[Path]:
+    """The model files of a folder, sorted: every ``*.onnx`` but the derivative graphs ``*.jac.onnx``."""
+    return sorted(p for p in Path(folder).glob("*.onnx") if not p.name.endswith(".jac.onnx"))
+
+
 def jacobian_path(model_path) -> Path:
     """The derivative graph beside a model: ``models/baseline.onnx -> models/baseline.jac.onnx``."""
     p = Path(model_path)

@@ -12,9 +12,7 @@ import sys
 from pathlib import Path
 
 from sim.files import write_json
-from sim.params import FIDELITIES
-
-FIDELITY_NAMES = tuple(FIDELITIES)
+from sim.params import FIDELITIES, INPUT_LOGS
 
 ARCHS = ("baseline", "modular", "fourier", "proposed")
 
@@ -33,11 +31,11 @@ def register(sub) -> None:
     src.add_argument("--regime", default="small", choices=("small", "aggressive"),
                      help="without --data: generate the default dataset of this regime (100 x 10 s)")
     p.add_argument("--data-seed", type=int, default=0, help="seed of the generated dataset (default 0)")
-    p.add_argument("--fidelity", default="nominal", choices=FIDELITY_NAMES,
+    p.add_argument("--fidelity", default="nominal", choices=tuple(FIDELITIES),
                    help="without --data: simulator of the generated dataset (high: motor lag, rotor drag and "
                         "rotor gyroscopic torque, which no model contains; motor-lag, rotor-drag, rotor-gyro: one "
                         "of them)")
-    p.add_argument("--inputs", default="commanded", choices=("commanded", "realized"),
+    p.add_argument("--inputs", default="commanded", choices=INPUT_LOGS,
                    help="without --data: log the wrench command (default) or the wrench the rotors realized, "
                         "i.e. commands kept inside the rotor limits (not with motor lag)")
     p.add_argument("--dropout-until", type=float, default=1.0, metavar="F",

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpc.contract import check_model, open_session
+from mpc.contract import check_model, model_files, open_session
 from sim.params import THETA_NAMES, NoiseModel, QuadParams
 
 from .metrics import one_step_mae, rollout_mae
@@ -183,11 +183,9 @@ EFFECT_SPECS = tuple({"regime": "small", "n_traj": 30, "duration_s": 10.0, "seed
 
 def _spec_task(task) -> tuple[dict, list[dict]]:
     """Worker: one dataset (regenerated from its spec or read from a file), its summary and its models' rows."""
-    import sim  # noqa: F401  (pins the BLAS kernel and threads in a fresh worker)
+    import sim.fisher   # (the package first: it pins the BLAS kernel and threads in a fresh worker)
 
     spec, data_path, files, threads = task
-    import sim.fisher
-
     if threads is not None:
         sim.fisher.MAP_THREADS = threads     # a pool's workers share the cores: one thread each
     if data_path is not None:
@@ -212,7 +210,7 @@ def evaluate_dir(folder, data_path=None, progress: bool = False, jobs: int = 1, 
     model) that no model was trained on; ``jobs`` datasets are handled in parallel processes.
     """
     folders = [Path(f) for f in ([folder] if isinstance(folder, (str, Path)) else folder)]
-    files = [p for d in folders for p in sorted(d.glob("*.onnx")) if not p.name.endswith(".jac.onnx")]
+    files = [p for d in folders for p in model_files(d)]
     if not files:
         raise ValueError(f"no .onnx models in {', '.join(repr(str(d)) for d in folders)}")
     groups: dict[str, list] = {}
@@ -233,30 +231,34 @@ def evaluate_dir(folder, data_path=None, progress: bool = False, jobs: int = 1, 
     tasks = [(specs[k], data_path, groups[k], threads) for k in groups]
     # Largest groups first, so that the pool's last task is a short one.
     order = sorted(range(len(tasks)), key=lambda i: -len(tasks[i][2]))
+
+    def completed():
+        """(task index, result) as the tasks finish, in a pool of ``jobs`` processes or in this one."""
+        if jobs > 1 and len(tasks) > 1:
+            import concurrent.futures as cf
+            import multiprocessing as mp
+
+            from scenarios.runner import _worker_init
+
+            _worker_init()      # one BLAS thread per worker, as in the closed-loop sweep (inherited at spawn)
+            with cf.ProcessPoolExecutor(min(jobs, len(tasks)), mp_context=mp.get_context("spawn"),
+                                        initializer=_worker_init) as pool:
+                futs = {pool.submit(_spec_task, tasks[i]): i for i in order}
+                for fut in cf.as_completed(futs):
+                    yield futs[fut], fut.result()
+        else:
+            for i in order:
+                yield i, _spec_task(tasks[i])
+
     results: dict[int, tuple] = {}
     bar = None
     if progress:
         from tqdm import tqdm
         bar = tqdm(total=len(files) + len(extra_specs), desc="evaluate", unit="model", leave=False)
-    if jobs > 1 and len(tasks) > 1:
-        import concurrent.futures as cf
-        import multiprocessing as mp
-
-        from scenarios.runner import _worker_init
-
-        _worker_init()      # one BLAS thread per worker, as in the closed-loop sweep (inherited at spawn)
-        with cf.ProcessPoolExecutor(min(jobs, len(tasks)), mp_context=mp.get_context("spawn"),
-                                    initializer=_worker_init) as pool:
-            futs = {pool.submit(_spec_task, tasks[i]): i for i in order}
-            for fut in cf.as_completed(futs):
-                results[futs[fut]] = fut.result()
-                if bar is not None:
-                    bar.update(max(1, len(tasks[futs[fut]][2])))
-    else:
-        for i in order:
-            results[i] = _spec_task(tasks[i])
-            if bar is not None:
-                bar.update(max(1, len(tasks[i][2])))
+    for i, res in completed():
+        results[i] = res
+        if bar is not None:
+            bar.update(max(1, len(tasks[i][2])))
     if bar is not None:
         bar.close()
     by_file = {str(r_f): row for i in results for r_f, row in zip(tasks[i][2], results[i][1])}

@@ -219,10 +219,8 @@ def table_three(ablation: dict | None, evaluation: dict | None = None) -> str:
 def _ablation_crlb(evaluation: dict | None, data: dict) -> dict:
     """CRLB std of each inertia, % of truth, for the ablation's training data (from a matching dataset entry)."""
     for d in (evaluation or {}).get("datasets", []):
-        spec = d.get("spec") or {}
-        if (isinstance(d.get("crlb_std"), dict) and spec.get("regime") == data.get("regime")
-                and spec.get("seed") == data.get("seed") and spec.get("n_traj") == data.get("n_traj")
-                and "fidelity" not in spec and "inputs" not in spec):
+        if (isinstance(d.get("crlb_std"), dict) and all(d.get(k) == data.get(k) for k in ("regime", "seed", "n_traj"))
+                and d.get("fidelity") == "nominal" and d.get("inputs") == "commanded"):
             true = d.get("theta_true") or {}
             return {n: 100.0 * d["crlb_std"][n] / true[n] for n in ("Jxx", "Jyy", "Jzz")
                     if n in d["crlb_std"] and true.get(n)}

@@ -7,9 +7,7 @@ import sys
 from pathlib import Path
 
 from .files import write_json
-from .params import FIDELITIES, THETA_NAMES
-
-FIDELITY_NAMES = tuple(FIDELITIES)
+from .params import FIDELITIES, INPUT_LOGS, THETA_NAMES
 
 
 def register(sub) -> None:
@@ -23,10 +21,10 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     p.add_argument("--noise", choices=("default", "none"), default="default",
                    help="measurement noise: the stated default (1 mm, 1 mrad, 5 mrad/s, 5 mm/s, 0.01 RU) or none")
-    p.add_argument("--fidelity", choices=FIDELITY_NAMES, default="nominal",
+    p.add_argument("--fidelity", choices=tuple(FIDELITIES), default="nominal",
                    help="simulator fidelity: high adds motor lag, rotor drag and rotor gyroscopic torque; "
                         "motor-lag, rotor-drag, rotor-gyro add one of them")
-    p.add_argument("--inputs", choices=("commanded", "realized"), default="commanded",
+    p.add_argument("--inputs", choices=INPUT_LOGS, default="commanded",
                    help="log the wrench command (default) or the wrench the rotors realized (a command kept "
                         "inside the rotor limits; not with motor lag)")
     p.add_argument("--out", required=True, type=Path, help="output file, .npz")
@@ -46,7 +44,7 @@ def register(sub) -> None:
 def cmd_data(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc data``."""
     from .excitation import make_dataset
-    from .params import FIDELITIES, NoiseModel
+    from .params import NoiseModel
 
     if args.out.suffix != ".npz":
         raise ValueError(f"--out must end in .npz; found {str(args.out)!r}")

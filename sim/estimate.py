@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import SimInputError
-from .fisher import MIN_ROTOR_FRACTION, rotor_sensitivities, sensitivities
+from .fisher import MIN_ROTOR_FRACTION, residual_covariance, rotor_sensitivities, sensitivities
 from .params import NX, THETA_NAMES, NoiseModel, QuadParams
 
 
@@ -70,8 +70,7 @@ class Estimate:
 def _weights(theta, x, u, noise: NoiseModel, base: QuadParams):
     """Sensitivities ``S`` (N, 12, 6) at ``theta`` and the Cholesky factor of each transition's residual covariance."""
     S, A = sensitivities(x, u, base.with_theta(theta), "wrench")
-    Sigma = np.diag(noise.state_std ** 2)
-    return S, np.linalg.cholesky(Sigma + A @ Sigma @ np.swapaxes(A, 1, 2))     # (N, 12, 12)
+    return S, np.linalg.cholesky(residual_covariance(A, noise))               # (N, 12, 12)
 
 
 def _residuals(theta, L, x, u, y, n_meas, use, noise: NoiseModel, base: QuadParams):
@@ -177,10 +176,8 @@ def estimate_theta(ds, theta0=None, noise: NoiseModel | None = None, split: str 
     def flat(name):
         a = getattr(ds, name)[sel]
         return a.reshape(-1, a.shape[-1])
-    if ds.meta.get("inputs", "commanded") == "realized":
-        keep = np.ones(int(sel.sum()) * ds.x.shape[1], dtype=bool)
-    else:
-        keep = ~np.any(flat("saturated"), axis=1)
+    realized = ds.meta.get("inputs", "commanded") == "realized"
+    keep = slice(None) if realized else ~np.any(flat("saturated"), axis=1)
     x, u, y, n_meas = (flat(k)[keep] for k in ("x", "u", "x_next", "rotor_speed"))
     # The known constants (g, drag, arm, rotor limit) come from the dataset's parameters; m, J, kt, kq never do.
     base = QuadParams(**ds.meta["params"])

@@ -36,14 +36,12 @@ from scipy.linalg import expm
 from . import __version__
 from ._validate import choice, positive_finite, positive_int
 from .errors import DatasetError, SimInputError
-from .params import DT, NOMINAL, Fidelity, NoiseModel, QuadParams
+from .params import DT, INPUT_LOGS, NOMINAL, Fidelity, NoiseModel, QuadParams
 from .simulator import Simulator
 
 FORMAT_VERSION = 1
 SPLIT_NAMES = ("train", "val", "test")
 SPLIT_FRACTIONS = (0.70, 0.15, 0.15)
-#: What a dataset's ``u`` can log (``make_dataset(inputs=...)``).
-INPUT_LOGS = ("commanded", "realized")
 
 
 @dataclass(frozen=True)

@@ -206,6 +206,15 @@ def sensitivities(x, u, p: QuadParams | None = None, inputs: str = "wrench",
     return (S, np.concatenate([q[1] for q in parts])) if state else S
 
 
+def residual_covariance(A: np.ndarray, noise: NoiseModel) -> np.ndarray:
+    """Covariance (N, 12, 12) of ``x_{k+1} - F(x_k, u_k)`` with measurement noise on both ends: ``Sigma + A Sigma A^T``.
+
+    ``A`` (N, 12, 12) is ``dF/dx`` at each sample, ``Sigma`` the diagonal covariance of ``noise``.
+    """
+    Sigma = np.diag(noise.state_std ** 2)
+    return Sigma + A @ Sigma @ np.swapaxes(A, 1, 2)
+
+
 def rotor_sensitivities(w, p: QuadParams | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Rotor speeds for wrench ``w`` and their derivative with respect to theta.
 
@@ -286,8 +295,7 @@ def fisher_information(x, u, p: QuadParams | None = None, noise: NoiseModel | No
 
     S, A = sensitivities(x, u, p, inputs)
     S_rel = S * theta                                      # (N, 12, 6)
-    Sigma = np.diag(std ** 2)
-    cov = Sigma + A @ Sigma @ np.swapaxes(A, 1, 2)         # (N, 12, 12)
+    cov = residual_covariance(A, noise)                    # (N, 12, 12)
     fim_dyn = np.einsum("nij,nik->jk", S_rel, np.linalg.solve(cov, S_rel))
 
     fim_rot = np.zeros((6, 6))
