@@ -7,7 +7,7 @@ from those numbers.
 
 from __future__ import annotations
 
-import numpy as np
+from scenarios.stats import summarize
 
 from .tables import MISSING, RMSE_FORMAT, THETA_NAMES, crash_text, fmt, md_table
 
@@ -177,28 +177,27 @@ def highfi_table(runs: list[dict], evaluation: dict) -> str:
     groups: dict[tuple, list] = {}
     for r in hf:
         groups.setdefault((r["scenario"], r.get("controller"), r.get("model")), []).append(r)
+    stats = {k: summarize(rs) for k, rs in groups.items()}   # crashes; median, min, max over the runs that flew
     rows = []
     for (sc, ctrl, model), rs in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1], _model_order(kv[0][2],
                                                                                                           trained))):
-        m = trained.get(model)
+        m, s = trained.get(model), stats[(sc, ctrl, model)]
         data = "true equations" if model == "oracle" else (
             "high-fidelity simulator" if m and m.get("fidelity") == "high" else
             "nominal simulator" if m else MISSING)
-        rmse = [r.get("rmse_position_m") for r in rs if not r.get("crashed") and r.get("rmse_position_m") is not None]
-        crashed = sum(bool(r.get("crashed")) for r in rs)
         if len(rs) == 1:
-            value = (fmt(rs[0].get("rmse_position_m"), RMSE_FORMAT) if not rs[0].get("crashed")
-                     else crash_text(rs[0]))
+            value = fmt(s["median"], RMSE_FORMAT) if not rs[0].get("crashed") else crash_text(rs[0])
             spread = ""
         else:
-            value = fmt(float(np.median(rmse)), RMSE_FORMAT) if rmse else MISSING
-            spread = (f"{fmt(min(rmse), RMSE_FORMAT)}–{fmt(max(rmse), RMSE_FORMAT)}" if rmse else MISSING)
-        rows.append([sc, ctrl, model, data, str(len(rs)), f"{crashed}/{len(rs)}", value, spread])
+            value = fmt(s["median"], RMSE_FORMAT)
+            spread = (f"{fmt(s['min'], RMSE_FORMAT)}–{fmt(s['max'], RMSE_FORMAT)}" if s["flown"] else MISSING)
+        rows.append([sc, ctrl, model, data, str(s["runs"]), f"{s['crashes']}/{s['runs']}", value, spread])
     text = ("The plant is the high-fidelity simulator (motor lag, rotor drag, rotor gyroscopic torque). Each model "
-            "predicts with its own network; its parameters θ̂ do not enter the controller. Position RMSE in m "
-            "(median over the runs when there are several, with their range).")
+            "predicts with its own network; its parameters θ̂ enter the controller only through its vehicle "
+            "description (the rotor limits from kt and kq, the input scaling and first guesses from m). Position "
+            "RMSE in m (median over the runs that did not crash when there are several, with their range).")
     return text + "\n\n" + md_table(["scenario", "controller", "model", "trained on data from", "runs", "crashed",
-                                     "position RMSE (m)", "range (m)"], rows) + _highfi_answer(groups, trained)
+                                     "position RMSE (m)", "range (m)"], rows) + _highfi_answer(stats, trained)
 
 
 def _model_order(name: str, trained: dict) -> tuple:
@@ -208,26 +207,23 @@ def _model_order(name: str, trained: dict) -> tuple:
     return (1 if m.get("fidelity", "nominal") == "nominal" else 2, name)
 
 
-def _highfi_answer(groups: dict, trained: dict) -> str:
+def _highfi_answer(stats: dict, trained: dict) -> str:
     """One sentence per scenario and controller: each high-fidelity-trained model against its nominal twin."""
     out = []
-    for (sc, ctrl, model), rs in sorted(groups.items()):
+    for (sc, ctrl, model), s in sorted(stats.items()):
         m = trained.get(model)
         if not m or m.get("fidelity") != "high":
             continue
         twin = next((n for n, t in trained.items() if t.get("architecture") == m.get("architecture")
                      and t.get("regime") == m.get("regime") and t.get("fidelity", "nominal") == "nominal"
-                     and t.get("inputs", "commanded") == "commanded" and (sc, ctrl, n) in groups), None)
+                     and t.get("inputs", "commanded") == "commanded" and (sc, ctrl, n) in stats), None)
         if twin is None:
             continue
-
-        def med(rr):
-            v = [r["rmse_position_m"] for r in rr if not r.get("crashed") and r.get("rmse_position_m") is not None]
-            return (float(np.median(v)) if v else None), sum(bool(r.get("crashed")) for r in rr)
-        a, ca = med(rs)
-        b, cb = med(groups[(sc, ctrl, twin)])
+        t = stats[(sc, ctrl, twin)]
+        a, b = s["median"], t["median"]
         if a is None or b is None:
-            out.append(f"- {sc}, {ctrl}: {model} crashed {ca}/{len(rs)}, {twin} {cb}/{len(groups[(sc, ctrl, twin)])}.")
+            out.append(f"- {sc}, {ctrl}: {model} crashed {s['crashes']}/{s['runs']}, {twin} "
+                       f"{t['crashes']}/{t['runs']}.")
             continue
         out.append(f"- {sc}, {ctrl}: {model} (θ̂ inertias {_theta_text(m)}) {a:.4f} m against {twin} "
                    f"{b:.4f} m ({100 * (a - b) / b:+.0f} %).")

@@ -39,6 +39,7 @@ import sys
 import time
 from pathlib import Path
 
+from mpc.contract import model_files
 from sim.files import write_json
 
 from .errors import ScenarioError
@@ -82,7 +83,7 @@ def shipped_models(models_dir) -> list[str]:
     d = Path(models_dir)
     if not d.is_dir():
         raise ScenarioError(f"models folder {str(d)!r} does not exist")
-    files = sorted(str(p) for p in d.glob("*.onnx") if not p.name.endswith(".jac.onnx"))
+    files = [str(p) for p in model_files(d)]
     if not files:
         raise ScenarioError(f"no .onnx models in {str(d)!r}")
     return files
@@ -91,7 +92,7 @@ def shipped_models(models_dir) -> list[str]:
 def identification_models(models_dir) -> list[str]:
     """Paths of the identification study's models (``IDENTIFICATION_DIR`` under ``models_dir``; none if it is absent)."""
     d = Path(models_dir) / IDENTIFICATION_DIR
-    return sorted(str(p) for p in d.glob("*.onnx") if not p.name.endswith(".jac.onnx")) if d.is_dir() else []
+    return [str(p) for p in model_files(d)] if d.is_dir() else []
 
 
 def main_scenarios(full: bool = False) -> list[str]:
@@ -172,9 +173,10 @@ def provenance(models_dir) -> dict:
     from .runner import _sha256
 
     models = {Path(m).stem: _sha256(m) for m in shipped_models(models_dir) + identification_models(models_dir)}
-    manifest = Path(models_dir) / "manifest.json"
     seeds = {}
-    if manifest.is_file():
+    for manifest in (Path(models_dir) / "manifest.json", Path(models_dir) / IDENTIFICATION_DIR / "manifest.json"):
+        if not manifest.is_file():
+            continue
         for name, entry in json.loads(manifest.read_text()).items():
             if isinstance(entry, dict):
                 seeds[name] = {"seed": entry.get("seed"), "command": entry.get("command"),
