@@ -254,8 +254,10 @@ class LTVMPC(MPCBase):
         """
         N = self.N
         max_it, line_search, budget, tol = self._iteration_plan()
+        shifted = False   # the first iterate is the previous plan shifted by one period
         if guess is None:
             cold = self._plan_x is None
+            shifted = not cold and not self._plan_is_current
             X, U = self._initial_iterate(x, ref, u_ref)
             if cold:
                 max_it, budget = self._cold_start_plan(max_it, budget)
@@ -278,6 +280,8 @@ class LTVMPC(MPCBase):
                 fx, A, B = self._linearize(X[:N], U)
             split["derivatives"] += tm.now() - t_it
             finite = np.all(np.isfinite(fx)) and np.all(np.isfinite(A)) and np.all(np.isfinite(B))
+            if finite and shifted and done == 0:
+                first_warm = self._close_tail(X, U, fx, first_warm)
             if finite:
                 if budget is not None:
                     # After the first QP of a period (which must give a plan), one hard QP must not overrun the
@@ -373,6 +377,14 @@ class LTVMPC(MPCBase):
 
     def _initial_iterate(self, x, ref, u_ref):
         return self._nominal(x, u_ref)
+
+    def _close_tail(self, X, U, fx, warm):
+        """After the first linearization along a shifted plan: complete its last stage; OSQP's primal start.
+
+        The LTV-MPC keeps the shifted plan as it is (its last state and input
+        repeated) and starts OSQP from the shifted previous solution.
+        """
+        return warm
 
     def _cold_start_plan(self, max_it, budget):
         return max_it, budget

@@ -93,6 +93,10 @@ class SQPSettings(LTVSettings):
     # stage. For converged solutions (a network's curvature can make Gauss-Newton converge slowly), not for the
     # real-time budget.
     hessian: str = "gauss-newton"
+    # The last stage of a shifted plan: "model" (the last input from the LQR about the reference, the last state
+    # the model's prediction under it, so that the first iterate is a trajectory of the model) or "hold" (the
+    # last state and input repeated, as the LTV-MPC does).
+    tail: str = "model"
 
     def __post_init__(self):
         super().__post_init__()
@@ -106,6 +110,8 @@ class SQPSettings(LTVSettings):
                 raise ConfigurationError(f"{name} must be None or a time > 0 s; found {v!r}")
         if self.hessian not in ("gauss-newton", "exact"):
             raise ConfigurationError(f"hessian must be 'gauss-newton' or 'exact'; found {self.hessian!r}")
+        if self.tail not in ("model", "hold"):
+            raise ConfigurationError(f"tail must be 'model' or 'hold'; found {self.tail!r}")
         if self.cold_start not in ("rollout", "hold"):
             raise ConfigurationError(f"cold_start must be 'rollout' or 'hold'; found {self.cold_start!r}")
         for name in ("step_tol", "defect_tol"):
@@ -178,8 +184,27 @@ class SQPMPC(LTVMPC):
 
     def _initial_iterate(self, x, ref, u_ref):
         if self._plan_x is not None or self.s.cold_start == "hold":
-            return self._nominal(x, u_ref)   # the shifted plan (or, cold, the state held under the feed-forward)
+            X, U = self._nominal(x, u_ref)   # the shifted plan (or, cold, the state held under the feed-forward)
+            if self._plan_x is not None and not self._plan_is_current and self.s.tail == "model":
+                U[-1] = self._tail_input(X[-2], ref[-2], u_ref[-1])
+            return X, U
         return self.rollout(x, ref, u_ref)
+
+    def _tail_input(self, x, r, u_ff):
+        """Feed-forward plus hover LQR at a state ``x`` about reference ``r``, projected onto the rotor-feasible set."""
+        u = u_ff - self.lqr.K @ (x - r)
+        n_sq = self._Minv @ u
+        if np.all(n_sq >= 0.0) and np.all(n_sq <= self.spec.n_max_sq):
+            return u
+        return realize(u, self.spec).wrench
+
+    def _close_tail(self, X, U, fx, warm):
+        """With ``tail="model"``, the shifted plan's last state is the model's prediction from its last stage
+        (``fx[-1]``, from the first linearization: no extra model call), and OSQP starts from that plan."""
+        if self.s.tail != "model":
+            return warm
+        X[-1] = fx[-1]
+        return np.concatenate([X.ravel(), U.ravel()])
 
     def solve_from(self, x, t: float, X0, U0):
         """Solve the period at ``(x, t)`` from the first iterate ``(X0 (N + 1, 12), U0 (N, 4))``.

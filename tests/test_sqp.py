@@ -149,7 +149,7 @@ def test_the_exact_hessian_is_the_models_curvature_weighted_by_the_multipliers()
 def test_the_ltv_mpc_is_the_one_iteration_full_step_case():
     model = OnnxModel(PROPOSED)
     one = SQPSettings(max_sqp_iter=1, line_search=False, time_budget_s=None, cold_start_budget_s=None,
-                      cold_start_max_iter=1, cold_start="hold")
+                      cold_start_max_iter=1, cold_start="hold", tail="hold")
     ltv, sqp = LTVMPC(model, FIG8_FAST), SQPMPC(model, FIG8_FAST, one)
     sim = Simulator(QuadParams())
     x = FIG8_FAST(np.array([0.0]))[0]
@@ -159,6 +159,33 @@ def test_the_ltv_mpc_is_the_one_iteration_full_step_case():
         assert np.array_equal(u1, u2), f"period {k}"
         assert info.iterations == 1
         x = sim.step(x, u1)
+
+
+def test_a_shifted_plan_ends_on_the_models_own_prediction():
+    """With tail="model" the first iterate of a period is the last plan shifted, its new last input the
+    feed-forward plus LQR, and its new last state the model's step under that input (not the old one repeated)."""
+    model = OnnxModel(PROPOSED)
+    sqp = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))
+    sim = Simulator(QuadParams())
+    x = FIG8_FAST(np.array([0.0]))[0]
+    sqp.prepare(1.0, x0=x)
+    u, _ = sqp(x, 0.0)
+    old_x, old_u = sqp._plan_x.copy(), sqp._plan_u.copy()
+    x = sim.step(x, u)
+    ref, u_ref = sqp._horizon_reference(0.01)
+    X, U = sqp._initial_iterate(x, ref, u_ref)
+    assert np.array_equal(X[0], x) and np.array_equal(X[1:-1], old_x[2:]) and np.array_equal(U[:-1], old_u[1:])
+    assert np.allclose(U[-1], u_ref[-1] - sqp.lqr.K @ (old_x[-1] - ref[-2]), rtol=0, atol=1e-12)
+    fx = model.step(X[:-1], U)
+    warm = sqp._close_tail(X, U, fx, None)
+    assert np.array_equal(X[-1], model.step(old_x[-1], U[-1])[0])
+    assert np.array_equal(warm, np.concatenate([X.ravel(), U.ravel()]))
+    # The LTV-MPC's shift (tail="hold") repeats the last state and input.
+    hold = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None, tail="hold"))
+    hold._plan_x, hold._plan_u = old_x, old_u
+    Xh, Uh = hold._initial_iterate(x, ref, u_ref)
+    assert np.array_equal(Xh[-1], old_x[-1]) and np.array_equal(Uh[-1], old_u[-1])
+    assert hold._close_tail(Xh, Uh, fx, "kept") == "kept" and np.array_equal(Xh[-1], old_x[-1])
 
 
 def test_accepted_steps_never_raise_the_merit_and_some_are_shortened():
@@ -253,6 +280,7 @@ def test_two_ideal_runs_are_identical():
     (dict(cold_start="zeros"), "cold_start"),
     (dict(jacobians="float16"), "jacobians"),
     (dict(hessian="bfgs"), "hessian"),
+    (dict(tail="zero"), "tail"),
 ])
 def test_bad_settings_are_clear_errors(kwargs, match):
     with pytest.raises(ConfigurationError, match=match):
