@@ -358,9 +358,7 @@ class LTVMPC(MPCBase):
                 self._plan_u = np.vstack([self._plan_u[1:], self._plan_u[-1:]])
                 u = self._plan_u[0]
             info_status = status
-        n_sq = self._Minv @ u
-        if not (np.all(n_sq >= 0.0) and np.all(n_sq <= self.spec.n_max_sq)):
-            u = realize(u, self.spec).wrench  # exact projection onto the rotor-feasible set
+        u = self._rotor_feasible(u)
         extra = {"counts": dict(self.counts)}
         iterations = qp_iterations
         if self._reports_sqp:
@@ -377,6 +375,13 @@ class LTVMPC(MPCBase):
 
     def _initial_iterate(self, x, ref, u_ref):
         return self._nominal(x, u_ref)
+
+    def _rotor_feasible(self, u):
+        """``u`` (4,) if the rotors can realize it, else its exact projection onto the rotor-feasible set."""
+        n_sq = self._Minv @ u
+        if np.all(n_sq >= 0.0) and np.all(n_sq <= self.spec.n_max_sq):
+            return u
+        return realize(u, self.spec).wrench
 
     def _close_tail(self, X, U, fx, warm):
         """After the first linearization along a shifted plan: complete its last stage; OSQP's primal start.

@@ -192,11 +192,7 @@ class SQPMPC(LTVMPC):
 
     def _tail_input(self, x, r, u_ff):
         """Feed-forward plus hover LQR at a state ``x`` about reference ``r``, projected onto the rotor-feasible set."""
-        u = u_ff - self.lqr.K @ (x - r)
-        n_sq = self._Minv @ u
-        if np.all(n_sq >= 0.0) and np.all(n_sq <= self.spec.n_max_sq):
-            return u
-        return realize(u, self.spec).wrench
+        return self._rotor_feasible(u_ff - self.lqr.K @ (x - r))
 
     def _close_tail(self, X, U, fx, warm):
         """With ``tail="model"``, the shifted plan's last state is the model's prediction from its last stage
