@@ -274,10 +274,18 @@ class LTVMPC(MPCBase):
         ls_failures = 0
         mu = 0.0
         y_last = None    # the last QP's dynamics multipliers (N, 12)
+        every = self._jacobian_every()
+        f_next = None    # the model's step along the line search's new iterate (N, 12), when it made one
         while done < max_it:
             t_it = tm.now()
+            # An iteration between Jacobian evaluations keeps A_k, B_k (and OSQP's factorization) and takes only the
+            # model's step at the new iterate (from the line search when it made one).
+            reuse = done % every != 0
             with np.errstate(all="ignore"):
-                fx, A, B = self._linearize(X[:N], U)
+                if reuse:
+                    fx = f_next if f_next is not None else self.model.step(X[:N], U)
+                else:
+                    fx, A, B = self._linearize(X[:N], U)
             split["derivatives"] += tm.now() - t_it
             finite = np.all(np.isfinite(fx)) and np.all(np.isfinite(A)) and np.all(np.isfinite(B))
             if finite and shifted and done == 0:
@@ -292,7 +300,8 @@ class LTVMPC(MPCBase):
                 t_h = tm.now()
                 hess = self._hessian_values(X[:N + 1], U, y_last)
                 split["derivatives"] += tm.now() - t_h
-                res = self._solve_qp(x, ref, u_ref, X[:N], U, fx, A, B, warm=warm, split=split, hess=hess)
+                res = self._solve_qp(x, ref, u_ref, X[:N], U, fx, A, B, warm=warm, split=split, hess=hess,
+                                     same_matrices=reuse)
                 status, qp_iterations = res.info.status, qp_iterations + int(res.info.iter)
                 solved = (self._status.OSQP_SOLVED, self._status.OSQP_SOLVED_INACCURATE)
                 ok = res.info.status_val in solved and res.x is not None and np.all(np.isfinite(res.x))
@@ -323,18 +332,19 @@ class LTVMPC(MPCBase):
                     return self._solve_qp(x, ref, u_ref, Xl, Ul, fx + shift, A, B, split=split, hess=hess,
                                           same_matrices=True)
 
-                Xn, Un, alpha, accepted, phi0, phi, defect = self._line_search(X, U, Xq, Uq, fx, ref, u_ref, mu,
-                                                                               resolve)
+                Xn, Un, alpha, accepted, phi0, phi, defect, f_next = self._line_search(X, U, Xq, Uq, fx, ref,
+                                                                                       u_ref, mu, resolve)
                 merits.append((phi0, phi, accepted))
                 ls_failures += not accepted
                 split["line_search"] += tm.now() - t_ls
             else:
-                Xn, Un, alpha, defect = Xq, Uq, 1.0, np.inf
+                Xn, Un, alpha, defect, f_next = Xq, Uq, 1.0, np.inf, None
             alphas.append(alpha)
             # Converged when the QP's full step is small (a step shortened by the line search is not convergence).
             step = max(np.max(np.abs(Xq - X) / self._sx), np.max(np.abs(Uq - U) / self._su))
             X, U = Xn, Un
-            if step < tol[0] or defect < tol[1]:
+            # Only an iteration with new Jacobians can say that the plan is a KKT point.
+            if not reuse and (step < tol[0] or defect < tol[1]):
                 converged = True
                 break
             if budget is not None:
@@ -375,6 +385,10 @@ class LTVMPC(MPCBase):
 
     def _initial_iterate(self, x, ref, u_ref):
         return self._nominal(x, u_ref)
+
+    def _jacobian_every(self) -> int:
+        """The model's Jacobians are evaluated at the iterations ``0, k, 2k, ...`` of a period (one iteration here)."""
+        return 1
 
     def _rotor_feasible(self, u):
         """``u`` (4,) if the rotors can realize it, else its exact projection onto the rotor-feasible set."""

@@ -22,6 +22,14 @@ quadratic programming:
    ``max_sqp_iter`` iterations, or when another iteration would not fit in
    the time budget.
 
+Step 1 evaluates the model's Jacobians only in the iterations ``0, k, 2k,
+...`` of a period (``k = jacobian_every``, default 2). An iteration between
+keeps the last ``A_k``, ``B_k`` (so OSQP keeps its factorization) and
+linearizes about the new iterate with the model's step there, which the line
+search has already computed: the QP then restores the model's dynamics along
+the plan for about 1 ms instead of 2.5. Only an iteration with new Jacobians
+may stop on the tolerances, so a converged plan is still a KKT point.
+
 The cost is quadratic, so the QP's Hessian (the cost's) is the Gauss-Newton
 Hessian; a fixed point of the iteration is a KKT point of the nonlinear
 problem, the one IPOPT solves. The LTV-MPC is the one-iteration case (the
@@ -69,9 +77,10 @@ MAX_BACKTRACKS = 4
 class SQPSettings(LTVSettings):
     """Settings of :class:`SQPMPC` (the LTV-MPC's QP settings, plus the SQP's; units in comments)."""
 
-    # One iteration with a 5x128 PINN over 30 stages costs 3-4.5 ms on our 2-core machines (1.5-2 ms of it the model's
-    # step and float32 Jacobians), so two about fill the default budget; on figure8-fast the second iteration brings
-    # the Proposed model from 0.125 m (one iteration, as the LTV-MPC) to 0.119 m, against IPOPT's 0.116 m.
+    # One iteration with a 5x128 PINN over 30 stages costs 2-3 ms on our 2-core machines (0.7-1 ms of it the float32
+    # Jacobians), a second one without new Jacobians (see jacobian_every) about 1-1.5 ms; on figure8-fast the second
+    # iteration brings the Proposed model from 0.125 m (one iteration, as the LTV-MPC) to about 0.12 m, against
+    # IPOPT's 0.116 m.
     max_sqp_iter: int = 2                   # SQP iterations per period
     # OSQP iterations per QP. A QP at the rotor limits can take OSQP's 4000 (60 ms here) and fail anyway; the
     # SQP then keeps its current plan (or, in the first iteration, replays the shifted plan).
@@ -97,10 +106,18 @@ class SQPSettings(LTVSettings):
     # the model's prediction under it, so that the first iterate is a trajectory of the model) or "hold" (the
     # last state and input repeated, as the LTV-MPC does).
     tail: str = "model"
+    # The model's Jacobians are evaluated in the SQP iterations 0, k, 2k, ... of a period (k = jacobian_every); the
+    # iterations between keep them, and OSQP's factorization, and take the model's step at the new iterate from the
+    # line search (an inexact-Jacobian, "Newton-chord" iteration: it restores the dynamics along the new plan at the
+    # price of a QP, about 1 ms instead of 2.5). A fixed point still needs an iteration with fresh Jacobians, so the
+    # KKT points are unchanged. Measured on figure8-fast with the Proposed model over 12 starts 1e-9 m apart (ideal
+    # timing): 2 gives the same RMSE as 1 (median 0.121 m both; spread 6.3 against 6.9 %) with a median solve time
+    # of 2.7 ms against 4.3. The exact Hessian needs new derivatives every iteration: it ignores this setting.
+    jacobian_every: int = 2
 
     def __post_init__(self):
         super().__post_init__()
-        for name in ("max_sqp_iter", "cold_start_max_iter"):
+        for name in ("max_sqp_iter", "cold_start_max_iter", "jacobian_every"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
                 raise ConfigurationError(f"{name} must be an integer >= 1; found {v!r}")
@@ -149,6 +166,9 @@ class SQPMPC(LTVMPC):
     def _iteration_plan(self):
         s = self.s
         return s.max_sqp_iter, s.line_search, s.time_budget_s, (s.step_tol, s.defect_tol)
+
+    def _jacobian_every(self) -> int:
+        return self.s.jacobian_every if self.s.hessian == "gauss-newton" else 1
 
     def _cold_start_plan(self, max_it, budget):
         self.counts["cold_starts"] += 1
@@ -335,7 +355,7 @@ class SQPMPC(LTVMPC):
         E, D = X - ref, U - u_ref
         grad = (np.sum((E[:N] @ self.Q) * dX[:N]) + E[N] @ self.P @ dX[N] + np.sum((D @ self.R) * dU))
         slope = min(grad - mu * float(np.sum(np.abs(fx - X[1:]))), 0.0)
-        best = (np.inf, X, U, 0.0, np.inf)
+        best = (np.inf, X, U, 0.0, np.inf, fx)
 
         def trial(Xt, Ut, alpha):
             nonlocal best
@@ -343,12 +363,12 @@ class SQPMPC(LTVMPC):
                 ft = self.model.step(Xt[:N], Ut)
             phi = self._merit(Xt, Ut, ft, ref, u_ref, mu) if np.all(np.isfinite(ft)) else np.inf
             if phi < best[0]:
-                best = (phi, Xt, Ut, alpha, self._defect(ft, Xt))
+                best = (phi, Xt, Ut, alpha, self._defect(ft, Xt), ft)
             return ft, phi, phi <= phi0 + ARMIJO * abs(alpha) * slope
 
         ft, phi, ok = trial(Xq, Uq, 1.0)
         if ok:
-            return Xq, Uq, 1.0, True, phi0, phi, self._defect(ft, Xq)
+            return Xq, Uq, 1.0, True, phi0, phi, self._defect(ft, Xq), ft
         if np.all(np.isfinite(ft)):
             res = resolve(ft - Xq[1:])
             if res is not None and res.x is not None and np.all(np.isfinite(res.x)) and res.info.status_val in (
@@ -358,16 +378,16 @@ class SQPMPC(LTVMPC):
                 fc, phi, ok = trial(Xc, Uc, -1.0)
                 if ok:
                     self.counts["second_order_corrections"] += 1
-                    return Xc, Uc, -1.0, True, phi0, phi, self._defect(fc, Xc)
+                    return Xc, Uc, -1.0, True, phi0, phi, self._defect(fc, Xc), fc
         alpha = BACKTRACK
         for _ in range(MAX_BACKTRACKS):
             Xt, Ut = X + alpha * dX, U + alpha * dU
             ft, phi, ok = trial(Xt, Ut, alpha)
             if ok:
-                return Xt, Ut, alpha, True, phi0, phi, self._defect(ft, Xt)
+                return Xt, Ut, alpha, True, phi0, phi, self._defect(ft, Xt), ft
             alpha *= BACKTRACK
         self.counts["line_search_failures"] += 1
-        return best[1], best[2], best[3], False, phi0, best[0], best[4]
+        return best[1], best[2], best[3], False, phi0, best[0], best[4], best[5]
 
     def _defect(self, f, X) -> float:
         """Largest dynamics defect of a plan, in the acceptable deviations of the default weights."""

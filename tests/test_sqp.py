@@ -9,7 +9,7 @@ import pytest
 from mpc.errors import ConfigurationError
 from mpc.lqr import hover_point
 from mpc.ltv import LTVMPC
-from mpc.models import AnalyticModel, OnnxModel
+from mpc.models import AnalyticModel, OnnxModel, PredictionModel
 from mpc.nmpc import NMPC, NMPCSettings
 from mpc.sqp import SQPMPC, SQPSettings
 from mpc.trajectory import Figure8
@@ -24,6 +24,7 @@ TOL = {
     "merit_rel": 1e-12,         # an accepted step never raises the merit by more than rounding
     "proposed_min_within": 38,  # states (of 50) within objective_rel with the Proposed PINN (measured 40)
     "exact_hessian_rel": 1e-6,  # central-difference Hessian vs CasADi's symbolic one (measured 7e-9)
+    "fixed_point_rel": 1e-9,    # converged objective with Jacobians every iteration vs every other (measured 1e-15)
 }
 #: Perturbed reference states (for the line-search check): the reference plus seeded errors of these sizes.
 ERROR_SCALE = np.array([0.02, 0.02, 0.02, 0.03, 0.03, 0.03, 0.2, 0.2, 0.2, 0.1, 0.1, 0.1])
@@ -188,6 +189,55 @@ def test_a_shifted_plan_ends_on_the_models_own_prediction():
     assert hold._close_tail(Xh, Uh, fx, "kept") == "kept" and np.array_equal(Xh[-1], old_x[-1])
 
 
+class CountingModel(PredictionModel):
+    """Forwards to ``base`` and counts its linearizations (float64 Jacobians)."""
+
+    def __init__(self, base):
+        self.base, self.linearizations = base, 0
+        self.name, self.theta = base.name, base.theta
+
+    def step(self, x, u):
+        return self.base.step(x, u)
+
+    def linearize(self, x, u):
+        self.linearizations += 1
+        return self.base.linearize(x, u)
+
+
+@pytest.mark.parametrize("every,expected", [(1, 5), (2, 3), (3, 2), (10, 1)])
+def test_iterations_between_jacobian_evaluations_do_not_linearize_the_model(every, expected):
+    model = CountingModel(AnalyticModel())
+    sqp = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None, max_sqp_iter=5,
+                                               step_tol=0.0, defect_tol=0.0, jacobians="float64",
+                                               jacobian_every=every))
+    t, x = sampled_states(1, seed=2)[0]
+    sqp.prepare(1.0, x0=x)          # the feed-forward fit and the pre-flight plan linearize too: not counted
+    model.linearizations = 0
+    _, info = sqp(x, t)
+    assert info.iterations == 5 and info.is_optimal()
+    assert model.linearizations == expected     # iterations 0, every, 2 every, ... of the five
+
+
+def test_iterations_between_jacobian_evaluations_leave_the_converged_plan_unchanged():
+    """Reusing the Jacobians changes the path, not the fixed points: with the oracle (where Gauss-Newton converges
+    in a few iterations) every other evaluation reaches the same objective, in about twice the iterations."""
+    def converged(every):
+        s = SQPSettings(time_budget_s=None, cold_start_budget_s=None, max_sqp_iter=100, step_tol=1e-7,
+                        defect_tol=0.0, eps_abs=1e-10, eps_rel=1e-10, max_iter=100000, polish=True,
+                        jacobians="float64", jacobian_every=every)
+        sqp, out = SQPMPC(AnalyticModel(), FIG8_FAST, s), []
+        for t, x in sampled_states(8, seed=3):
+            times = t + 0.01 * np.arange(sqp.N + 1)
+            ref, u_ref = sqp.ff.states(times), sqp.ff.inputs(times[:sqp.N])
+            Xs, Us, info = sqp.solve_from(x, t, *sqp.rollout(x, ref, u_ref))
+            assert info.extra["converged"], f"t={t}: not converged in {info.iterations} iterations"
+            out.append((sqp.cost(Xs, Us, ref, u_ref), info.iterations))
+        return np.array(out)
+    every, each = converged(2), converged(1)
+    np.testing.assert_allclose(every[:, 0], each[:, 0], rtol=TOL["fixed_point_rel"], atol=0)
+    assert np.all(every[:, 1] > each[:, 1])     # the reuse iterations did happen
+
+
 def test_accepted_steps_never_raise_the_merit_and_some_are_shortened():
     sqp = SQPMPC(OnnxModel(PROPOSED), FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None,
                                                              max_sqp_iter=10))
@@ -281,6 +331,7 @@ def test_two_ideal_runs_are_identical():
     (dict(jacobians="float16"), "jacobians"),
     (dict(hessian="bfgs"), "hessian"),
     (dict(tail="zero"), "tail"),
+    (dict(jacobian_every=0), "jacobian_every"),
 ])
 def test_bad_settings_are_clear_errors(kwargs, match):
     with pytest.raises(ConfigurationError, match=match):
