@@ -200,7 +200,7 @@ def main(argv=None) -> int:
     files = model_files(args.models)
     models = [("oracle", AnalyticModel())] + [(f.stem, OnnxModel(f)) for f in files]
     out = {"python": platform.python_version(), "cpus": os.cpu_count(), "horizon": HORIZON, "cases": []}
-    print(f"{'controller':<6}{'model':<22}{'case':<14}{'median':>8}{'p95':>8}{'max':>8}{'max*':>8} ms"
+    print(f"{'ctrl':<6}{'model':<22}{'case':<14}{'median':>8}{'p95':>8}{'max':>8}{'max*':>8} ms"
           f"{'misses':>8}{'fail':>6}{'fallb':>6}{'RMSE m':>9}{'floor us':>10}{'f32 us':>8}")
     sqp_rows = []
     for name, model in models:
