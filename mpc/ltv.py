@@ -317,6 +317,7 @@ class LTVMPC(MPCBase):
             Uq = res.x[self.nx_var:].reshape(N, NU)
             if line_search:
                 t_ls = tm.now()
+                qp_before = split["assembly"] + split["osqp"]   # a correction's QP is counted there, not here
                 mu = max(mu, self._merit_factor * float(np.max(np.abs(y_last))) + 1e-9)
                 Xl, Ul = X[:N], U     # the linearization point, for the second-order correction's QP
 
@@ -336,7 +337,7 @@ class LTVMPC(MPCBase):
                                                                                        u_ref, mu, resolve)
                 merits.append((phi0, phi, accepted))
                 ls_failures += not accepted
-                split["line_search"] += tm.now() - t_ls
+                split["line_search"] += tm.now() - t_ls - (split["assembly"] + split["osqp"] - qp_before)
             else:
                 Xn, Un, alpha, defect, f_next = Xq, Uq, 1.0, np.inf, None
             alphas.append(alpha)

@@ -145,7 +145,8 @@ class SQPMPC(LTVMPC):
     iterations; ``extra`` carries OSQP's (``qp_iterations``), whether the
     iteration converged, whether the period was a cold start, line-search
     failures and the split of the time (``time_split_s``: derivative graph,
-    QP assembly, OSQP, line search; the rest is Python).
+    QP assembly, OSQP, line search; the rest is Python). A second-order
+    correction's QP counts as assembly and OSQP, not as line search.
     """
 
     _reports_sqp = True

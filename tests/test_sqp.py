@@ -238,6 +238,21 @@ def test_iterations_between_jacobian_evaluations_leave_the_converged_plan_unchan
     assert np.all(every[:, 1] > each[:, 1])     # the reuse iterations did happen
 
 
+def test_the_time_split_counts_each_part_of_a_period_once():
+    sqp = SQPMPC(OnnxModel(PROPOSED), FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))
+    sim, x = Simulator(QuadParams()), FIG8_FAST(np.array([0.0]))[0]
+    sqp.prepare(1.5, x0=x)
+    corrected = 0
+    for k in range(150):
+        u, info = sqp(x, 0.01 * k)
+        split = info.extra["time_split_s"]
+        assert min(split.values()) >= 0.0, split
+        assert sum(split.values()) <= info.solve_time_s, (split, info.solve_time_s)
+        corrected += -1.0 in info.extra["step_lengths"]
+        x = sim.step(x, u)
+    assert corrected > 0, "no second-order correction: the test does not exercise the correction's QP"
+
+
 def test_accepted_steps_never_raise_the_merit_and_some_are_shortened():
     sqp = SQPMPC(OnnxModel(PROPOSED), FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None,
                                                              max_sqp_iter=10))
