@@ -339,8 +339,9 @@ class SQPMPC(LTVMPC):
     def _line_search(self, X, U, Xq, Uq, fx, ref, u_ref, mu, resolve):
         """The next iterate: the full step, a second-order correction, or a shortened step.
 
-        Returns ``(X, U, alpha, accepted, phi(0), phi(new), defect(new))``; ``alpha`` is 1 for
-        the full step, ``-1`` for the second-order correction. A full step
+        Returns ``(X, U, alpha, accepted, phi(0), phi(new), defect(new), f(new))``; ``alpha`` is 1 for
+        the full step, ``-1`` for the second-order correction; ``f(new)`` (N, 12) is the model's step
+        along the new iterate (for an iteration that reuses the Jacobians). A full step
         without sufficient decrease of the merit (Armijo, :data:`ARMIJO`) is
         first corrected: the QP is solved again with the model's defects at the
         full step added to its dynamics constraints (one more QP, no new
