@@ -54,16 +54,20 @@ def flown_states(model):
     return out
 
 
-def objective_gaps(model, confirm=False, hessian="limited-memory"):
+def objective_gaps(model, confirm=False, hessian="limited-memory", other=None):
     """Relative objective gap SQP - IPOPT per state, both started from the same guess (the cold-start rollout).
 
     ``confirm``: also the gap of IPOPT started from the SQP's own plan (NaN where the first gap is within
     tolerance): near zero when the SQP's plan is a local optimum IPOPT stays at.
+    ``other``: also the gap of IPOPT with this Hessian to IPOPT with ``hessian``, from the same guess.
     """
-    sqp = SQPMPC(model, FIG8_FAST, CONVERGED)
-    ipopt = NMPC(model, FIG8_FAST, NMPCSettings(tol=1e-10, max_iter=3000, time_limit_s=60.0, hessian=hessian))
+    def ipopt_with(h):
+        return NMPC(model, FIG8_FAST, NMPCSettings(tol=1e-10, max_iter=3000, time_limit_s=60.0, hessian=h))
+
+    sqp, ipopt = SQPMPC(model, FIG8_FAST, CONVERGED), ipopt_with(hessian)
+    second = None if other is None else ipopt_with(other)
     accepted = ("Solve_Succeeded",) if hessian == "exact" else ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-    N, gaps, confirmed = sqp.N, [], []
+    N, gaps, confirmed, between = sqp.N, [], [], []
     for t, x in flown_states(model):
         times = t + 0.01 * np.arange(N + 1)
         ref, u_ref = sqp.ff.states(times), sqp.ff.inputs(times[:N])
@@ -80,7 +84,11 @@ def objective_gaps(model, confirm=False, hessian="limited-memory"):
             confirmed.append((js - sqp.cost(Xc, Uc, ref, u_ref)) / js)
         else:
             confirmed.append(np.nan)
-    return (np.array(gaps), np.array(confirmed)) if confirm else np.array(gaps)
+        if second is not None:
+            Xo, Uo, _ = second.solve_from(x, t, X0, U0)
+            between.append((sqp.cost(Xo, Uo, ref, u_ref) - jn) / jn)
+    out = (np.array(gaps),) + ((np.array(confirmed),) if confirm else ()) + ((np.array(between),) if second else ())
+    return out if len(out) > 1 else out[0]
 
 
 def test_sqp_reaches_ipopts_optimal_objective_with_the_oracle():
@@ -113,10 +121,12 @@ def test_sqp_reaches_ipopts_optimal_objective_with_the_proposed_pinn():
 def test_sqp_against_ipopt_with_the_exact_hessian_on_the_proposed_pinn():
     """The same comparison with IPOPT converged properly: exact Hessian (the PINN rebuilt in CasADi), tol 1e-10.
 
-    About 2-3.5 minutes. Measured: IPOPT converges on all 50 states; the SQP ends at IPOPT's point on 39 of them
-    (objectives equal to about 1e-14) and at other local optima on 11 (6 lower, 5 higher, worst 1.7e-2).
+    About 3-4 minutes. Measured: IPOPT converges on all 50 states; the SQP ends at IPOPT's point on 39 of them
+    (objectives equal to about 1e-14) and at other local optima on 11 (6 lower, 5 higher, worst 1.7e-2). For scale,
+    IPOPT with its limited-memory Hessian, from the same guess, ends at the exact-Hessian IPOPT's point on 42.
     """
-    signed, confirmed = objective_gaps(OnnxModel(PROPOSED), confirm=True, hessian="exact")
+    signed, confirmed, between = objective_gaps(OnnxModel(PROPOSED), confirm=True, hessian="exact",
+                                                other="limited-memory")
     gaps = np.abs(signed)
     assert np.all(np.isfinite(gaps)), f"{int(np.sum(~np.isfinite(gaps)))} states end with an infeasible plan"
     off = ~np.isnan(confirmed)
@@ -125,8 +135,15 @@ def test_sqp_against_ipopt_with_the_exact_hessian_on_the_proposed_pinn():
     assert within >= TOL["proposed_min_within"], within
     if within < N_STATES:
         lower, higher = int(np.sum(signed < -TOL["objective_rel"])), int(np.sum(signed > TOL["objective_rel"]))
+        ipopts = int(np.sum(np.abs(between) <= TOL["objective_rel"]))
+        # Objectives relative to the exact-Hessian IPOPT's: which of the three solvers reaches the lowest per state.
+        rel = np.stack([signed, between, np.zeros_like(signed)])
+        at_lowest = np.sum((rel - rel.min(axis=0)) / (1 + rel.min(axis=0)) <= TOL["objective_rel"], axis=1)
         pytest.xfail(f"{N_STATES - within} of {N_STATES} states at other local optima than IPOPT's (exact Hessian, "
-                     f"converged): {lower} lower and {higher} higher (worst gap {np.max(gaps):.1e})")
+                     f"converged): {lower} lower and {higher} higher (worst gap {np.max(gaps):.1e}); IPOPT with "
+                     f"its limited-memory Hessian is within 1e-4 of it on {ipopts} of {N_STATES}; the lowest of the "
+                     f"three objectives is reached by the SQP on {at_lowest[0]}, the limited-memory IPOPT on "
+                     f"{at_lowest[1]} and the exact-Hessian one on {at_lowest[2]}")
 
 
 def test_the_exact_hessian_is_the_models_curvature_weighted_by_the_multipliers():
