@@ -30,11 +30,12 @@ class NaNJacobiansAfter(PredictionModel):
     """A prediction model that forwards to ``base`` and returns NaN Jacobians after ``left`` more linearizations.
 
     ``left`` can be set again at any time (for example after a controller's
-    feed-forward fit, which linearizes the model too).
+    feed-forward fit, which linearizes the model too). ``linearizations``
+    counts the calls (and can be reset the same way).
     """
 
     def __init__(self, base, left: int):
-        self.base, self.left = base, left
+        self.base, self.left, self.linearizations = base, left, 0
         self.name, self.theta = base.name, base.theta
 
     def step(self, x, u):
@@ -42,6 +43,7 @@ class NaNJacobiansAfter(PredictionModel):
 
     def linearize(self, x, u):
         xn, A, B = self.base.linearize(x, u)
+        self.linearizations += 1
         self.left -= 1
         if self.left < 0:
             A = A.copy()
