@@ -93,13 +93,16 @@ def table_one(evaluation: dict) -> str:
     return text + "\n\n" + md_table(header, rows)
 
 
+def _paper_setting(entry: dict) -> bool:
+    """The paper's setting: data from the nominal simulator with the command logged (Table VI has the others)."""
+    return entry.get("fidelity", "nominal") == "nominal" and entry.get("inputs", "commanded") == "commanded"
+
+
 def table_two(evaluation: dict) -> str:
     """Table II: identification error (%) with its multiple of the CRLB std, the paper's row, the CRLB rows."""
-    # The paper's setting: data from the nominal simulator with the command logged (Table VI has the others).
-    def nominal(d):
-        return d.get("fidelity", "nominal") == "nominal" and d.get("inputs", "commanded") == "commanded"
-    models = [m for m in evaluation.get("models", []) if isinstance(m, dict) and nominal(m)]
-    fits = [d for d in evaluation.get("datasets", []) if isinstance(d, dict) and nominal(d) and d.get("estimator")]
+    models = [m for m in evaluation.get("models", []) if isinstance(m, dict) and _paper_setting(m)]
+    fits = [d for d in evaluation.get("datasets", []) if isinstance(d, dict) and _paper_setting(d)
+            and d.get("estimator")]
     paper = (evaluation.get("paper") or {}).get("table2_err_pct") or {}
     names = theta_names(paper, *[m.get("theta_err_pct") for m in models])
     if not names:
@@ -220,7 +223,7 @@ def _ablation_crlb(evaluation: dict | None, data: dict) -> dict:
     """CRLB std of each inertia, % of truth, for the ablation's training data (from a matching dataset entry)."""
     for d in (evaluation or {}).get("datasets", []):
         if (isinstance(d.get("crlb_std"), dict) and all(d.get(k) == data.get(k) for k in ("regime", "seed", "n_traj"))
-                and d.get("fidelity") == "nominal" and d.get("inputs") == "commanded"):
+                and _paper_setting(d)):
             true = d.get("theta_true") or {}
             return {n: 100.0 * d["crlb_std"][n] / true[n] for n in ("Jxx", "Jyy", "Jzz")
                     if n in d["crlb_std"] and true.get(n)}
