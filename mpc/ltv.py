@@ -230,6 +230,11 @@ class LTVMPC(MPCBase):
         xs[0] = x
         return xs, us
 
+    def _shifts_plan(self) -> bool:
+        """This period's first iterate is the previous plan shifted by one period (not a cold start, and not a plan
+        made for this very period before take-off)."""
+        return self._plan_x is not None and not self._plan_is_current
+
     def _iteration_plan(self):
         """``(max_iterations, line_search, time_budget_s or None, (step_tol, defect_tol))`` of one period.
 
@@ -257,7 +262,7 @@ class LTVMPC(MPCBase):
         shifted = False   # the first iterate is the previous plan shifted by one period
         if guess is None:
             cold = self._plan_x is None
-            shifted = not cold and not self._plan_is_current
+            shifted = self._shifts_plan()
             X, U = self._initial_iterate(x, ref, u_ref)
             if cold:
                 max_it, budget = self._cold_start_plan(max_it, budget)

@@ -206,7 +206,7 @@ class SQPMPC(LTVMPC):
     def _initial_iterate(self, x, ref, u_ref):
         if self._plan_x is not None or self.s.cold_start == "hold":
             X, U = self._nominal(x, u_ref)   # the shifted plan (or, cold, the state held under the feed-forward)
-            if self._plan_x is not None and not self._plan_is_current and self.s.tail == "model":
+            if self._shifts_plan() and self.s.tail == "model":
                 U[-1] = self._tail_input(X[-2], ref[-2], u_ref[-1])
             return X, U
         return self.rollout(x, ref, u_ref)
