@@ -1,6 +1,7 @@
 """The project documents itself: a short README whose commands work, links that resolve, no reference outside."""
 
 import re
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -16,10 +17,18 @@ TEXT_SUFFIXES = {".py", ".md", ".toml", ".json", ".txt", ".cfg", ".ini", ".yml",
 
 
 def _project_files():
-    skip = {".git", "__pycache__", ".pytest_cache", "results", "build", "dist"}
-    for p in REPO.rglob("*"):
-        if p.is_file() and not (set(p.relative_to(REPO).parts) & skip) and not p.name.endswith(".egg-info") \
-                and p.suffix in TEXT_SUFFIXES and "egg-info" not in str(p):
+    """The files git tracks (staged ones included); without git, every file outside caches, build output and
+    virtual environments (a folder with a ``pyvenv.cfg``), which a user may well create inside the checkout."""
+    try:
+        listed = subprocess.run(["git", "ls-files", "-z"], cwd=REPO, capture_output=True, check=True).stdout
+        paths = [REPO / name for name in listed.decode("utf-8").split("\0") if name]
+    except (OSError, subprocess.CalledProcessError):
+        skip = {".git", "__pycache__", ".pytest_cache", "results", "build", "dist"}
+        venvs = [c.parent for c in REPO.rglob("pyvenv.cfg")]
+        paths = [p for p in REPO.rglob("*") if not (set(p.relative_to(REPO).parts) & skip)
+                 and "egg-info" not in str(p) and not any(v in p.parents for v in venvs)]
+    for p in paths:
+        if p.is_file() and p.suffix in TEXT_SUFFIXES:
             yield p
 
 
