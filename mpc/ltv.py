@@ -427,18 +427,12 @@ class LTVMPC(MPCBase):
         and OSQP reuses its factorization).
         """
         t0 = time.perf_counter()
-        N = self.N
         c = fx - (A @ xb[:, :, None])[:, :, 0] - (B @ ub[:, :, None])[:, :, 0]
-        mats = {}
-        if not same_matrices:
-            vals = self._vals.copy()
-            vals[self._idx_A] = A.ravel()
-            vals[self._idx_B] = B.ravel()
-            mats["Ax"] = vals[self._perm]
+        mats = {} if same_matrices else {"Ax": self._constraint_values(A, B)}
         lo, hi = self._l0.copy(), self._u0.copy()
         lo[:NX] = hi[:NX] = x
         lo[NX:self._n_eq] = hi[NX:self._n_eq] = -c.ravel()
-        q = np.concatenate([-(ref[:N] @ self.Q).ravel(), -(self.P @ ref[N]), -(u_ref @ self.R).ravel()])
+        q = self._linear_cost(ref, u_ref)
         if hess is not None:
             q = q + hess[1]
             if not same_matrices:
@@ -452,6 +446,20 @@ class LTVMPC(MPCBase):
             split["assembly"] += t1 - t0
             split["osqp"] += time.perf_counter() - t1
         return res
+
+    def _constraint_values(self, A, B):
+        """Values of the QP's constraint matrix (CSC order of ``_A0``) with the dynamics ``A`` (N, 12, 12) and ``B``
+        (N, 12, 4)."""
+        vals = self._vals.copy()
+        vals[self._idx_A] = A.ravel()
+        vals[self._idx_B] = B.ravel()
+        return vals[self._perm]
+
+    def _linear_cost(self, ref, u_ref):
+        """The QP's linear cost term for the reference ``ref`` (N + 1, 12) and feed-forward ``u_ref`` (N, 4): the cost
+        is ``z' H z / 2 + q' z`` with ``H`` the cost's Hessian."""
+        N = self.N
+        return np.concatenate([-(ref[:N] @ self.Q).ravel(), -(self.P @ ref[N]), -(u_ref @ self.R).ravel()])
 
     def update_settings(self, **settings) -> None:
         """Change OSQP settings between periods (for example ``max_iter`` or ``time_limit``)."""

@@ -72,10 +72,8 @@ def optimality(sqp, x, t, X, U):
     N = sqp.N
     ref, u_ref = sqp._horizon_reference(t)
     fx, A, B = sqp.model.linearize(X[:N], U)
-    vals = sqp._vals.copy()
-    vals[sqp._idx_A], vals[sqp._idx_B] = A.ravel(), B.ravel()
     M = sqp._A0.copy()
-    M.data = vals[sqp._perm]
+    M.data = sqp._constraint_values(A, B)
     M = M.toarray()
     z = np.concatenate([X.ravel(), U.ravel()])
     Mz, n_eq = M @ z, sqp._n_eq
@@ -85,7 +83,7 @@ def optimality(sqp, x, t, X, U):
     rows = np.r_[np.arange(n_eq), at_upper, at_lower]
     C = M[rows]
     P = block_diag(*[sqp.Q] * N, sqp.P, *[sqp.R] * N)             # the QP's scaling: the cost is z' P z / 2 + q' z
-    g = P @ z - np.concatenate([(ref[:N] @ sqp.Q).ravel(), sqp.P @ ref[N], (u_ref @ sqp.R).ravel()])
+    g = P @ z + sqp._linear_cost(ref, u_ref)
     lam = np.linalg.lstsq(C.T, -g, rcond=None)[0]
     stationarity = np.max(np.abs(g + C.T @ lam)) / np.max(np.abs(g))
     n_up = len(at_upper)
