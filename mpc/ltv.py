@@ -292,7 +292,8 @@ class LTVMPC(MPCBase):
                 else:
                     fx, A, B = self._linearize(X[:N], U)
             split["derivatives"] += tm.now() - t_it
-            finite = np.all(np.isfinite(fx)) and np.all(np.isfinite(A)) and np.all(np.isfinite(B))
+            # A reuse iteration's A, B passed this check when they were evaluated (a non-finite one ends the period).
+            finite = np.all(np.isfinite(fx)) and (reuse or (np.all(np.isfinite(A)) and np.all(np.isfinite(B))))
             if finite and shifted and done == 0:
                 first_warm = self._close_tail(X, U, fx, first_warm)
             if finite:
