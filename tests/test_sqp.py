@@ -48,11 +48,15 @@ def sampled_states(n, seed):
 
 
 def flown_states(model):
+    """``(t, x, warm)`` per sampled period; ``warm`` is the first iterate the flying controller itself started that
+    period from (its shifted plan, ``(X (N + 1, 12), U (N, 4))``), ``None`` at take-off."""
     sqp = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))
     sim, x, out = Simulator(QuadParams()), FIG8_FAST(np.array([0.0]))[0], []
     for k in range(N_STATES * EVERY):
+        t = round(0.01 * k, 2)
         if k % EVERY == 0:
-            out.append((round(0.01 * k, 2), x.copy()))
+            warm = None if sqp._plan_x is None else sqp._initial_iterate(x, *sqp._horizon_reference(t))
+            out.append((t, x.copy(), warm))
         u, _ = sqp(x, 0.01 * k)
         x = sim.step(x, u)
     return out
@@ -98,8 +102,9 @@ def optimality(sqp, x, t, X, U):
     return stationarity, smallest, sign
 
 
-def objective_gaps(model, hessian="limited-memory", other=None):
-    """The SQP against IPOPT per state, both started from the same guess (the cold-start rollout).
+def objective_gaps(model, hessian="limited-memory", other=None, guess="cold"):
+    """The SQP against IPOPT per state, both started from the same guess: ``"cold"``, the cold-start rollout, or
+    ``"warm"``, the flying controller's own first iterate of that period (the rollout at take-off).
 
     Returns a dict of arrays over the states: ``gap``, the relative objective gap SQP - IPOPT (inf where the SQP's
     plan still violates the model); ``sqp``, the SQP plan's :func:`optimality` (n, 3); ``ipopt``, the same of IPOPT's
@@ -113,10 +118,10 @@ def objective_gaps(model, hessian="limited-memory", other=None):
     second = None if other is None else ipopt_with(other)
     accepted = ("Solve_Succeeded",) if hessian == "exact" else ("Solve_Succeeded", "Solved_To_Acceptable_Level")
     N, out = sqp.N, {"gap": [], "sqp": [], "ipopt": [], "between": []}
-    for t, x in flown_states(model):
+    for t, x, warm in flown_states(model):
         times = t + 0.01 * np.arange(N + 1)
         ref, u_ref = sqp.ff.states(times), sqp.ff.inputs(times[:N])
-        X0, U0 = sqp.rollout(x, ref, u_ref)
+        X0, U0 = warm if guess == "warm" and warm is not None else sqp.rollout(x, ref, u_ref)
         Xs, Us, _ = sqp.solve_from(x, t, X0, U0)
         Xn, Un, status = ipopt.solve_from(x, t, X0, U0)
         assert status in accepted, f"t={t}: IPOPT {status}"
@@ -191,6 +196,26 @@ def test_sqp_reaches_ipopts_optimal_objective_with_the_proposed_pinn():
         # different ones: measured 3 states with a lower objective than IPOPT's, 3 with a higher one.
         pytest.xfail(f"{N_STATES - within} of {N_STATES} states not within 1e-4 of IPOPT's objective: "
                      + differing(found))
+
+
+@pytest.mark.slow
+def test_sqp_against_ipopt_from_the_controllers_own_warm_start_on_the_proposed_pinn():
+    """The same comparison from the guess the flying controller started each period from (its shifted plan), not
+    the cold-start rollout: is the miss an artefact of a guess far from the plan the controller carries?
+
+    About 1.5 minutes. Measured: no; 43 of 50 within 1e-4 (4 lower, 3 higher, worst 2.9e-2), against 44 of 50 from
+    the cold guess, and the differing states are mostly other states than the cold guess's.
+    """
+    found = objective_gaps(OnnxModel(PROPOSED), guess="warm")
+    gaps = np.abs(found["gap"])
+    assert np.all(np.isfinite(gaps)), f"{int(np.sum(~np.isfinite(gaps)))} states end with an infeasible plan"
+    assert_strict_local_minima(found["sqp"], "SQP")
+    assert_strict_local_minima(found["ipopt"], "IPOPT")
+    within = int(np.sum(gaps <= TOL["objective_rel"]))
+    assert within >= TOL["proposed_min_within"], within
+    if within < N_STATES:
+        pytest.xfail(f"from the controller's own warm start, {N_STATES - within} of {N_STATES} states not within "
+                     f"1e-4 of IPOPT's objective: " + differing(found))
 
 
 @pytest.mark.slow
