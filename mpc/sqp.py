@@ -357,7 +357,7 @@ class SQPMPC(LTVMPC):
         E, D = X - ref, U - u_ref
         grad = (np.sum((E[:N] @ self.Q) * dX[:N]) + E[N] @ self.P @ dX[N] + np.sum((D @ self.R) * dU))
         slope = min(grad - mu * float(np.sum(np.abs(fx - X[1:]))), 0.0)
-        best = (np.inf, X, U, 0.0, np.inf, fx)
+        best = (np.inf, X, U, 0.0, fx)      # merit, plan, step length, model step of the best trial
 
         def trial(Xt, Ut, alpha):
             nonlocal best
@@ -365,7 +365,7 @@ class SQPMPC(LTVMPC):
                 ft = self.model.step(Xt[:N], Ut)
             phi = self._merit(Xt, Ut, ft, ref, u_ref, mu) if np.all(np.isfinite(ft)) else np.inf
             if phi < best[0]:
-                best = (phi, Xt, Ut, alpha, self._defect(ft, Xt), ft)
+                best = (phi, Xt, Ut, alpha, ft)
             return ft, phi, phi <= phi0 + ARMIJO * abs(alpha) * slope
 
         ft, phi, ok = trial(Xq, Uq, 1.0)
@@ -389,7 +389,8 @@ class SQPMPC(LTVMPC):
                 return Xt, Ut, alpha, True, phi0, phi, self._defect(ft, Xt), ft
             alpha *= BACKTRACK
         self.counts["line_search_failures"] += 1
-        return best[1], best[2], best[3], False, phi0, best[0], best[4], best[5]
+        defect = self._defect(best[4], best[1]) if best[0] < np.inf else np.inf   # no finite trial: no defect
+        return best[1], best[2], best[3], False, phi0, best[0], defect, best[4]
 
     def _defect(self, f, X) -> float:
         """Largest dynamics defect of a plan, in the acceptable deviations of the default weights."""
