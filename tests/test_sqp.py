@@ -53,11 +53,11 @@ def flown_states(model):
     sqp = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))
     sim, x, out = Simulator(QuadParams()), FIG8_FAST(np.array([0.0]))[0], []
     for k in range(N_STATES * EVERY):
-        t = round(0.01 * k, 2)
+        t = 0.01 * k
         if k % EVERY == 0:
             warm = None if sqp._plan_x is None else sqp._initial_iterate(x, *sqp._horizon_reference(t))
-            out.append((t, x.copy(), warm))
-        u, _ = sqp(x, 0.01 * k)
+            out.append((round(t, 2), x.copy(), warm))
+        u, _ = sqp(x, t)
         x = sim.step(x, u)
     return out
 
@@ -119,8 +119,7 @@ def objective_gaps(model, hessian="limited-memory", other=None, guess="cold"):
     accepted = ("Solve_Succeeded",) if hessian == "exact" else ("Solve_Succeeded", "Solved_To_Acceptable_Level")
     N, out = sqp.N, {"gap": [], "sqp": [], "ipopt": [], "between": []}
     for t, x, warm in flown_states(model):
-        times = t + 0.01 * np.arange(N + 1)
-        ref, u_ref = sqp.ff.states(times), sqp.ff.inputs(times[:N])
+        ref, u_ref = sqp._horizon_reference(t)
         X0, U0 = warm if guess == "warm" and warm is not None else sqp.rollout(x, ref, u_ref)
         Xs, Us, _ = sqp.solve_from(x, t, X0, U0)
         Xn, Un, status = ipopt.solve_from(x, t, X0, U0)
@@ -327,8 +326,7 @@ def test_iterations_between_jacobian_evaluations_leave_the_converged_plan_unchan
                         jacobians="float64", jacobian_every=every)
         sqp, out = SQPMPC(AnalyticModel(), FIG8_FAST, s), []
         for t, x in sampled_states(8, seed=3):
-            times = t + 0.01 * np.arange(sqp.N + 1)
-            ref, u_ref = sqp.ff.states(times), sqp.ff.inputs(times[:sqp.N])
+            ref, u_ref = sqp._horizon_reference(t)
             Xs, Us, info = sqp.solve_from(x, t, *sqp.rollout(x, ref, u_ref))
             assert info.extra["converged"], f"t={t}: not converged in {info.iterations} iterations"
             out.append((sqp.cost(Xs, Us, ref, u_ref), info.iterations))
@@ -358,8 +356,7 @@ def test_accepted_steps_never_raise_the_merit_and_some_are_shortened():
                                                              max_sqp_iter=10))
     accepted = shortened = 0
     for t, x in sampled_states(10, seed=1):
-        times = t + 0.01 * np.arange(sqp.N + 1)
-        ref, u_ref = sqp.ff.states(times), sqp.ff.inputs(times[:sqp.N])
+        ref, u_ref = sqp._horizon_reference(t)
         _, _, info = sqp.solve_from(x, t, *sqp.rollout(x, ref, u_ref))
         assert len(info.extra["merit"]) == len(info.extra["step_lengths"]) == info.iterations
         for (before, after, ok), alpha in zip(info.extra["merit"], info.extra["step_lengths"]):
@@ -385,8 +382,7 @@ def test_cold_start_from_a_standing_start_is_counted_and_does_not_fail():
     assert all(i.is_optimal() for i in infos)
     assert sqp.counts["cold_starts"] == 1 and sqp.counts["solver_failures"] == 0
     # The first iterate of a cold start is the model flown under the feed-forward and the LQR.
-    ref = sqp.ff.states(0.01 * np.arange(31))
-    X, U = sqp.rollout(x, ref, sqp.ff.inputs(0.01 * np.arange(30)))
+    X, U = sqp.rollout(x, *sqp._horizon_reference(0.0))
     np.testing.assert_array_equal(X[1:], sqp.model.step(X[:-1], U))
 
 
