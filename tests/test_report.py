@@ -27,10 +27,13 @@ HEADINGS = (
     "Table I: one-step and 100-step accuracy",
     "Table II: parameter identification and Cramér-Rao bounds",
     "Table III: ablation",
+    "Table VI: identification under model mismatch",
     "Closed-loop results",
+    "High-fidelity plant: models trained on its own data",
     "Hover: settled error and gust recovery",
     "Speed ladder: maximum trackable speed",
     "Ensembles: crash probability and RMSE with intervals",
+    "Real-time timing: compute time charged",
     "Headline: open-loop error against closed-loop error",
     "Trajectories and tracking error",
     "Rollout error growth",
@@ -232,6 +235,8 @@ def test_report_contents(results_dir):
     for h in HEADINGS:
         assert f"\n## {h}\n" in md, h
         assert f"<h2>{h}</h2>" in page, h
+    assert re.findall(r"^## (.+)$", md, flags=re.M) == list(HEADINGS)
+    assert re.findall(r"<h2>(.+?)</h2>", page) == list(HEADINGS)
 
     # one row per run, in report order, RMSE as saved, the crash and the error visible
     rows = _closed_loop_rows(md)
