@@ -232,9 +232,7 @@ def test_report_contents(results_dir):
     md = out.read_text(encoding="utf-8")
     page = (results_dir / "report.html").read_text(encoding="utf-8")
 
-    for h in HEADINGS:
-        assert f"\n## {h}\n" in md, h
-        assert f"<h2>{h}</h2>" in page, h
+    # every section, exactly these, in this order (pytest's diff of the lists names a missing or moved one)
     assert re.findall(r"^## (.+)$", md, flags=re.M) == list(HEADINGS)
     assert re.findall(r"<h2>(.+?)</h2>", page) == list(HEADINGS)
 
