@@ -46,11 +46,16 @@ class QuadParams:
     kq: float = 7.83e-4       # rotor reaction-torque coefficient, N m / RU^2
     d: float = 0.0624         # arm length, m (X layout, lever arm d / sqrt(2))
     g: float = 9.81           # gravity, m / s^2
-    c_d: float = 0.05         # quadratic drag, 1/m (acceleration = c_d v|v|)
+    c_d: float = 0.05         # quadratic drag, 1/m (acceleration = c_d v|v|); 0 for none
+    n_max: float | None = None  # rotor speed limit, RU; None: four rotors at n_max give 2 m g
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
-            object.__setattr__(self, f.name, positive_finite(getattr(self, f.name), f"QuadParams.{f.name}"))
+            v = getattr(self, f.name)
+            if f.name == "n_max" and v is None:
+                continue
+            check = nonnegative_finite if f.name == "c_d" else positive_finite
+            object.__setattr__(self, f.name, check(v, f"QuadParams.{f.name}"))
 
     @property
     def theta(self) -> np.ndarray:
@@ -77,7 +82,9 @@ class QuadParams:
 
     @property
     def n_max_sq(self) -> float:
-        """Per-rotor limit of n^2, RU^2, set so that four rotors give 2 m g."""
+        """Per-rotor limit of n^2, RU^2: ``n_max^2``, or (``n_max`` None) the value where four rotors give 2 m g."""
+        if self.n_max is not None:
+            return self.n_max ** 2
         return 2.0 * self.m * self.g / (4.0 * self.kt)
 
     @property

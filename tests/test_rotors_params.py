@@ -59,11 +59,19 @@ def test_rotor_geometry_signs():
     np.testing.assert_allclose(np.abs(M[1:3]), P.kt * P.d / math.sqrt(2))
 
 
-@pytest.mark.parametrize("field", ["m", "Jxx", "Jyy", "Jzz", "kt", "kq", "d", "g", "c_d"])
+@pytest.mark.parametrize("field", ["m", "Jxx", "Jyy", "Jzz", "kt", "kq", "d", "g", "c_d", "n_max"])
 @pytest.mark.parametrize("bad", [0.0, -1.0, float("nan"), float("inf")])
 def test_params_reject_non_positive_or_non_finite(field, bad):
+    if field == "c_d" and bad == 0.0:
+        assert QuadParams(c_d=0.0).c_d == 0.0     # no drag at all is a valid vehicle (RotorPy's ideal set-up)
+        return
     with pytest.raises(ValueError, match=f"QuadParams.{field}"):
         QuadParams(**{field: bad})
+
+
+def test_params_rotor_limit_given_or_derived():
+    assert QuadParams(n_max=5.0).n_max_sq == 25.0
+    assert QuadParams(m=0.1).n_max_sq == pytest.approx(2 * 0.1 * 9.81 / (4 * 0.01), rel=1e-15)
 
 
 def test_params_reference_values_and_overrides():

@@ -1,0 +1,213 @@
+"""Plants: what a closed loop flies. One small interface, several simulators behind it.
+
+A plant holds the true state of one vehicle and advances it under a
+wrench command held constant::
+
+    plant = make_plant("sim", vehicle)           # or "rotorpy", "rotorpy-ideal"
+    out = plant.reset(x0)                        # state (12,), NED, ZYX Euler angles
+    out = plant.advance(u, DT)                   # hold u = [T, tau_x, tau_y, tau_z] for one period
+    out.x, out.rotor_speed, out.wrench           # the true state and what telemetry may read
+
+``advance`` takes any whole number of milliseconds (the real-time clock
+flies a period in pieces). Disturbances are options of the plant: a payload
+(kg, the rotor limits stay the vehicle's) and a wind given as a world-frame
+acceleration ``wind(t) -> (3,)`` (m/s^2), evaluated at the start of each
+call to ``advance``.
+
+Names (:data:`PLANTS`):
+
+* ``sim``: the reference simulator of this package (:class:`SimPlant`),
+  nominal or with the vehicle's high-fidelity effects;
+* ``rotorpy``: RotorPy's ``Multirotor`` with the vehicle's motor lag and
+  RotorPy's aerodynamics (rotor drag, induced inflow, translational lift,
+  flapping, parasitic drag);
+* ``rotorpy-ideal``: RotorPy with instant motors and no aerodynamics, no
+  drag at all: the rigid-body equations, integrated by another code.
+
+RotorPy is an optional dependency (``pip install -e '.[rotorpy]'``); see
+:mod:`sim.rotorpy_plant`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import numpy as np
+
+from ._validate import as_batch, nonnegative_finite
+from .errors import SimInputError
+from .params import DT, NOMINAL, NU, NX, SUBSTEPS, Fidelity
+from .vehicle import Vehicle, load_vehicle
+
+WindFn = Callable[[float], np.ndarray]
+
+#: Plant names, the default first.
+PLANTS = ("sim", "rotorpy", "rotorpy-ideal")
+#: Resolution of :meth:`Plant.advance`, s (the reference simulator's RK4 substep).
+PLANT_TICK_S = DT / SUBSTEPS
+
+
+class PlantOutput(NamedTuple):
+    """The plant after a call (units in comments)."""
+
+    x: np.ndarray            # (12,) true state, NED, ZYX Euler angles (continuous, never wrapped)
+    rotor_speed: np.ndarray  # (4,) rotor speeds, RU (telemetry), rotors in this project's order
+    wrench: np.ndarray       # (4,) wrench the rotors realized at the start of the call, N and N m
+    saturated: np.ndarray    # (4,) bool: rotor command clipped at 0 or at n_max
+
+
+class Plant:
+    """Interface of a plant (see the module docstring).
+
+    Attributes
+    ----------
+    name : str
+        One of :data:`PLANTS` (or a user's own).
+    vehicle : Vehicle
+        The vehicle flown.
+    t : float
+        Time of the current state, s (0 after :meth:`reset`).
+    """
+
+    name: str = "plant"
+
+    def __init__(self, vehicle: Vehicle | None = None, *, payload_kg: float = 0.0, wind: WindFn | None = None):
+        self.vehicle = load_vehicle(vehicle)
+        self.payload_kg = nonnegative_finite(payload_kg, "payload_kg")
+        if wind is not None and not callable(wind):
+            raise SimInputError(f"wind must be a callable wind(t) -> acceleration (3,); found {type(wind).__name__}")
+        self.wind = wind
+        self.t = 0.0
+        self._out: PlantOutput | None = None
+
+    @property
+    def x(self) -> np.ndarray:
+        """The true state (12,)."""
+        if self._out is None:
+            raise SimInputError(f"plant {self.name!r}: call reset(x0) before reading its state")
+        return self._out.x
+
+    @property
+    def hover_input(self) -> np.ndarray:
+        """The vehicle's hover wrench ``[m g, 0, 0, 0]`` (without payload): what holds it before a first command."""
+        p = self.vehicle.params
+        return np.array([p.m * p.g, 0.0, 0.0, 0.0])
+
+    def reset(self, x0, rotor_speed=None) -> PlantOutput:
+        """Put the vehicle in state ``x0`` (12,) at t = 0, rotors at ``rotor_speed`` (4,) RU.
+
+        ``rotor_speed`` None: the plant's default (hover speed; in the
+        reference simulator, the first command's speed).
+        """
+        x0 = as_batch(x0, "x0", NX)
+        if x0.shape != (NX,):
+            raise SimInputError(f"x0 must be one state of shape (12,); found {x0.shape}")
+        if rotor_speed is not None:
+            rotor_speed = as_batch(rotor_speed, "rotor_speed", 4).reshape(4).copy()
+        self._ticks = 0
+        self.t = 0.0
+        self._out = self._reset(x0.copy(), rotor_speed)
+        return self._out
+
+    def advance(self, u, duration_s: float = DT) -> PlantOutput:
+        """Hold the wrench command ``u`` (4,) for ``duration_s`` (a whole number of ms); the plant after it."""
+        if self._out is None:
+            raise SimInputError(f"plant {self.name!r}: call reset(x0) before advance")
+        u = np.asarray(u, dtype=float)
+        if u.shape != (NU,):
+            raise SimInputError(f"u must have shape (4,); found {u.shape}")
+        ticks = int(round(duration_s / PLANT_TICK_S))
+        if ticks < 1 or abs(ticks * PLANT_TICK_S - duration_s) > 1e-12:
+            raise SimInputError(f"duration_s must be a whole number of {PLANT_TICK_S * 1e3:g} ms; found {duration_s}")
+        self._out = self._advance(u, ticks)
+        self._ticks += ticks
+        # Whole periods exactly as k * DT (the wind of a period is evaluated at that time).
+        self.t = (self._ticks // SUBSTEPS) * DT + (self._ticks % SUBSTEPS) * PLANT_TICK_S
+        return self._out
+
+    def step(self, u) -> PlantOutput:
+        """One control period: ``advance(u, DT)``."""
+        return self.advance(u, DT)
+
+    def describe(self) -> dict:
+        """JSON-ready description stored with results: name, vehicle, disturbances, set-up."""
+        return {"plant": self.name, "vehicle": self.vehicle.name, "payload_kg": self.payload_kg}
+
+    # Implementations provide these two.
+    def _reset(self, x0: np.ndarray, rotor_speed: np.ndarray | None) -> PlantOutput:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def _advance(self, u: np.ndarray, ticks: int) -> PlantOutput:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+class SimPlant(Plant):
+    """The reference simulator (:class:`sim.Simulator`) behind the plant interface.
+
+    Parameters
+    ----------
+    vehicle : Vehicle or name, optional
+        The Rolling Spider when omitted.
+    fidelity : Fidelity
+        Effects beyond the nominal equations (nominal by default; the
+        vehicle's own are :attr:`Vehicle.fidelity`).
+    payload_kg, wind
+        As in :class:`Plant`.
+    """
+
+    name = "sim"
+
+    def __init__(self, vehicle: Vehicle | None = None, fidelity: Fidelity = NOMINAL, *, payload_kg: float = 0.0,
+                 wind: WindFn | None = None):
+        super().__init__(vehicle, payload_kg=payload_kg, wind=wind)
+        if not isinstance(fidelity, Fidelity):
+            raise SimInputError(f"fidelity must be a Fidelity; found {type(fidelity).__name__}")
+        self.fidelity = fidelity
+        self._sims: dict[int, object] = {}
+        self._n = None
+
+    def _sim(self, ticks: int):
+        from .simulator import Simulator
+
+        if ticks not in self._sims:
+            self._sims[ticks] = Simulator(self.vehicle.params, self.fidelity, dt=ticks * PLANT_TICK_S,
+                                          substeps=ticks, payload_kg=self.payload_kg, wind=self.wind)
+        return self._sims[ticks]
+
+    def _reset(self, x0, rotor_speed):
+        # Without motor lag the rotors run at the commanded speed; with it they carry over from call to call, and
+        # (rotor_speed None) start at the first command's speed.
+        self._n = rotor_speed
+        n = np.full(4, self.vehicle.params.n_hover) if rotor_speed is None else rotor_speed
+        return PlantOutput(x0, n, np.full(4, np.nan), np.zeros(4, dtype=bool))
+
+    def _advance(self, u, ticks):
+        with np.errstate(all="ignore"):     # a diverging flight is the crash test's business, not an error
+            res = self._sim(ticks).step_full(self.x, u, rotor_speed=self._n, t=self.t)
+        self._n = res.rotor_speed
+        return PlantOutput(res.x, res.rotor_speed, res.wrench, res.saturated)
+
+    def describe(self) -> dict:
+        import dataclasses
+
+        return {**super().describe(), "fidelity": dataclasses.asdict(self.fidelity)}
+
+
+def make_plant(name: str = "sim", vehicle=None, *, high_fidelity: bool = False, payload_kg: float = 0.0,
+               wind: WindFn | None = None) -> Plant:
+    """The plant called ``name`` (one of :data:`PLANTS`) flying ``vehicle`` (a :class:`Vehicle`, name or file).
+
+    ``high_fidelity`` switches on the vehicle's motor lag, rotor drag and gyroscopic torque in the reference
+    simulator (the ``+highfi`` scenarios); RotorPy's plants have their own set-ups and refuse it.
+    """
+    vehicle = load_vehicle(vehicle)
+    if name == "sim":
+        return SimPlant(vehicle, vehicle.fidelity if high_fidelity else NOMINAL, payload_kg=payload_kg, wind=wind)
+    if name in ("rotorpy", "rotorpy-ideal"):
+        if high_fidelity:
+            raise SimInputError(f"high fidelity is a set-up of the reference simulator (plant 'sim'); plant {name!r} "
+                                f"has its own (use --plant rotorpy for RotorPy's motor lag and aerodynamics)")
+        from .rotorpy_plant import RotorPyPlant
+        return RotorPyPlant(vehicle, ideal=(name == "rotorpy-ideal"), payload_kg=payload_kg, wind=wind)
+    raise SimInputError(f"plant must be one of {', '.join(PLANTS)}; found {name!r}")
