@@ -14,3 +14,7 @@ class SimInputError(ValueError):
 
 class DatasetError(ValueError):
     """A dataset file is missing fields or was written by an incompatible version."""
+
+
+class PlantUnavailableError(SimInputError):
+    """A plant needs an optional package that is not installed (the message says how to install it)."""

@@ -25,6 +25,9 @@ INPUT_NAMES = ("T", "tau_x", "tau_y", "tau_z")
 NX = 12
 NU = 4
 
+#: Standard gravity, m/s^2 (every vehicle's; RotorPy's too).
+GRAVITY = 9.81
+
 #: Control period (s) and RK4 substeps per period (1 kHz integration).
 DT = 0.01
 SUBSTEPS = 10
@@ -45,7 +48,7 @@ class QuadParams:
     kt: float = 0.0100        # rotor thrust coefficient, N / RU^2
     kq: float = 7.83e-4       # rotor reaction-torque coefficient, N m / RU^2
     d: float = 0.0624         # arm length, m (X layout, lever arm d / sqrt(2))
-    g: float = 9.81           # gravity, m / s^2
+    g: float = GRAVITY        # gravity, m / s^2
     c_d: float = 0.05         # quadratic drag, 1/m (acceleration = c_d v|v|); 0 for none
     n_max: float | None = None  # rotor speed limit, RU; None: four rotors at n_max give 2 m g
 

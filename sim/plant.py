@@ -3,7 +3,7 @@
 A plant holds the true state of one vehicle and advances it under a
 wrench command held constant::
 
-    plant = make_plant("sim", vehicle)           # or "rotorpy", "rotorpy-ideal"
+    plant = make_plant("sim", vehicle)           # sim.plants; or "rotorpy", "rotorpy-ideal"
     out = plant.reset(x0)                        # state (12,), NED, ZYX Euler angles
     out = plant.advance(u, DT)                   # hold u = [T, tau_x, tau_y, tau_z] for one period
     out.x, out.rotor_speed, out.wrench           # the true state and what telemetry may read
@@ -14,7 +14,7 @@ flies a period in pieces). Disturbances are options of the plant: a payload
 acceleration ``wind(t) -> (3,)`` (m/s^2), evaluated at the start of each
 call to ``advance``.
 
-Names (:data:`PLANTS`):
+Names (:data:`sim.plants.PLANTS`, built by :func:`sim.plants.make_plant`):
 
 * ``sim``: the reference simulator of this package (:class:`SimPlant`),
   nominal or with the vehicle's high-fidelity effects;
@@ -42,8 +42,6 @@ from .vehicle import Vehicle, load_vehicle
 
 WindFn = Callable[[float], np.ndarray]
 
-#: Plant names, the default first.
-PLANTS = ("sim", "rotorpy", "rotorpy-ideal")
 #: Resolution of :meth:`Plant.advance`, s (the reference simulator's RK4 substep).
 PLANT_TICK_S = DT / SUBSTEPS
 
@@ -192,22 +190,3 @@ class SimPlant(Plant):
         import dataclasses
 
         return {**super().describe(), "fidelity": dataclasses.asdict(self.fidelity)}
-
-
-def make_plant(name: str = "sim", vehicle=None, *, high_fidelity: bool = False, payload_kg: float = 0.0,
-               wind: WindFn | None = None) -> Plant:
-    """The plant called ``name`` (one of :data:`PLANTS`) flying ``vehicle`` (a :class:`Vehicle`, name or file).
-
-    ``high_fidelity`` switches on the vehicle's motor lag, rotor drag and gyroscopic torque in the reference
-    simulator (the ``+highfi`` scenarios); RotorPy's plants have their own set-ups and refuse it.
-    """
-    vehicle = load_vehicle(vehicle)
-    if name == "sim":
-        return SimPlant(vehicle, vehicle.fidelity if high_fidelity else NOMINAL, payload_kg=payload_kg, wind=wind)
-    if name in ("rotorpy", "rotorpy-ideal"):
-        if high_fidelity:
-            raise SimInputError(f"high fidelity is a set-up of the reference simulator (plant 'sim'); plant {name!r} "
-                                f"has its own (use --plant rotorpy for RotorPy's motor lag and aerodynamics)")
-        from .rotorpy_plant import RotorPyPlant
-        return RotorPyPlant(vehicle, ideal=(name == "rotorpy-ideal"), payload_kg=payload_kg, wind=wind)
-    raise SimInputError(f"plant must be one of {', '.join(PLANTS)}; found {name!r}")

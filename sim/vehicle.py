@@ -31,7 +31,7 @@ from pathlib import Path
 
 from ._validate import nonnegative_finite, positive_finite
 from .errors import SimInputError
-from .params import HIGH_FIDELITY, Fidelity, QuadParams
+from .params import GRAVITY, HIGH_FIDELITY, Fidelity, QuadParams
 
 #: Folder of the shipped vehicle files.
 VEHICLE_DIR = Path(__file__).resolve().parent / "vehicles"
@@ -93,12 +93,24 @@ class Vehicle:
     @property
     def params(self) -> QuadParams:
         """The rigid body and rotors as :class:`sim.QuadParams` (what the nominal equations and our plant use)."""
-        return QuadParams(**{n: getattr(self, n) for n in _PARAM_KEYS})
+        return QuadParams(**{n: getattr(self, n) for n in _PARAM_KEYS}, g=GRAVITY)
 
     @property
     def fidelity(self) -> Fidelity:
         """This vehicle's high-fidelity effects on our plant (motor lag, rotor drag, rotor gyroscopic torque)."""
         return Fidelity(motor_tau=self.motor_tau, rotor_drag=self.rotor_drag, rotor_gyro=self.rotor_gyro)
+
+    def named_fidelity(self, name: str) -> Fidelity:
+        """The fidelity ``name`` (a key of :data:`sim.params.FIDELITIES`) with this vehicle's coefficients.
+
+        ``nominal``: none; ``high``: all three effects; ``motor-lag``, ``rotor-drag``, ``rotor-gyro``: one.
+        """
+        full = self.fidelity
+        named = {"nominal": Fidelity(), "high": full, "motor-lag": Fidelity(motor_tau=full.motor_tau),
+                 "rotor-drag": Fidelity(rotor_drag=full.rotor_drag), "rotor-gyro": Fidelity(rotor_gyro=full.rotor_gyro)}
+        if name not in named:
+            raise SimInputError(f"fidelity must be one of {', '.join(named)}; found {name!r}")
+        return named[name]
 
     @property
     def n_max_value(self) -> float:

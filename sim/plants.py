@@ -1,0 +1,31 @@
+"""The named plants: ``make_plant(NAME, vehicle)`` for every name of :data:`PLANTS` (see :mod:`sim.plant`)."""
+
+from __future__ import annotations
+
+from .errors import SimInputError
+from .params import NOMINAL
+from .plant import Plant, SimPlant, WindFn
+from .vehicle import load_vehicle
+
+#: Plant names, the default first.
+PLANTS = ("sim", "rotorpy", "rotorpy-ideal")
+
+
+def make_plant(name: str = "sim", vehicle=None, *, high_fidelity: bool = False, payload_kg: float = 0.0,
+               wind: WindFn | None = None) -> Plant:
+    """The plant called ``name`` (one of :data:`PLANTS`) flying ``vehicle`` (a :class:`Vehicle`, name or file).
+
+    ``high_fidelity`` switches on the vehicle's motor lag, rotor drag and gyroscopic torque in the reference
+    simulator (the ``+highfi`` scenarios); RotorPy's plants have their own set-ups and refuse it.
+    """
+    vehicle = load_vehicle(vehicle)
+    if name == "sim":
+        return SimPlant(vehicle, vehicle.fidelity if high_fidelity else NOMINAL, payload_kg=payload_kg, wind=wind)
+    if name in ("rotorpy", "rotorpy-ideal"):
+        if high_fidelity:
+            raise SimInputError(f"high fidelity is a set-up of the reference simulator (plant 'sim'); plant {name!r} "
+                                f"has its own (use --plant rotorpy for RotorPy's motor lag and aerodynamics)")
+        from .rotorpy_plant import RotorPyPlant
+        full = name == "rotorpy"
+        return RotorPyPlant(vehicle, motor_lag=full, aero=full, payload_kg=payload_kg, wind=wind)
+    raise SimInputError(f"plant must be one of {', '.join(PLANTS)}; found {name!r}")
