@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sim._validate import as_batch
-from sim.params import DT, NX
+from sim.params import NX
 
 from .errors import ConfigurationError
 
@@ -107,57 +107,6 @@ def collector_paused(pause: bool = True):
     finally:
         if pause and was_enabled:
             gc.enable()
-
-
-class MPCBase:
-    """What the LTV-MPC and the NMPC share: set-up of model, reference, weights and LQR, and failure bookkeeping.
-
-    After a failed solve, :meth:`_failure` says what to apply: ``"shifted_plan"``
-    (the next input of the previous plan) while fewer than
-    :data:`MAX_FAILURES_BEFORE_LQR` failures came in a row and a plan exists,
-    else ``"lqr"`` (the hover LQR). Both are counted in ``counts``.
-    """
-
-    def _setup(self, model, reference, spec, Q, R) -> None:
-        from .lqr import LQRController
-        from .models import PredictionModel
-
-        if not isinstance(model, PredictionModel):
-            raise ConfigurationError(f"model must be a PredictionModel; found {type(model).__name__}")
-        self.model = model
-        # The LQR (terminal cost, fallback) and the MPC share the spec, the trim and the feed-forward.
-        self.lqr = LQRController(reference, model, Q, R, spec)
-        self.spec, self.ff = self.lqr.spec, self.lqr.ff
-        self.reference = self.ff.states
-        self.Q, self.R, self.P = self.lqr.Q, self.lqr.R, self.lqr.P
-        self.u_hover = self.lqr.u_hover
-        self.failures_in_a_row = 0
-        self.counts = {"solver_failures": 0, "shifted_plan": 0, "lqr_fallback": 0}
-
-    def prepare(self, t_end: float, x0=None) -> None:
-        """Before a flight: compute the reference and feed-forward up to ``t_end`` plus one horizon (s).
-
-        ``x0`` (12,): the state the vehicle stands in before take-off, for
-        controllers that plan their first period ahead (:class:`mpc.sqp.SQPMPC`).
-        """
-        self.ff.prepare(t_end + self.N * self.ff.dt)
-
-    def _horizon_reference(self, t: float):
-        """Reference states (N + 1, 12) and feed-forward inputs (N, 4) over the horizon from time ``t`` (s)."""
-        times = t + DT * np.arange(self.N + 1)
-        return self.ff.states(times), self.ff.inputs(times[:self.N])
-
-    def _success(self) -> None:
-        self.failures_in_a_row = 0
-
-    def _failure(self, has_plan: bool) -> str:
-        self.counts["solver_failures"] += 1
-        self.failures_in_a_row += 1
-        if self.failures_in_a_row >= MAX_FAILURES_BEFORE_LQR or not has_plan:
-            self.counts["lqr_fallback"] += 1
-            return "lqr"
-        self.counts["shifted_plan"] += 1
-        return "shifted_plan"
 
 
 def check_common_settings(horizon, attitude_limit_rad, max_iter) -> None:

@@ -32,7 +32,8 @@ import scipy.sparse as sp
 from sim.params import NU, NX
 from sim.rotors import mixer_matrix, realize
 
-from .controller import ControlInfo, MPCBase, Reference, Timer, check_common_settings, check_state
+from .base import MPCBase
+from .controller import ControlInfo, Reference, Timer, check_common_settings, check_state
 from .errors import ConfigurationError
 from .models import PredictionModel
 

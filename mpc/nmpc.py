@@ -37,7 +37,8 @@ import numpy as np
 from sim.params import NU, NX
 from sim.rotors import mixer_matrix, realize
 
-from .controller import ControlInfo, MPCBase, Reference, Timer, check_common_settings, check_state
+from .base import MPCBase
+from .controller import ControlInfo, Reference, Timer, check_common_settings, check_state
 from .errors import ConfigurationError
 from .models import AnalyticModel, PredictionModel
 

@@ -122,51 +122,14 @@ def default_name(arch: str, spec: dict) -> str:
     return name
 
 
-def torch_step(model):
-    """numpy ``step(x, u)`` of a torch model, evaluated in float64."""
-    import copy
-
-    import torch
-
-    m = copy.deepcopy(model).double().eval()
-
-    def step(x, u):
-        with torch.no_grad():
-            return m(torch.as_tensor(x, dtype=torch.float64), torch.as_tensor(u, dtype=torch.float64)).numpy()
-    return step
-
-
-def test_metrics(model, ds) -> dict:
-    """Compact test-split metrics of a torch model (stored in the ONNX metadata and the manifest)."""
-    from .metrics import one_step_mae, rollout_mae
-
-    step = torch_step(model)
-    one = one_step_mae(step, ds)
-    roll = rollout_mae(step, ds)
-    return {"one_step_mae": one,
-            "rollout_100_mae": {k: v for k, v in roll.items() if k not in ("position_by_step", "divergence_steps")},
-            "rollout_100_divergence_steps": roll["divergence_steps"]}
-
-
-def _update_manifest(folder: Path, name: str, entry: dict, file: str = "manifest.json") -> Path:
-    """Set ``entry`` under ``name`` in ``folder/file`` (locked: trainings may run in parallel)."""
-    import fcntl
-
-    path = folder / file
-    with open(folder / ".manifest.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        data = json.loads(path.read_text()) if path.exists() else {}
-        data[name] = entry
-        path.write_text(json.dumps(dict(sorted(data.items())), indent=2) + "\n")
-    return path
-
-
 def _train_one(ds, arch: str, profile: str, seed: int, threads: int, recipe: str | None, progress: bool,
                **overrides):
     from .train import make_config, train
 
     cfg = make_config(arch, profile, seed, recipe=recipe, threads=threads, **overrides)
     res = train(ds, cfg, progress=progress)
+    from .metrics import test_metrics
+
     return res, test_metrics(res.model, ds)
 
 
@@ -214,7 +177,9 @@ def cmd_train(args: argparse.Namespace) -> int:
         "torch_version": torch.__version__,
         "cpu_count": os.cpu_count(),
     }
-    manifest = _update_manifest(args.out, name, entry)
+    from .manifest import update_manifest
+
+    manifest = update_manifest(args.out, name, entry)
     r = metrics["rollout_100_mae"]
     print(f"trained {name} ({args.arch}, {args.profile}) in {res.seconds:.0f} s -> {paths['onnx']}")
     print(f"  1-step MAE z {metrics['one_step_mae']['z']:.2e} m, phi {metrics['one_step_mae']['phi']:.2e} rad; "

@@ -2,7 +2,8 @@
 
 A model is any ``step(x, u) -> x_next`` on numpy arrays (B, 12), (B, 4) ->
 (B, 12): a torch model wrapped by :func:`torch_step`, or an ONNX file through
-onnxruntime (:func:`pinn.evaluate.onnx_step`). Nothing here imports torch.
+onnxruntime (:func:`pinn.evaluate.onnx_step`). Only :func:`torch_step` imports
+torch, when called.
 """
 
 from __future__ import annotations
@@ -96,3 +97,27 @@ def rollout_mae(step, ds, split: str = "test", horizon: int = 100, n_starts: int
         "horizon": horizon,
     })
     return out
+
+
+def torch_step(model):
+    """numpy ``step(x, u)`` of a torch model, evaluated in float64."""
+    import copy
+
+    import torch
+
+    m = copy.deepcopy(model).double().eval()
+
+    def step(x, u):
+        with torch.no_grad():
+            return m(torch.as_tensor(x, dtype=torch.float64), torch.as_tensor(u, dtype=torch.float64)).numpy()
+    return step
+
+
+def test_metrics(model, ds) -> dict:
+    """Compact test-split metrics of a torch model (stored in the ONNX metadata and the manifest)."""
+    step = torch_step(model)
+    one = one_step_mae(step, ds)
+    roll = rollout_mae(step, ds)
+    return {"one_step_mae": one,
+            "rollout_100_mae": {k: v for k, v in roll.items() if k not in ("position_by_step", "divergence_steps")},
+            "rollout_100_divergence_steps": roll["divergence_steps"]}

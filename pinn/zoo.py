@@ -144,7 +144,7 @@ def train_run(run: ZooRun, out: Path, test_ds=None, threads: int = 1, progress: 
     from mpc.contract import config_hash
     from sim.params import THETA_NAMES
 
-    from .cli import test_metrics
+    from .metrics import test_metrics
     from .export import export_model
     from .train import make_config, train
 
@@ -203,7 +203,7 @@ def sort_refused(out, names) -> dict:
     """
     import json
 
-    from .cli import _update_manifest
+    from .manifest import update_manifest
 
     out = Path(out)
     manifest = json.loads((out / "manifest.json").read_text())
@@ -222,7 +222,7 @@ def sort_refused(out, names) -> dict:
     if refused:
         (out / "manifest.json").write_text(json.dumps(dict(sorted(manifest.items())), indent=2) + "\n")
         for name, entry in refused.items():
-            _update_manifest(out, name, entry, file="refused.json")
+            update_manifest(out, name, entry, file="refused.json")
     return refused
 
 
@@ -244,7 +244,7 @@ def train_zoo(out, runs=RUNS, jobs: int = 1, progress: bool = True) -> dict:
 
     from tqdm import tqdm
 
-    from .cli import _update_manifest
+    from .manifest import update_manifest
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -256,7 +256,7 @@ def train_zoo(out, runs=RUNS, jobs: int = 1, progress: bool = True) -> dict:
 
     def record(entries):
         for name, entry in entries.items():
-            _update_manifest(out, name, entry)
+            update_manifest(out, name, entry)
             written[name] = entry
         bar.update()
 
