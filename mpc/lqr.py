@@ -22,10 +22,10 @@ from .models import AnalyticModel, PredictionModel
 from .spec import VehicleSpec
 
 #: Default weights as 1 / (acceptable deviation)^2: position 0.1 m, roll/pitch 0.2 rad,
-#: yaw 0.3 rad, body rates 1 rad/s, velocity 0.5 m/s; thrust 0.2 m g, torques 2e-3 N m.
+#: yaw 0.3 rad, body rates 1 rad/s, velocity 0.5 m/s; thrust 0.2 m g, torques the vehicle's
+#: :attr:`mpc.spec.VehicleSpec.torque_scale` (2e-3 N m for the Rolling Spider).
 DEFAULT_STATE_SCALE = np.array([0.1, 0.1, 0.1, 0.2, 0.2, 0.3, 1.0, 1.0, 1.0, 0.5, 0.5, 0.5])
 DEFAULT_INPUT_SCALE_FRAC_T = 0.2
-DEFAULT_TORQUE_SCALE = 2e-3
 
 
 def default_weights(spec=None) -> tuple[np.ndarray, np.ndarray]:
@@ -37,9 +37,20 @@ def default_weights(spec=None) -> tuple[np.ndarray, np.ndarray]:
 
 
 def input_scale(spec=None) -> np.ndarray:
-    """Acceptable input deviations (4,): thrust 0.2 m g (N), torques 2e-3 N m."""
+    """Acceptable input deviations (4,): thrust 0.2 m g (N), torques the spec's ``torque_scale`` (N m).
+
+    ``spec``: a :class:`mpc.spec.VehicleSpec`, or any object with ``m, g, kt, d`` and ``n_max_sq`` (such as a
+    :class:`sim.QuadParams`), whose torque scale is then computed as a VehicleSpec's.
+    """
+    import math
+
+    from .spec import torque_scale
+
     spec = VehicleSpec() if spec is None else spec
-    return np.array([DEFAULT_INPUT_SCALE_FRAC_T * spec.m * spec.g] + [DEFAULT_TORQUE_SCALE] * 3)
+    ts = getattr(spec, "torque_scale", None)
+    if ts is None:
+        ts = torque_scale(spec.kt, math.sqrt(spec.n_max_sq), spec.d)
+    return np.array([DEFAULT_INPUT_SCALE_FRAC_T * spec.m * spec.g] + [ts] * 3)
 
 
 def hover_point(spec=None, position=(0.0, 0.0, -1.0)) -> tuple[np.ndarray, np.ndarray]:

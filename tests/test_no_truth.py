@@ -25,7 +25,8 @@ from sim import QuadParams, Simulator
 ROOT = Path(__file__).resolve().parents[1]
 STEPS = 50
 #: Every field scaled (the plant a patched QuadParams() describes).
-FACTORS = {"m": 1.3, "Jxx": 0.7, "Jyy": 1.4, "Jzz": 0.8, "kt": 1.2, "kq": 0.6, "d": 1.1, "g": 1.01, "c_d": 2.0}
+FACTORS = {"m": 1.3, "Jxx": 0.7, "Jyy": 1.4, "Jzz": 0.8, "kt": 1.2, "kq": 0.6, "d": 1.1, "g": 1.01, "c_d": 2.0,
+           "n_max": None}   # n_max's default (None) derives the limit from the patched m and kt
 
 
 def _states():
@@ -53,7 +54,7 @@ def patched_plant(monkeypatch):
     fields = [f.name for f in dataclasses.fields(QuadParams)]
     assert set(fields) == set(FACTORS), "a new QuadParams field needs a factor here"
     ref = QuadParams()
-    new = tuple(getattr(ref, f) * FACTORS[f] for f in fields)
+    new = tuple(None if FACTORS[f] is None else getattr(ref, f) * FACTORS[f] for f in fields)
     monkeypatch.setattr(QuadParams.__init__, "__defaults__", new)
     assert QuadParams().m == ref.m * FACTORS["m"]
 

@@ -13,7 +13,7 @@ from mpc.lqr import DEFAULT_STATE_SCALE, input_scale
 from mpc.ltv import LTVMPC
 from mpc.minsnap import random_minsnap
 from mpc.models import AnalyticModel, LinearModel, OnnxModel, load_model
-from mpc.spec import DATASHEET, VehicleSpec
+from mpc.spec import VehicleSpec, datasheet
 from mpc.trajectory import Figure8, Hover, YawTurn, flat_state, held_wrench
 from scenarios import get_scenario
 from scenarios.library import LADDER
@@ -159,10 +159,14 @@ def test_spec_comes_from_the_models_theta_or_the_datasheet():
     model = OnnxModel(ROOT / "models" / "proposed.onnx")
     spec = VehicleSpec.from_model(model)
     assert (spec.m, spec.Jxx, spec.kt, spec.kq) == tuple(model.theta[[0, 1, 4, 5]])
-    assert (spec.d, spec.n_max) == (DATASHEET["d"], DATASHEET["n_max"])
+    assert (spec.d, spec.n_max) == (datasheet()["d"], datasheet()["n_max"])
     lin = LinearModel(np.eye(12), np.zeros((12, 4)), np.zeros(12), np.zeros(4))
     assert VehicleSpec.from_model(lin) == VehicleSpec()
-    assert VehicleSpec().n_max_sq == pytest.approx(P.n_max_sq, rel=1e-8)   # the datasheet's top speed
+    assert VehicleSpec().n_max_sq == pytest.approx(P.n_max_sq, rel=1e-14)   # the datasheet's top speed
+    # Another vehicle's datasheet: its own arm and rotor limit, the model's theta where it has one.
+    hb = VehicleSpec.from_model(model, "hummingbird")
+    assert (hb.d, hb.n_max, hb.m, hb.vehicle) == (0.17, 1500.0, model.theta[0], "hummingbird")
+    assert VehicleSpec.from_model(lin, "hummingbird").m == 0.5
     with pytest.raises(ConfigurationError, match="VehicleSpec.m"):
         VehicleSpec(m=-1.0)
     with pytest.raises(ConfigurationError, match="VehicleSpec.n_max"):
