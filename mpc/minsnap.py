@@ -20,6 +20,14 @@ result is exact to rounding::
 :func:`random_minsnap` draws seeded random references inside a box whose peak
 speed and acceleration respect given limits. Coordinates are NED (z down; 1 m
 height is ``z = -1``), SI units throughout; yaw is held at zero.
+
+Two references built on it take their timing from the user:
+:func:`minsnap_through` flies given waypoints in a given total time (each
+segment's share proportional to its length), and :class:`FlatTable` passes
+through a table of sampled flat outputs (position and yaw) at their times::
+
+    path = minsnap_through([[0, 0, -1], [1, 0, -1.5], [1, 1, -1]], duration_s=4.0, yaw=0.5)
+    table = FlatTable([0.0, 1.0, 2.5], [[0, 0, -1], [0.5, 0, -1], [0.5, 0.5, -1.2]], yaw=[0.0, 0.2, 0.0])
 """
 
 from __future__ import annotations
@@ -32,7 +40,7 @@ import scipy.linalg
 from .errors import ConfigurationError
 from .trajectory import FlatOutputs, FlatTrajectory, _times
 
-__all__ = ["MinSnap", "random_minsnap", "DEGREE"]
+__all__ = ["MinSnap", "random_minsnap", "DEGREE", "FlatTable", "minsnap_through", "segment_durations"]
 
 #: Polynomial degree of every segment (minimum snap: 2 * 4 - 1).
 DEGREE = 7
@@ -366,3 +374,146 @@ def random_minsnap(seed: int, n_waypoints: int = 5,
     # speeds scale exactly as 1/k and accelerations as 1/k^2 on the same normalized grid.
     k = max(v0 / float(v_max), np.sqrt(a0 / float(a_max)))
     return MinSnap(wp, base * k)
+
+
+#: Shortest segment between consecutive waypoints of :func:`minsnap_through`, m.
+MIN_SEGMENT_M = 1e-3
+
+
+def segment_durations(waypoints, duration_s: float) -> np.ndarray:
+    """Segment durations (W - 1,) proportional to segment length, summing to ``duration_s``.
+
+    Parameters
+    ----------
+    waypoints : array_like, shape (W, 3)
+        Waypoints, m, ``W >= 2``; consecutive ones at least :data:`MIN_SEGMENT_M` apart.
+    duration_s : float
+        Total duration, s, finite and ``> 0``.
+
+    Raises
+    ------
+    ConfigurationError
+        On a bad shape, a non-finite entry, a non-positive duration, or two
+        consecutive waypoints closer than :data:`MIN_SEGMENT_M` (the error
+        names the first pair).
+    """
+    w = _as_array(waypoints, "waypoints")
+    if w.ndim != 2 or w.shape[1] != 3 or w.shape[0] < 2:
+        raise ConfigurationError(f"waypoints must have shape (W, 3) with W >= 2; found shape {w.shape}")
+    if not np.all(np.isfinite(w)):
+        raise ConfigurationError("waypoints must be finite")
+    if isinstance(duration_s, bool) or not isinstance(duration_s, (int, float, np.integer, np.floating)) \
+            or not (np.isfinite(duration_s) and duration_s > 0):
+        raise ConfigurationError(f"duration_s must be finite and > 0 s; found {duration_s!r}")
+    length = np.linalg.norm(np.diff(w, axis=0), axis=1)
+    if np.any(length < MIN_SEGMENT_M):
+        i = int(np.argmax(length < MIN_SEGMENT_M))
+        raise ConfigurationError(f"waypoints {i} and {i + 1} are {length[i]:.3g} m apart; consecutive waypoints "
+                                 f"must be at least {MIN_SEGMENT_M:g} m apart")
+    return float(duration_s) * length / np.sum(length)
+
+
+class FlatTable(FlatTrajectory):
+    """Flat outputs given as samples, passed through by rest-to-rest minimum-snap polynomials.
+
+    The position is the :class:`MinSnap` trajectory through ``positions[i]``
+    at ``times[i]``; the yaw, when it varies, is the one-dimensional
+    minimum-snap trajectory through its samples at the same times. Both are
+    smooth to their sixth derivative between the first and last sample and
+    at rest (zero velocity, acceleration and jerk; zero yaw rate and yaw
+    acceleration) at both ends; before ``times[0]`` the first sample is held,
+    after ``times[-1]`` the last.
+
+    Parameters
+    ----------
+    times : array_like, shape (K,)
+        Sample times, s, finite and strictly increasing, ``K >= 2``.
+    positions : array_like, shape (K, 3)
+        Positions, m (NED).
+    yaw : float or array_like of shape (K,), optional
+        Yaw, rad: one value held throughout (default 0) or one per sample.
+        Taken as given (not wrapped): to turn past +-pi, continue beyond it.
+
+    Attributes
+    ----------
+    times, positions : ndarray
+        The samples.
+    yaw : ndarray, shape (K,)
+        Yaw samples, rad.
+    path : MinSnap
+        Position polynomials in time since ``times[0]``.
+    duration_s : float
+        ``times[-1]``, s: the trajectory is at rest from then on.
+
+    Raises
+    ------
+    ConfigurationError
+        On a bad shape, a non-finite entry or times that do not increase.
+    """
+
+    def __init__(self, times, positions, yaw=0.0):
+        t = _as_array(times, "times")
+        if t.ndim != 1 or t.size < 2 or not np.all(np.isfinite(t)):
+            raise ConfigurationError(f"times must be K >= 2 finite numbers; found shape {t.shape}")
+        dt = np.diff(t)
+        if np.any(dt <= 0):
+            i = int(np.argmax(dt <= 0))
+            raise ConfigurationError(f"times must increase strictly; found times[{i + 1}] = {t[i + 1]} after "
+                                     f"times[{i}] = {t[i]}")
+        p = _as_array(positions, "positions")
+        if p.shape != (t.size, 3):
+            raise ConfigurationError(f"positions must have shape ({t.size}, 3), one row per time; found {p.shape}")
+        y = _as_array(yaw, "yaw")
+        if y.ndim == 0:
+            y = np.full(t.size, float(y))
+        if y.shape != (t.size,) or not np.all(np.isfinite(y)):
+            raise ConfigurationError(f"yaw must be one finite number or {t.size} of them; found shape {y.shape}")
+        self.times, self.positions, self.yaw = t.copy(), p.copy(), y.copy()
+        self.path = MinSnap(p, dt)
+        self._yaw_path = None if np.all(y == y[0]) else MinSnap(np.column_stack([y, np.zeros((t.size, 2))]), dt)
+        self.duration_s = float(t[-1])
+
+    def flat(self, times) -> FlatOutputs:
+        """Flat outputs at ``times`` (K,), s: position and derivatives to snap, yaw and two derivatives."""
+        tau = _times(times) - self.times[0]
+        d = self.path.derivatives(tau, order=4)
+        if self._yaw_path is None:
+            z = np.zeros(tau.size)
+            yaw = (np.full(tau.size, self.yaw[0]), z, z.copy())
+        else:
+            yaw = tuple(self._yaw_path.derivatives(tau, order=2)[:, :, 0])
+        return FlatOutputs(d[0], d[1], d[2], d[3], d[4], *yaw)
+
+    def describe(self) -> dict:
+        """JSON-ready description: kind, samples, total duration and the peaks of the path."""
+        v, a = self.path.peaks()
+        return {"kind": "flat_table", "times_s": self.times.tolist(), "positions_m": self.positions.tolist(),
+                "yaw_rad": self.yaw.tolist(), "duration_s": self.duration_s, "peak_speed_mps": v,
+                "peak_accel_mps2": a}
+
+
+def minsnap_through(waypoints, duration_s: float, yaw: float = 0.0) -> FlatTable:
+    """Rest-to-rest minimum-snap path through given waypoints in ``duration_s``, at a constant yaw.
+
+    Each segment gets a share of ``duration_s`` proportional to its length
+    (:func:`segment_durations`), so the mean speed is the same on every
+    segment; the path reaches ``waypoints[i]`` at ``knot_times[i]`` of its
+    :attr:`FlatTable.path` and starts at ``t = 0``.
+
+    Parameters
+    ----------
+    waypoints : array_like, shape (W, 3)
+        Waypoints, m (NED), ``W >= 2``, consecutive ones at least :data:`MIN_SEGMENT_M` apart.
+    duration_s : float
+        Time to fly the whole path, s, ``> 0``.
+    yaw : float
+        Constant yaw, rad.
+
+    Returns
+    -------
+    FlatTable
+    """
+    d = segment_durations(waypoints, duration_s)
+    knots = np.concatenate([[0.0], np.cumsum(d)])
+    knots[-1] = float(duration_s)
+    return FlatTable(knots, waypoints, yaw)

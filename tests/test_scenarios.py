@@ -16,7 +16,8 @@ from scenarios.errors import ScenarioError
 from scenarios.library import DELAY_STEPS, NOISE, PAYLOAD_FRACTION, GustImpulse, WindGusts
 from scenarios.metrics import (LADDER_RMSE_BOUND_M, TIMING_FIELDS, TRACE_TIMING_FIELDS, closed_loop_metrics,
                                crash_reason, max_trackable_speed)
-from scenarios.runner import RunSpec, fly, sweep
+from scenarios.runner import RunSpec, fly
+from scenarios.sweep import sweep
 from sim.params import DT, NX, QuadParams
 
 REPO = Path(__file__).resolve().parents[1]
@@ -59,10 +60,10 @@ def test_unknown_names_raise_a_value_error_naming_them():
 def test_variants_change_only_their_field():
     base = get_scenario("figure8-slow")
     assert base.duration_s == 12.0 and base.period_s == 6.0
-    assert get_scenario("figure8-slow+payload").payload_kg == pytest.approx(PAYLOAD_FRACTION * QuadParams().m)
+    assert get_scenario("figure8-slow+payload").payload_fraction == PAYLOAD_FRACTION
     assert get_scenario("figure8-slow+delay").delay_steps == DELAY_STEPS
     assert get_scenario("figure8-slow+noise").noise == NOISE
-    assert not get_scenario("figure8-slow+highfi").fidelity.is_nominal
+    assert get_scenario("figure8-slow+highfi").high_fidelity
     assert get_scenario("figure8-slow+wind").wind is not None
     for v in ("payload", "delay", "noise", "highfi", "wind"):
         s = get_scenario(f"figure8-slow+{v}")
@@ -358,6 +359,8 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
     specs = main_plan(MODELS)
+    other = [s for s in specs if s.plant != "sim" or s.vehicle is not None]
+    specs = [s for s in specs if s.plant == "sim" and s.vehicle is None]
     highfi = [s for s in specs if s.scenario.endswith("+highfi")]
     specs = [s for s in specs if not s.scenario.endswith("+highfi")]
     ideal = [s for s in specs if s.timing == "ideal"]
@@ -384,6 +387,20 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     assert {s.controller for s in highfi} == {"sqp"} and all(s.timing == "ideal" for s in highfi)
     full = main_plan(MODELS, full=True)
     assert len({s.run_id for s in full}) == len(full)
+    # Other plants (RotorPy is installed with the test extra): figure8-fast with the SQP, the oracle and every shipped
+    # model on the ideal set-up, the nominal equations and every model with motor lag and aerodynamics, and the
+    # nominal equations flying RotorPy's two presets on both our simulator and RotorPy.
+    shipped = models - {"oracle"}
+    assert {(s.scenario, s.controller) for s in other} == {("figure8-fast", "sqp")}
+    assert {(s.plant, s.vehicle_data.name, s.model_name) for s in other} == (
+        {("rotorpy-ideal", "rolling-spider", m) for m in shipped | {"oracle"}}
+        | {("rotorpy", "rolling-spider", m) for m in shipped | {"nominal"}}
+        | {(p, v, "nominal") for p in ("sim", "rotorpy") for v in ("hummingbird", "crazyflie")})
+    # The same plan on another plant: every run there, the oracle replaced where the plant has no equations.
+    on_rp = main_plan(MODELS, plant="rotorpy")
+    assert {s.plant for s in on_rp} == {"rotorpy"} and "oracle" not in {s.model for s in on_rp}
+    assert not any("+highfi" in s.scenario for s in on_rp)
+    assert len(on_rp) == len(specs) and len({s.run_id for s in on_rp}) == len(on_rp)
 
 
 def test_perturbed_starts_of_a_well_posed_case_agree():
