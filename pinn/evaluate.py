@@ -238,11 +238,11 @@ def evaluate_dir(folder, data_path=None, progress: bool = False, jobs: int = 1, 
             import concurrent.futures as cf
             import multiprocessing as mp
 
-            from scenarios.runner import _worker_init
+            from scenarios.engines import worker_init
 
-            _worker_init()      # one BLAS thread per worker, as in the closed-loop sweep (inherited at spawn)
+            worker_init()      # one BLAS thread per worker, as in the closed-loop sweep (inherited at spawn)
             with cf.ProcessPoolExecutor(min(jobs, len(tasks)), mp_context=mp.get_context("spawn"),
-                                        initializer=_worker_init) as pool:
+                                        initializer=worker_init) as pool:
                 futs = {pool.submit(_spec_task, tasks[i]): i for i in order}
                 for fut in cf.as_completed(futs):
                     yield futs[fut], fut.result()

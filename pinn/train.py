@@ -365,7 +365,9 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
     # them (inside the physics); theta-hat never sees m, J, kt, kq, which serve only to
     # display theta-hat errors.
     p = QuadParams(**ds.meta["params"]) if truth is None else truth
-    ref = QuadParams()  # the stated prior: reference values, biased
+    # The stated prior: the data's vehicle's datasheet values (the reference values for the Rolling Spider's data),
+    # biased by config.theta_bias, so that data from another vehicle starts from that vehicle's datasheet.
+    ref = QuadParams(**ds.meta["params"])
     theta0 = ref.theta * (1.0 + config.theta_bias)
 
     st = training_stats(ds)

@@ -9,6 +9,7 @@ from .figures import (FIG_DIR, FigureOut, fisher_figure, headline_figure, model_
 from .headline import correlation_text, headline_data
 from .html import markdown_to_html
 from .identification import highfi_table, table_six
+from .plants import plants_section, split_by_plant
 from .inputs import load_inputs
 from .summary import summary_text
 from .zoo import (NO_STUDY, answer_text, dose_response_figure, max_speed_figure, predictor_table, provenance_text,
@@ -31,6 +32,7 @@ SECTIONS = (
     "Table VI: identification under model mismatch",
     "Closed-loop results",
     "High-fidelity plant: models trained on its own data",
+    "Other plants and vehicles",
     "Hover: settled error and gust recovery",
     "Speed ladder: maximum trackable speed",
     "Ensembles: crash probability and RMSE with intervals",
@@ -87,6 +89,8 @@ def report_markdown(run_dir) -> str:
     inp = load_inputs(run_dir)
     d = inp.run_dir
     _clear_figures(d)
+    # Every section but the one on other plants reads the runs on the folder's own plant and vehicle.
+    inp.runs, other_plants = split_by_plant(inp.runs, inp.plan)
     members = [r for r in inp.runs if r.get("member") is not None]
     every_run = [r for r in inp.runs if r.get("member") is None]
     # Every section but the real-time one reads the ideal-timing runs (results without a timing are ideal); the
@@ -105,6 +109,7 @@ def report_markdown(run_dir) -> str:
     body["Closed-loop results"] = closed_loop_table(inp.runs)
     body["High-fidelity plant: models trained on its own data"] = highfi_table(
         inp.runs + members, inp.evaluation)
+    body["Other plants and vehicles"] = plants_section(inp.runs, other_plants)
     body["Hover: settled error and gust recovery"] = hover_table(inp.runs)
     body["Speed ladder: maximum trackable speed"] = ladder_table(inp.runs)
     body["Ensembles: crash probability and RMSE with intervals"] = ensemble_table(members)

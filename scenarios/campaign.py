@@ -44,7 +44,8 @@ from sim.files import write_json
 
 from .errors import ScenarioError
 from .library import scenario_names
-from .runner import RunSpec, spec_dict, sweep
+from .runner import RunSpec, spec_dict
+from .sweep import sweep
 
 #: Scenarios the NMPC flies in the main job (every scenario with ``full=True``).
 NMPC_SCENARIOS = ("figure8-fast",)
@@ -74,6 +75,12 @@ HIGHFI_MODELS = ("baseline.onnx", "proposed.onnx", "identification/baseline_high
 #: cells, other seeds, a recipe variant); evaluated by the main job beside the shipped models, flown only on the
 #: high-fidelity plant.
 IDENTIFICATION_DIR = "identification"
+#: Other plants in the main job: this scenario flown by this controller on RotorPy, with the oracle (the rigid-body
+#: equations, which are RotorPy's own on ``rotorpy-ideal``), the nominal equations and every shipped model; and the
+#: nominal equations flying the other shipped vehicles (RotorPy's presets) on our simulator and on RotorPy.
+PLANT_SCENARIO = "figure8-fast"
+PLANT_CONTROLLER = "sqp"
+PLANT_VEHICLES = ("hummingbird", "crazyflie")
 #: Time-dependent provenance fields (excluded when two runs are compared).
 PROVENANCE_TIMING = ("started", "finished", "wall_time_s", "stage_seconds")
 
@@ -107,8 +114,48 @@ def main_scenarios(full: bool = False) -> list[str]:
     return [n for n in names if not n.startswith("figure8-slow+") and not n.endswith("+highfi")]
 
 
-def main_plan(models_dir="models", full: bool = False, scenarios: list[str] | None = None) -> list[RunSpec]:
-    """The closed-loop runs of the main job (see the module docstring)."""
+def rotorpy_available() -> bool:
+    """True when RotorPy (the optional external plant) can be imported."""
+    import importlib.util
+
+    return importlib.util.find_spec("rotorpy") is not None
+
+
+def plant_plan(models_dir="models") -> list[RunSpec]:
+    """The main job's runs on other plants and vehicles (see :data:`PLANT_SCENARIO`); none without RotorPy."""
+    if not rotorpy_available():
+        return []
+    models = shipped_models(models_dir)
+    sc, c = PLANT_SCENARIO, PLANT_CONTROLLER
+    specs = [RunSpec(sc, c, m, plant="rotorpy-ideal") for m in ["oracle", *models]]
+    specs += [RunSpec(sc, c, m, plant="rotorpy") for m in ["nominal", *models]]
+    specs += [RunSpec(sc, c, "nominal", plant=pl, vehicle=v) for v in PLANT_VEHICLES for pl in ("sim", "rotorpy")]
+    return specs
+
+
+def _on(spec: RunSpec, plant: str, vehicle: str | None) -> RunSpec | None:
+    """``spec`` flown on ``plant`` with ``vehicle``: the oracle becomes the nominal equations where the plant has
+    no known equations; a high-fidelity scenario (a set-up of our simulator) is dropped elsewhere."""
+    import dataclasses
+
+    if plant != "sim" and "+highfi" in spec.scenario:
+        return None
+    model = "nominal" if plant == "rotorpy" and spec.model == "oracle" else spec.model
+    return dataclasses.replace(spec, model=model, plant=plant, vehicle=vehicle)
+
+
+def main_plan(models_dir="models", full: bool = False, scenarios: list[str] | None = None, plant: str = "sim",
+              vehicle: str | None = None) -> list[RunSpec]:
+    """The closed-loop runs of the main job (see the module docstring).
+
+    With another ``plant`` or ``vehicle`` the same runs fly there (the oracle becoming the nominal equations
+    where the plant has no known equations, without the high-fidelity scenarios), and the runs of
+    :func:`plant_plan` are left out.
+    """
+    if plant != "sim" or vehicle is not None:
+        base = main_plan(models_dir, full, scenarios)
+        return [t for t in (_on(s, plant, vehicle) for s in base if s.plant == "sim" and s.vehicle is None)
+                if t is not None]
     models = ["oracle"] + shipped_models(models_dir)
     names = main_scenarios(full) if scenarios is None else list(scenarios)
     specs = []
@@ -128,7 +175,7 @@ def main_plan(models_dir="models", full: bool = False, scenarios: list[str] | No
                   for c in ENSEMBLE_CONTROLLERS for m in models for k in range(ENSEMBLE_MEMBERS)]
     if scenarios is None:
         have = {s.run_id for s in specs}
-        specs += [s for s in highfi_plan(models_dir) if s.run_id not in have]
+        specs += [s for s in highfi_plan(models_dir) + plant_plan(models_dir) if s.run_id not in have]
     return specs
 
 
@@ -189,17 +236,21 @@ def provenance(models_dir) -> dict:
 
 def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bool = False,
                  progress: bool = True, scenarios: list[str] | None = None, engine: str = "process",
-                 address: str | None = None, resume: bool = True) -> dict:
+                 address: str | None = None, resume: bool = True, plant: str = "sim",
+                 vehicle: str | None = None) -> dict:
     """Run everything and build the report; returns ``{"results": [...], "report": path}``.
 
-    ``engine``, ``address`` and ``resume`` are those of :func:`scenarios.runner.sweep`: closed-loop runs already
+    ``engine``, ``address`` and ``resume`` are those of :func:`scenarios.sweep.sweep`: closed-loop runs already
     saved in ``out_dir`` with the same spec, seed, model file and code are reused unless ``resume`` is False.
     """
     from reports import build_report
 
     out = Path(out_dir)
     jobs = max(1, os.cpu_count() or 1) if jobs is None else jobs
-    specs = main_plan(models_dir, full, scenarios)   # validates names and files before anything runs
+    specs = main_plan(models_dir, full, scenarios, plant, vehicle)   # validates names and files before flying
+    if progress and plant == "sim" and vehicle is None and scenarios is None and not rotorpy_available():
+        print("RotorPy is not installed: the runs on other plants are left out (pip install -e '.[rotorpy]')",
+              file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
     stages: dict[str, float] = {}
     t_start = time.time()
@@ -230,7 +281,8 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
         if engine == "ray" else f"{jobs} processes"
     stage(f"closed-loop sweep: {len(specs)} runs on {where}")
     results = sweep(specs, out, jobs=jobs, progress=progress, engine=engine, address=address, resume=resume)
-    write_json(out / "results.json", {"plan": {"full": full, "models_dir": str(models_dir),
+    write_json(out / "results.json", {"plan": {"full": full, "models_dir": str(models_dir), "plant": plant,
+                                           "vehicle": vehicle, "rotorpy": rotorpy_available(),
                                            "specs": [spec_dict(s) for s in specs]}, "runs": results})
     stage("report")
     report = build_report(out)

@@ -6,12 +6,13 @@ import argparse
 import sys
 from pathlib import Path
 
+from sim.cli import add_plant_options
 from sim.files import write_json
 
 from .engines import ENGINES
 
 #: Fields printed by ``pinnmpc fly``, in order (names other tools rely on).
-FLY_FIELDS = ("scenario", "controller", "model", "timing", "rmse_position_m", "max_position_error_m", "crashed",
+FLY_FIELDS = ("scenario", "controller", "model", "plant", "vehicle", "timing", "rmse_position_m", "max_position_error_m", "crashed",
               "crash_time_s", "solve_ms", "deadline_misses", "solver_failures", "fallbacks")
 
 
@@ -22,12 +23,15 @@ def register(sub) -> None:
 
     names = scenario_names()
     p = sub.add_parser("fly", help="fly one closed-loop run and print its metrics",
-                       description="One closed-loop run: a scenario flown on the reference simulator by a "
-                                   "controller using a prediction model. Scenarios: " + ", ".join(names) + ".")
-    p.add_argument("--model", required=True, metavar="{oracle,FILE.onnx}",
-                   help="'oracle' (the true equations) or an ONNX model that passes check-model")
+                       description="One closed-loop run: a scenario flown on a plant (by default this project's "
+                                   "simulator) by a controller using a prediction model. Scenarios: "
+                                   + ", ".join(names) + ", or a scenario file (docs/scenario-files.md).")
+    p.add_argument("--model", required=True, metavar="{oracle,nominal,FILE.onnx}",
+                   help="'oracle' (the plant's own equations, where known), 'nominal' (the rigid-body equations "
+                        "with the vehicle's values) or an ONNX model that passes check-model")
     p.add_argument("--controller", required=True, choices=CONTROLLERS)
-    p.add_argument("--scenario", required=True, metavar="NAME", help="scenario name (see above)")
+    p.add_argument("--scenario", required=True, metavar="NAME|FILE.toml", help="scenario name (see above) or file")
+    add_plant_options(p)
     p.add_argument("--seed", type=int, default=None, help="seed of noise and gusts (default: the scenario's, 0)")
     p.add_argument("--horizon", type=int, default=HORIZON, help=f"MPC horizon in steps of 10 ms (default {HORIZON})")
     p.add_argument("--timing", choices=TIMINGS, default="ideal",
@@ -61,6 +65,8 @@ def register(sub) -> None:
     p.add_argument("--fresh", action="store_true",
                    help="fly every run again; by default runs saved in --out with the same spec, seed, model file "
                         "and code are reused, so an interrupted run resumes where it stopped")
+    add_plant_options(p, "; with another plant or vehicle every run flies there (the oracle becomes the nominal "
+                         "equations where the plant has none)")
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser("study", help="dose-response: fly every zoo model as an ensemble and score the predictors",
@@ -79,6 +85,7 @@ def register(sub) -> None:
     p.add_argument("--address", default=None, metavar="ADDR", help="Ray cluster (with --engine ray)")
     p.add_argument("--fresh", action="store_true", help="fly every run again instead of reusing saved ones")
     p.add_argument("--no-publish", action="store_true", help="do not copy study.json into --models")
+    add_plant_options(p)
     p.add_argument("--score-only", action="store_true",
                    help="fly nothing: recompute the open-loop candidates and their scores of the study already in "
                         "--out (after adding a candidate)")
@@ -122,11 +129,13 @@ def cmd_fly(args: argparse.Namespace) -> int:
             raise ValueError(f"--{name} {str(path)!r} is a folder; give a file name")
     if args.plot is not None and args.plot.suffix.lower() != ".png":
         raise ValueError(f"--plot must name a .png file; found {str(args.plot)!r}")
-    from mpc.models import load_model
     from mpc.readiness import require
 
-    spec = RunSpec(args.scenario, args.controller, args.model, args.seed, args.horizon, args.timing)
-    model = load_model(spec.model)
+    from .runner import load_run_model
+
+    spec = RunSpec(args.scenario, args.controller, args.model, args.seed, args.horizon, args.timing,
+                   plant=args.plant, vehicle=args.vehicle)
+    model = load_run_model(spec)
     require(model, spec.controller)         # the same verdict as pinnmpc check-model prints
     result, trace = fly(spec, progress=sys.stderr.isatty(), model=model)
     for k in FLY_FIELDS:
@@ -158,7 +167,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.address is not None and args.engine != "ray":
         raise ValueError("--address needs --engine ray")
     out = run_main_job(args.out, args.models, args.jobs, args.full, progress=True, engine=args.engine,
-                       address=args.address, resume=not args.fresh)
+                       address=args.address, resume=not args.fresh, plant=args.plant, vehicle=args.vehicle)
     runs = out["results"]
     crashed = [r["run_id"] for r in runs if r.get("crashed")]
     errors = [r["run_id"] for r in runs if r.get("error")]
@@ -186,8 +195,12 @@ def cmd_study(args: argparse.Namespace) -> int:
         raise ValueError(f"--jobs and --members must be >= 1; found {jobs} and {args.members}")
     if args.address is not None and args.engine != "ray":
         raise ValueError("--address needs --engine ray")
+    if (args.plant != "sim" or args.vehicle is not None) and not args.no_publish and args.models == Path("models/zoo"):
+        raise ValueError("a study on another plant or vehicle would replace the shipped zoo's study.json; give "
+                         "--no-publish (or another --models folder)")
     out = run_study(args.models, args.out, args.members, jobs, progress=True, publish=not args.no_publish,
-                    engine=args.engine, address=args.address, resume=not args.fresh)
+                    engine=args.engine, address=args.address, resume=not args.fresh, plant=args.plant,
+                    vehicle=args.vehicle)
     print(format_study(out))
     print(f"wrote {args.out / 'study.json'}" + ("" if args.no_publish else f" and {args.models / 'study.json'}"))
     return 0

@@ -2,7 +2,7 @@
 
 Every run is independent: the unit of work is
 :func:`scenarios.runner.fly_for_sweep`, which returns the run's result and
-trace; the driver (the process that called :func:`scenarios.runner.sweep`)
+trace; the driver (the process that called :func:`scenarios.sweep.sweep`)
 saves them as they arrive, so the results folder only needs to exist where the
 driver runs.
 
@@ -44,8 +44,13 @@ def worker_env() -> dict[str, str]:
     return env
 
 
+def worker_init() -> None:
+    """Set :data:`WORKER_ENV` in this process (the initializer of every pool worker)."""
+    os.environ.update(WORKER_ENV)
+
+
 def run_batches(batches, done, engine: str = "process", jobs: int = 1, address: str | None = None) -> None:
-    """Fly ``batches`` (``[(workers, [RunSpec, ...]), ...]`` from :func:`scenarios.runner.sweep_batches`).
+    """Fly ``batches`` (``[(workers, [RunSpec, ...]), ...]`` from :func:`scenarios.sweep.sweep_batches`).
 
     ``done(spec, result, trace)`` is called in this process as each run returns.
     An exception raised by ``done`` (or a KeyboardInterrupt) stops the sweep:
@@ -68,11 +73,9 @@ def _process(batches, done, jobs: int) -> None:
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
-    from .runner import _worker_init
-
-    _worker_init()
+    worker_init()
     for workers, batch in batches:
-        pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_worker_init)
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=worker_init)
         try:
             futs = {pool.submit(fly_for_sweep, s): s for s in batch}
             for f in as_completed(futs):

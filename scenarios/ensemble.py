@@ -20,7 +20,8 @@ from pathlib import Path
 from sim.files import write_json
 
 from .engines import ENGINES
-from .runner import CONTROLLERS, HORIZON, RunSpec, sweep
+from .runner import CONTROLLERS, HORIZON, RunSpec
+from .sweep import sweep
 from .stats import summarize
 
 
@@ -32,7 +33,7 @@ def ensemble_specs(scenario: str, controller: str, model: str, members: int, hor
 
 def fly_ensemble(scenario: str, controller: str, model: str, members: int = 10, out_dir="results/ensembles",
                  jobs: int = 1, progress: bool = True, metric: str = "rmse_position_m", **sweep_kwargs) -> dict:
-    """Fly one case's ensemble (a :func:`scenarios.runner.sweep`) and summarize it (:func:`scenarios.stats.summarize`)."""
+    """Fly one case's ensemble (a :func:`scenarios.sweep.sweep`) and summarize it (:func:`scenarios.stats.summarize`)."""
     specs = ensemble_specs(scenario, controller, model, members)
     results = sweep(specs, out_dir, jobs=jobs, progress=progress, **sweep_kwargs)
     return {"case": {"scenario": scenario, "controller": controller, "model": specs[0].model_name,

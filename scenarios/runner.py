@@ -1,20 +1,23 @@
-"""Closed-loop runs: scenario x controller x prediction model.
+"""Closed-loop runs: scenario x controller x prediction model x plant x vehicle.
 
-One run flies the reference simulator at 1 kHz with control at 100 Hz::
+One run flies a plant (by default the reference simulator at 1 kHz) with
+control at 100 Hz::
 
     from scenarios.runner import RunSpec, fly
     result, trace = fly(RunSpec("figure8-slow", "ltv", "models/proposed.onnx"))
+    result, trace = fly(RunSpec("figure8-fast", "sqp", "oracle", plant="rotorpy-ideal"))
 
 ``result`` is a JSON-ready dict with the fields of ``pinnmpc fly --json`` and ``trace`` a dict of arrays (saved as ``.npz``). A
 crash ends the run and is recorded; a run that cannot start (for example a
 model whose hover linearization has no LQR gain) is recorded with its
-``error``. :func:`sweep` runs many specs in a process pool.
+``error``. :func:`scenarios.sweep.sweep` runs many specs in a process pool or on Ray.
 
+The loop itself (plant, sensor, controller, clock) is :mod:`scenarios.loop`.
 Per control period ``k`` (``t = k dt``): the controller sees the measured
 state (the true state, plus noise in ``+noise`` scenarios) and returns
-``u``; with ``delay_steps = d`` the simulator applies the input computed
-``d`` periods earlier (hover input before that); the simulator carries
-rotor speeds across periods (motor lag of ``+highfi``).
+``u``; with ``delay_steps = d`` the plant applies the input computed
+``d`` periods earlier (hover input before that); the plant carries
+rotor speeds across periods (motor lag).
 """
 
 from __future__ import annotations
@@ -28,11 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.params import DT, NU, NX, SUBSTEPS, QuadParams
+from sim.params import DT
+from sim.plants import PLANTS
 
 from .errors import ScenarioError
 from .library import get_scenario
-from .metrics import closed_loop_metrics, crash_reason
+from .metrics import closed_loop_metrics
 
 CONTROLLERS = ("nmpc", "sqp", "ltv", "lqr")
 #: Metrics of a run that never flew (its controller could not be built, or the run raised).
@@ -45,22 +49,65 @@ HORIZON = 30
 #: How compute time enters a run: ``ideal`` applies each input at once (deterministic); ``realtime`` applies it
 #: after the call's measured wall time, rounded up to the simulator's 1 ms substep (see :func:`fly`).
 TIMINGS = ("ideal", "realtime")
-#: The control period and the simulator's substep, ms (the substep is the resolution of real-time latencies).
-PERIOD_MS = int(round(DT * 1e3))
-SUBSTEP_MS = PERIOD_MS // SUBSTEPS
+#: Model names that stand for equations rather than a file: the plant's own equations where they are known, and
+#: the nominal rigid-body equations with the vehicle's values.
+EQUATION_MODELS = ("oracle", "nominal")
 
 
 def model_name(model: str) -> str:
-    """The name a model has in results: ``oracle``, ``analytic-<factors>``, or a file's stem."""
+    """The name a model has in results: ``oracle``, ``nominal``, ``analytic-<factors>``, or a file's stem."""
     if model.startswith("analytic:"):
         from mpc.models import analytic_name, parse_analytic
         return analytic_name(parse_analytic(model))
-    return "oracle" if model == "oracle" else Path(model).stem
+    return model if model in EQUATION_MODELS else Path(model).stem
+
+
+def model_params(model: str, plant: str, vehicle):
+    """The parameters (:class:`sim.QuadParams`) of an equation model on ``plant`` flying ``vehicle``.
+
+    ``oracle``: the plant's own equations: on ``sim``, the nominal equations
+    with the vehicle's values (on a ``+highfi`` scenario too, where the plant
+    has more); on ``rotorpy-ideal``, the same with no drag (that set-up has
+    none); ``rotorpy`` (motor lag and aerodynamics) has no known equations
+    and refuses it. ``nominal`` and ``analytic:...``: the nominal equations
+    with the vehicle's values (scaled).
+    """
+    import dataclasses
+
+    from mpc.models import parse_analytic
+    from sim.params import THETA_NAMES
+
+    p = vehicle.params
+    if model == "oracle":
+        if plant == "rotorpy":
+            raise ScenarioError("plant 'rotorpy' (RotorPy with motor lag and aerodynamics) has no known equations, so "
+                                "it has no oracle; fly --model nominal (the rigid-body equations with the vehicle's "
+                                "values) or a learned model")
+        return dataclasses.replace(p, c_d=0.0) if plant == "rotorpy-ideal" else p
+    if model == "nominal":
+        return p
+    factors = parse_analytic(model)
+    return p.with_theta([getattr(p, n) * factors.get(n, 1.0) for n in THETA_NAMES])
+
+
+def load_run_model(spec: "RunSpec"):
+    """The prediction model of ``spec``: an equation model on its plant and vehicle, or its ONNX file."""
+    from mpc.models import AnalyticModel, load_model
+
+    if spec.model in EQUATION_MODELS or spec.model.startswith("analytic:"):
+        return AnalyticModel(model_params(spec.model, spec.plant, spec.vehicle_data), name=spec.model_name)
+    return load_model(spec.model)
 
 
 @dataclass(frozen=True)
 class RunSpec:
-    """What to fly: a scenario name, a controller, a prediction model (``"oracle"`` or an ONNX path)."""
+    """What to fly: a scenario, a controller, a prediction model, a plant and a vehicle.
+
+    ``scenario`` is a scenario name or a scenario file (``.toml``);
+    ``model`` is ``"oracle"``, ``"nominal"``, ``"analytic:..."`` or an ONNX
+    path; ``plant`` one of :data:`sim.plants.PLANTS`; ``vehicle`` a shipped
+    vehicle's name or a vehicle file (None: the default vehicle).
+    """
 
     scenario: str
     controller: str
@@ -69,8 +116,17 @@ class RunSpec:
     horizon: int = HORIZON        # MPC horizon, steps
     timing: str = "ideal"         # "ideal" (input applied at once) or "realtime" (after the measured compute time)
     member: int | None = None     # ensemble member (Scenario.member: its seed and a perturbed start); None: none
+    plant: str = "sim"            # the plant flown
+    vehicle: str | None = None    # vehicle name or file; None: the default vehicle
 
     def __post_init__(self):
+        from sim.vehicle import load_vehicle
+
+        if self.plant not in PLANTS:
+            raise ScenarioError(f"plant must be one of {', '.join(PLANTS)}; found {self.plant!r}")
+        if self.vehicle is not None and not isinstance(self.vehicle, str):
+            raise ScenarioError(f"vehicle must be a vehicle name or a .toml file; found {self.vehicle!r}")
+        object.__setattr__(self, "_vehicle", load_vehicle(self.vehicle))   # raises naming a bad key or file
         if self.member is not None:
             if isinstance(self.member, bool) or not isinstance(self.member, int) or self.member < 0:
                 raise ScenarioError(f"member must be an integer >= 0; found {self.member!r}")
@@ -80,31 +136,56 @@ class RunSpec:
             raise ScenarioError(f"controller must be one of {', '.join(CONTROLLERS)}; found {self.controller!r}")
         if self.timing not in TIMINGS:
             raise ScenarioError(f"timing must be one of {', '.join(TIMINGS)}; found {self.timing!r}")
-        get_scenario(self.scenario)  # raises for an unknown name
+        sc = get_scenario(self.scenario)  # raises for an unknown name or a bad scenario file
+        object.__setattr__(self, "_scenario_name", sc.name)
+        if sc.high_fidelity and self.plant != "sim":
+            raise ScenarioError(f"scenario {sc.name!r} asks for the reference simulator's high-fidelity set-up, which "
+                                f"plant {self.plant!r} does not have (fly --plant rotorpy for RotorPy's motor lag and "
+                                f"aerodynamics)")
         if not isinstance(self.model, str) or not self.model:
-            raise ScenarioError(f"model must be 'oracle' or the path of an .onnx file; found {self.model!r}")
+            raise ScenarioError(f"model must be 'oracle', 'nominal' or the path of an .onnx file; found {self.model!r}")
         if self.model.startswith("analytic:"):
             from mpc.models import parse_analytic
             parse_analytic(self.model)
-        elif self.model != "oracle":
+        elif self.model not in EQUATION_MODELS:
             path = Path(self.model)
             if path.suffix != ".onnx":
-                raise ScenarioError(f"model must be 'oracle' or the path of an .onnx file; found {self.model!r}")
+                raise ScenarioError(f"model must be 'oracle', 'nominal' or the path of an .onnx file; "
+                                    f"found {self.model!r}")
             if not path.is_file():
                 raise ScenarioError(f"model file {self.model!r} does not exist")
+        elif self.model == "oracle":
+            model_params(self.model, self.plant, self._vehicle)   # raises where the plant has no known equations
 
     @property
     def model_name(self) -> str:
         return model_name(self.model)
 
     @property
+    def vehicle_data(self):
+        """The :class:`sim.vehicle.Vehicle` flown."""
+        return self._vehicle
+
+    @property
+    def scenario_name(self) -> str:
+        """The scenario's name (a scenario file's own name, or its stem)."""
+        return self._scenario_name
+
+    @property
     def run_id(self) -> str:
         """File-name-safe identifier ``<scenario>__<controller>__<model>``.
 
         ``__s<seed>`` is appended for an explicit seed, ``__m<k>`` for ensemble member k, ``__realtime`` for
-        that timing.
+        that timing, ``__<plant>`` for a plant other than ``sim`` and ``__<vehicle>`` for a vehicle other than
+        the default.
         """
-        base = f"{self.scenario}__{self.controller}__{self.model_name}"
+        from sim.vehicle import DEFAULT_VEHICLE
+
+        base = f"{self.scenario_name}__{self.controller}__{self.model_name}"
+        if self.plant != "sim":
+            base += f"__{self.plant}"
+        if self._vehicle.name != DEFAULT_VEHICLE:
+            base += f"__{self._vehicle.name}"
         if self.seed is not None:
             base += f"__s{self.seed}"
         if self.member is not None:
@@ -113,87 +194,40 @@ class RunSpec:
 
 
 def _sha256(path: str) -> str | None:
-    if path == "oracle" or path.startswith("analytic:"):
+    if path in EQUATION_MODELS or path.startswith("analytic:"):
         return None
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing: str = "ideal"):
+def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing: str = "ideal", vehicle=None):
     """The controller ``kind`` (``nmpc``, ``sqp``, ``ltv``, ``lqr``) on prediction ``model`` following ``reference``.
 
-    The controller gets the model and the reference only: its vehicle spec
-    comes from the model (:meth:`mpc.spec.VehicleSpec.from_model`), never from
-    the plant's parameters. With ``ideal`` timing the SQP runs without its
-    wall-clock budget (at most its iteration limit), so that the run is
-    reproducible bit for bit; with ``realtime`` timing the budget applies.
+    The controller gets the model, the reference and the vehicle's datasheet
+    only: its vehicle spec comes from the model and the datasheet of
+    ``vehicle`` (:meth:`mpc.spec.VehicleSpec.from_model`; the default vehicle
+    when None), never from the plant. With ``ideal`` timing the SQP runs
+    without its wall-clock budget (at most its iteration limit), so that the
+    run is reproducible bit for bit; with ``realtime`` timing the budget applies.
     """
     from mpc.lqr import LQRController
     from mpc.ltv import LTVMPC, LTVSettings
     from mpc.nmpc import NMPC, NMPCSettings
+    from mpc.spec import VehicleSpec
 
+    spec = VehicleSpec.from_model(model, vehicle)
     if kind == "nmpc":
-        return NMPC(model, reference, NMPCSettings(horizon=horizon))
+        return NMPC(model, reference, NMPCSettings(horizon=horizon), spec=spec)
     if kind == "sqp":
         from mpc.sqp import SQPMPC, SQPSettings
         if timing == "ideal":
-            return SQPMPC(model, reference, SQPSettings(horizon=horizon, time_budget_s=None, cold_start_budget_s=None))
-        return SQPMPC(model, reference, SQPSettings(horizon=horizon))
+            return SQPMPC(model, reference, SQPSettings(horizon=horizon, time_budget_s=None, cold_start_budget_s=None),
+                          spec=spec)
+        return SQPMPC(model, reference, SQPSettings(horizon=horizon), spec=spec)
     if kind == "ltv":
-        return LTVMPC(model, reference, LTVSettings(horizon=horizon))
+        return LTVMPC(model, reference, LTVSettings(horizon=horizon), spec=spec)
     if kind == "lqr":
-        return LQRController(reference, model)
+        return LQRController(reference, model, spec=spec)
     raise ScenarioError(f"controller must be one of {', '.join(CONTROLLERS)}; found {kind!r}")
-
-
-class _RealtimeClock:
-    """The plant side of real-time timing: when each computed input takes effect.
-
-    The controller is called at a period boundary ``k dt`` only when it is
-    idle. A call that took ``L`` seconds of wall time returns ``ceil(L / 1 ms)``
-    substeps later; its input takes effect from that substep on (plus the
-    scenario's delay periods) and the controller is idle again from then.
-    Until then the previous input stays applied (before the first one, the
-    vehicle's hover thrust). A period whose input changes mid-way is flown
-    in pieces of whole substeps with the same simulator equations.
-    """
-
-    def __init__(self, plant, sc, hover):
-        from sim import Simulator
-
-        # A piece of ``ms`` milliseconds: the simulator's own substeps, that many of them.
-        self._make = lambda ms: Simulator(plant, sc.fidelity, dt=ms * 1e-3, substeps=ms // SUBSTEP_MS,
-                                          payload_kg=sc.payload_kg, wind=_wind(sc))
-        self._sims: dict[int, object] = {}
-        self.delay_ms = PERIOD_MS * sc.delay_steps
-        self.u = hover
-        self.events: list[tuple[int, np.ndarray]] = []    # (time the input takes effect, ms; input)
-        self.busy_until_ms = 0
-
-    def _sim(self, ms: int):
-        if ms not in self._sims:
-            self._sims[ms] = self._make(ms)
-        return self._sims[ms]
-
-    def idle(self, k: int) -> bool:
-        return self.busy_until_ms <= PERIOD_MS * k
-
-    def command(self, k: int, u: np.ndarray, latency_s: float) -> None:
-        lat_ms = max(SUBSTEP_MS, int(np.ceil(latency_s * 1e3 / SUBSTEP_MS - 1e-9)) * SUBSTEP_MS)
-        self.busy_until_ms = PERIOD_MS * k + lat_ms
-        self.events.append((self.busy_until_ms + self.delay_ms, np.array(u, dtype=float)))
-
-    def fly_period(self, k: int, x, n, t: float):
-        """Advance period ``k``; ``(x, rotor speed, input in effect at its end)``."""
-        now, t1 = PERIOD_MS * k, PERIOD_MS * (k + 1)
-        while now < t1:
-            while self.events and self.events[0][0] <= now:
-                self.u = self.events.pop(0)[1]
-            nxt = t1 if not self.events else min(t1, self.events[0][0])
-            # The wind of a period is evaluated at its start, as in the ideal-timing simulator.
-            res = self._sim(nxt - now).step_full(x, self.u, rotor_speed=n, t=t)
-            x, n = res.x, res.rotor_speed
-            now = nxt
-        return x, n, self.u
 
 
 def _wind(sc):
@@ -206,6 +240,51 @@ def _wind(sc):
     return lambda t: parts[0](t) + parts[1](t)
 
 
+def reference_spec(plant: str, vehicle):
+    """The vehicle numbers of the flatness map that makes a reference feasible on ``plant`` flying ``vehicle``:
+    the vehicle's, without drag on ``rotorpy-ideal`` (that plant has none)."""
+    import dataclasses
+
+    from mpc.spec import VehicleSpec
+
+    spec = VehicleSpec.from_vehicle(vehicle)
+    return dataclasses.replace(spec, c_d=0.0) if plant == "rotorpy-ideal" else spec
+
+
+def reference_states(ref, times: np.ndarray, spec) -> np.ndarray:
+    """The reference states (K, 12) of flat trajectory ``ref`` at ``times`` (K,), s, through the flatness map of
+    ``spec`` (its gravity and drag enter the attitude; the positions are the flat outputs themselves)."""
+    from mpc.trajectory import flat_state
+
+    return flat_state(ref.flat(times), spec)[0]
+
+
+def start_state(sc, spec) -> np.ndarray:
+    """The scenario's initial state (12,) for the flatness map of ``spec``.
+
+    A scenario's ``x0`` is its reference at t = 0 (through
+    :data:`scenarios.scenario.START_MAP`, the default vehicle's) plus its offsets; the offsets are kept and the reference
+    part is taken through ``spec``'s map, so that a vehicle with other drag
+    starts on its own feasible reference. Unchanged for the default vehicle.
+    """
+    from .scenario import START_MAP
+
+    x0 = np.array(sc.x0, dtype=float)
+    if (spec.g, spec.c_d) == (START_MAP.g, START_MAP.c_d):     # the only numbers the map's states depend on
+        return x0
+    ref, t0 = sc.reference(), np.array([0.0])
+    return x0 + reference_states(ref, t0, spec)[0] - reference_states(ref, t0, START_MAP)[0]
+
+
+def make_run_plant(spec: "RunSpec", sc):
+    """The plant of a run: ``spec.plant`` flying ``spec``'s vehicle with the scenario's disturbances."""
+    from sim.plants import make_plant
+
+    v = spec.vehicle_data
+    return make_plant(spec.plant, v, high_fidelity=sc.high_fidelity, payload_kg=sc.payload_fraction * v.m,
+                      wind=_wind(sc))
+
+
 def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tuple[dict, dict]:
     """Fly one closed-loop run; ``(result, trace)``.
 
@@ -216,9 +295,7 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
     scenario's data, for example with a perturbed initial state; ``model`` (a
     loaded :class:`mpc.models.PredictionModel`) saves loading ``spec.model`` again.
     """
-    from mpc.controller import collector_paused
-    from mpc.models import load_model
-    from sim import Simulator
+    from .loop import IdealClock, RealtimeClock, StateSensor, Trace, fly_loop
 
     if scenario is not None:
         sc = scenario
@@ -227,109 +304,66 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
     else:
         sc = get_scenario(spec.scenario, spec.seed)
     if model is None:
-        model = load_model(spec.model)      # contract errors raise here, before anything flies
+        model = load_run_model(spec)      # contract errors raise here, before anything flies
+    vehicle = spec.vehicle_data
+    plant = make_run_plant(spec, sc)      # a missing RotorPy raises here, before anything flies
     ref = sc.reference()
-    plant = QuadParams()     # the plant's parameters reach the simulator only
     K = sc.steps
     t_all = DT * np.arange(K + 1)
-    X_ref = ref(t_all)
-    X = np.full((K + 1, NX), np.nan)
-    Xm = np.full((K, NX), np.nan)
-    U = np.full((K, NU), np.nan)
-    Ucmd = np.full((K, NU), np.nan)
-    solve_s = np.zeros(K)
-    iters = np.zeros(K, dtype=np.int64)
-    status = np.full(K, "", dtype="<U40")
-    failed = np.zeros(K, dtype=bool)
-    lqr_fb = np.zeros(K, dtype=bool)
-    crash_step, why, error = None, None, None
-    base = {"run_id": spec.run_id, "scenario": spec.scenario, "controller": spec.controller,
-            "model": spec.model_name, "model_file": None if spec.model == "oracle" or spec.model.startswith("analytic:") else str(spec.model),
+    ref_spec = reference_spec(spec.plant, vehicle)
+    X_ref = reference_states(ref, t_all, ref_spec)
+    x0 = start_state(sc, ref_spec)
+    error = None
+    base = {"run_id": spec.run_id, "scenario": sc.name, "controller": spec.controller,
+            "model": spec.model_name, "model_file": None if _sha256(spec.model) is None else str(spec.model),
             "model_sha256": _sha256(spec.model), "seed": sc.seed, "member": spec.member, "horizon": spec.horizon,
-            "timing": spec.timing}
+            "timing": spec.timing, "plant": spec.plant, "vehicle": vehicle.name}
     t0 = time.perf_counter()
-    k_end = 0
     realtime = spec.timing == "realtime"
-    latency = np.full(K, np.nan)
-    called = np.zeros(K, dtype=bool)
     try:
-        ctrl = make_controller(spec.controller, model, ref, spec.horizon, spec.timing)
+        ctrl = make_controller(spec.controller, model, ref, spec.horizon, spec.timing, vehicle)
         # The reference is known before take-off: its feed-forward is fitted now, and a controller that plans
         # ahead (the SQP) makes its first plan from the state the vehicle stands in.
-        ctrl.prepare(K * DT, x0=np.array(sc.x0, dtype=float))
+        ctrl.prepare(K * DT, x0=x0.copy())
     except ValueError as e:  # e.g. no LQR gain for this model's hover linearization
         error = f"{type(e).__name__}: {e}"
         ctrl = None
     if ctrl is not None:
-        sim = Simulator(plant, sc.fidelity, payload_kg=sc.payload_kg, wind=_wind(sc))
-        rng = np.random.default_rng([sc.seed, 0x5EED])
-        x = np.array(sc.x0, dtype=float)
-        X[0] = x
-        n = None
-        # Before the first (delayed or computed) command arrives, the vehicle's own hover thrust holds it (plant side).
-        hover = np.array([plant.m * plant.g, 0.0, 0.0, 0.0])
-        pending = [hover] * sc.delay_steps
-        clock = _RealtimeClock(plant, sc, hover) if realtime else None
-        steps = range(K)
+        plant.reset(x0)
+        sensor = StateSensor(sc.noise, np.random.default_rng([sc.seed, 0x5EED]))
+        # Before the first (delayed or computed) command arrives, the vehicle's own hover thrust holds it.
+        clock = (RealtimeClock if realtime else IdealClock)(plant.hover_input, sc.delay_steps)
+        bar = None
         if progress:
             from tqdm import tqdm
-            steps = tqdm(steps, desc=spec.run_id, unit="step", leave=False)
-        for k in steps:
-            t = k * DT
-            if not realtime or clock.idle(k):
-                xm = x if sc.noise is None else sim.measure(x, rng, sc.noise)
-                Xm[k] = xm
-                # In real time the garbage collector waits until the call has returned: a collection triggered
-                # by the simulator's allocations is not the controller's time.
-                with collector_paused(realtime):
-                    c0 = time.perf_counter()
-                    u_cmd, info = ctrl(xm, t)
-                    latency[k] = time.perf_counter() - c0
-                called[k] = True
-                Ucmd[k] = u_cmd
-                solve_s[k] = info.solve_time_s
-                iters[k] = info.iterations
-                status[k] = info.status
-                failed[k] = info.fallback is not None
-                lqr_fb[k] = info.fallback == "lqr"
-            if realtime:
-                if called[k]:
-                    clock.command(k, u_cmd, latency[k])
-                with np.errstate(all="ignore"):
-                    x, n, u = clock.fly_period(k, x, n, t)
-            else:
-                if sc.delay_steps:
-                    pending.append(u_cmd)
-                    u = pending.pop(0)
-                else:
-                    u = u_cmd
-                with np.errstate(all="ignore"):
-                    res = sim.step_full(x, u, rotor_speed=n, t=t)
-                x, n = res.x, res.rotor_speed
-            U[k] = u
-            X[k + 1] = x
-            k_end = k + 1
-            why = crash_reason(x, X_ref[k + 1])
-            if why is not None:
-                crash_step = k + 1
-                break
+
+            def bar(r):
+                return tqdm(r, desc=spec.run_id, unit="step", leave=False)
+        tr = fly_loop(plant, sensor, ctrl, clock, X_ref, K, progress=bar)
+    else:
+        tr = Trace.empty(K)
+    k_end = tr.steps
     wall = time.perf_counter() - t0
     if error is None:
-        metrics = closed_loop_metrics(X[:k_end + 1], X_ref[:k_end + 1], solve_s[:k_end], failed[:k_end],
-                                      lqr_fb[:k_end], crash_step, why,
+        metrics = closed_loop_metrics(tr.x[:k_end + 1], X_ref[:k_end + 1], tr.solve_s[:k_end],
+                                      tr.solver_failed[:k_end], tr.lqr_fallback[:k_end], tr.crash_step,
+                                      tr.crash_reason,
                                       impulse_start_s=None if sc.impulse is None else sc.impulse.start_s,
-                                      planned_steps=K, called=called[:k_end] if realtime else None)
+                                      planned_steps=K, called=tr.called[:k_end] if realtime else None)
     else:
         metrics = dict(NOT_FLOWN)
     pre = getattr(ctrl, "preflight", None)    # the SQP's plan made before take-off: what it did, and (timing) how long
     preflight = None if pre is None else {"iterations": int(pre.iterations), "status": pre.status}
-    result = {**base, **metrics, "shifted_plan": int(np.sum(failed[:k_end] & ~lqr_fb[:k_end])),
+    failed, lqr_fb = tr.solver_failed[:k_end], tr.lqr_fallback[:k_end]
+    result = {**base, **metrics, "shifted_plan": int(np.sum(failed & ~lqr_fb)),
               "preflight": preflight, "preflight_ms": None if pre is None else 1e3 * pre.solve_time_s,
-              "error": error, "wall_time_s": wall, "scenario_spec": sc.to_dict()}
-    trace = {"t": t_all[:k_end + 1], "x": X[:k_end + 1], "x_ref": X_ref[:k_end + 1], "x_measured": Xm[:k_end],
-             "u": U[:k_end], "u_command": Ucmd[:k_end], "solve_s": solve_s[:k_end], "latency_s": latency[:k_end],
-             "called": called[:k_end], "iterations": iters[:k_end],
-             "status": status[:k_end], "solver_failed": failed[:k_end], "lqr_fallback": lqr_fb[:k_end]}
+              "error": error, "wall_time_s": wall, "scenario_spec": sc.to_dict(), "plant_spec": plant.describe(),
+              "vehicle_spec": vehicle.to_dict()}
+    trace = {"t": t_all[:k_end + 1], "x": tr.x[:k_end + 1], "x_ref": X_ref[:k_end + 1],
+             "x_measured": tr.x_measured[:k_end], "u": tr.u[:k_end], "u_command": tr.u_command[:k_end],
+             "solve_s": tr.solve_s[:k_end], "latency_s": tr.latency_s[:k_end], "called": tr.called[:k_end],
+             "iterations": tr.iterations[:k_end], "status": tr.status[:k_end], "solver_failed": failed,
+             "lqr_fallback": lqr_fb}
     return result, trace
 
 
@@ -377,11 +411,14 @@ def code_version() -> str:
 
 def cache_key(spec: RunSpec) -> str:
     """Identity of a run's result: its spec, its seed, its model file's SHA-256 and the code version."""
-    seed = get_scenario(spec.scenario).seed if spec.seed is None else spec.seed
-    # The model by name and content, not by path: a results folder stays valid when the models move.
-    ident = {"scenario": spec.scenario, "controller": spec.controller, "model": spec.model_name,
+    sc = get_scenario(spec.scenario)
+    seed = sc.seed if spec.seed is None else spec.seed
+    # The model by name and content, not by path: a results folder stays valid when the models move. The vehicle
+    # and a scenario file by content too.
+    ident = {"scenario": sc.to_dict(), "controller": spec.controller, "model": spec.model_name,
              "model_sha256": _sha256(spec.model), "seed": seed, "member": spec.member, "horizon": spec.horizon,
-             "timing": spec.timing, "code": code_version()}
+             "timing": spec.timing, "plant": spec.plant, "vehicle": spec.vehicle_data.to_dict(),
+             "code": code_version()}
     return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
 
 
@@ -404,14 +441,8 @@ def cached_result(spec: RunSpec, out_dir, key: str | None = None) -> dict | None
     return result
 
 
-def _worker_init() -> None:
-    from .engines import WORKER_ENV
-
-    os.environ.update(WORKER_ENV)
-
-
 def fly_for_sweep(spec: RunSpec) -> tuple[dict, dict]:
-    """``fly(spec)`` for a sweep: a run that cannot fly is recorded (its error) and the sweep goes on.
+    """``fly(spec)`` for a sweep (:mod:`scenarios.sweep`): a run that cannot fly is recorded (its error) and the sweep goes on.
 
     This is the unit of work of every engine (a process-pool task, a Ray
     task); the sweep stamps the result with its :func:`cache_key`.
@@ -419,99 +450,11 @@ def fly_for_sweep(spec: RunSpec) -> tuple[dict, dict]:
     try:
         result, trace = fly(spec)
     except Exception as e:  # noqa: BLE001 - a run that cannot fly is recorded and the sweep goes on
-        result = {"run_id": spec.run_id, "scenario": spec.scenario, "controller": spec.controller,
-                  "model": spec.model_name, **NOT_FLOWN, "error": f"{type(e).__name__}: {e}"}
+        result = {"run_id": spec.run_id, "scenario": spec.scenario_name, "controller": spec.controller,
+                  "model": spec.model_name, "plant": spec.plant, "vehicle": spec.vehicle_data.name, **NOT_FLOWN,
+                  "error": f"{type(e).__name__}: {e}"}
         trace = {}
     return result, trace
-
-
-def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True, engine: str = "process",
-          address: str | None = None, resume: bool = True, on_result=None) -> list[dict]:
-    """Fly every spec (independent runs); results in the order of ``specs``.
-
-    Parameters
-    ----------
-    specs : list of RunSpec
-    out_dir : path
-        Each result is written to ``out_dir/runs/<id>.json``, its trace to
-        ``out_dir/traces/<id>.npz``, as soon as the run returns.
-    jobs : int
-        Worker processes of the ``process`` engine (1: in this process), and
-        the CPUs of a local Ray instance.
-    engine : {"process", "ray"}
-        ``process``: a pool of worker processes on this machine.
-        ``ray``: one Ray task per run (:mod:`scenarios.engines`), on the
-        cluster at ``address`` or on a local instance.
-    resume : bool
-        Reuse every saved result under ``out_dir`` whose cache key (spec,
-        seed, model file hash, code version) matches; only the rest is flown.
-    on_result : callable, optional
-        Called with each new result once it is saved.
-
-    Runs with real-time timing are flown after the others, one at a time, so
-    that the compute time they are charged is measured on an otherwise idle
-    machine (with two processes on two cores a controller's call takes about
-    1.5 times as long).
-    """
-    from .engines import ENGINES, run_batches
-
-    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
-        raise ScenarioError(f"jobs must be an integer >= 1; found {jobs!r}")
-    if engine not in ENGINES:
-        raise ScenarioError(f"engine must be one of {', '.join(ENGINES)}; found {engine!r}")
-    if address is not None and engine != "ray":
-        raise ScenarioError("address is for the ray engine; found it with engine 'process'")
-    ids = [s.run_id for s in specs]
-    dup = {i for i in ids if ids.count(i) > 1}
-    if dup:
-        raise ScenarioError(f"duplicate runs in the sweep: {sorted(dup)}")
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    keys = {s.run_id: cache_key(s) for s in specs}   # once per run: it hashes the model file and reads the code
-    results: dict[str, dict] = {}
-    if resume:
-        for s in specs:
-            r = cached_result(s, out_dir, keys[s.run_id])
-            if r is not None:
-                results[s.run_id] = r
-    todo = [s for s in specs if s.run_id not in results]
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=len(specs), initial=len(results), desc="closed-loop runs", unit="run")
-        if results:
-            bar.set_postfix_str(f"{len(results)} from the cache")
-
-    def done(spec, result, trace):
-        results[spec.run_id] = save_run({**result, "cache_key": keys[spec.run_id]}, trace, out_dir)
-        if bar:
-            bar.update()
-        if on_result is not None:
-            on_result(results[spec.run_id])
-
-    try:
-        run_batches(sweep_batches(todo, jobs), done, engine=engine, jobs=jobs, address=address)
-    finally:
-        if bar:
-            bar.close()
-    return [results[i] for i in ids]
-
-
-def sweep_batches(specs: list[RunSpec], jobs: int) -> list[tuple[int, list[RunSpec]]]:
-    """``(processes, runs)`` in the order a sweep on ``jobs`` processes flies them.
-
-    Ideal-timing runs first, on ``jobs`` processes, longest first (NMPC, long
-    scenarios) so that the pool ends together; then the real-time runs, one
-    process, one at a time.
-    """
-    pooled = [s for s in specs if s.timing != "realtime"]
-    alone = [s for s in specs if s.timing == "realtime"]
-    order = sorted(pooled, key=lambda s: -(get_scenario(s.scenario).steps * _COST.get((s.controller, s.timing), 1)))
-    return [(n, b) for n, b in ((jobs, order), (1, alone)) if b]
-
-
-#: Rough cost of a period relative to the LTV-MPC's (orders a sweep's runs longest first).
-_COST = {("nmpc", "ideal"): 20, ("sqp", "ideal"): 2}
 
 
 def spec_dict(spec: RunSpec) -> dict:

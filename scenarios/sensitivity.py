@@ -46,9 +46,9 @@ def perturbed_rmse(spec: RunSpec, trials: int = 5, step_m: float = 1e-9, jobs: i
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    from .runner import _worker_init
+    from .engines import worker_init
 
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"), initializer=_worker_init) as pool:
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"), initializer=worker_init) as pool:
         return list(pool.map(_trial, [spec] * trials, offsets))
 
 

@@ -55,12 +55,12 @@ def sweep_levels(controller: str = "ltv", jobs: int = 2, progress: bool = True) 
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    from .runner import _worker_init
+    from .engines import worker_init
 
     tasks = [(s, controller, "noise", f) for s in SCENARIOS for f in NOISE_FACTORS]
     tasks += [(s, controller, "delay", d) for s in SCENARIOS for d in DELAYS]
-    _worker_init()
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"), initializer=_worker_init) as pool:
+    worker_init()
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"), initializer=worker_init) as pool:
         it = pool.map(_one, tasks)
         if progress:
             from tqdm import tqdm

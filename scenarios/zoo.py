@@ -15,7 +15,7 @@ It then scores the open-loop candidates (:data:`CANDIDATES`) of every model
 as predictors of crash (ROC AUC) and of RMSE (Spearman), with bootstrap
 intervals over models, per controller, and writes ``OUT/study.json`` and a
 copy ``MODELS/study.json`` that the report of ``pinnmpc run`` shows. The runs
-are a resumable sweep (:func:`scenarios.runner.sweep`).
+are a resumable sweep (:func:`scenarios.sweep.sweep`).
 """
 
 from __future__ import annotations
@@ -33,7 +33,8 @@ from .errors import ScenarioError
 from .library import ladder_names, ladder_speeds
 from .metrics import LADDER_RMSE_BOUND_M, max_trackable_speed
 from .predictors import hover_chordal_distance, jacobian_error, score_candidates
-from .runner import HORIZON, RunSpec, code_version, sweep
+from .runner import HORIZON, RunSpec, code_version
+from .sweep import sweep
 from .stats import summarize
 
 STUDY_SCENARIO = "figure8-fast"
@@ -85,15 +86,20 @@ def refused_models(models_dir) -> dict[str, dict]:
             for n, e in data.items()}
 
 
-def study_specs(models: dict[str, dict], members: int = 10,
-                controllers=STUDY_CONTROLLERS) -> tuple[RunSpec, list[RunSpec], list[RunSpec]]:
-    """(oracle reference run, ensemble runs, speed-ladder runs) of the study."""
+def study_specs(models: dict[str, dict], members: int = 10, controllers=STUDY_CONTROLLERS, plant: str = "sim",
+                vehicle: str | None = None) -> tuple[RunSpec, list[RunSpec], list[RunSpec]]:
+    """(oracle reference run, ensemble runs, speed-ladder runs) of the study, on ``plant`` flying ``vehicle``.
+
+    The reference run is the oracle's, or on a plant without known equations (``rotorpy``) the nominal
+    equations'.
+    """
     if isinstance(members, bool) or not isinstance(members, int) or members < 1:
         raise ScenarioError(f"members must be an integer >= 1; found {members!r}")
-    oracle = RunSpec(STUDY_SCENARIO, "sqp", "oracle")
-    ens = [RunSpec(STUDY_SCENARIO, c, m["path"], member=k) for m in models.values() for c in controllers
+    where = {"plant": plant, "vehicle": vehicle}
+    oracle = RunSpec(STUDY_SCENARIO, "sqp", "nominal" if plant == "rotorpy" else "oracle", **where)
+    ens = [RunSpec(STUDY_SCENARIO, c, m["path"], member=k, **where) for m in models.values() for c in controllers
            for k in range(members)]
-    ladder = [RunSpec(s, LADDER_CONTROLLER, m["path"]) for m in models.values() for s in ladder_names()]
+    ladder = [RunSpec(s, LADDER_CONTROLLER, m["path"], **where) for m in models.values() for s in ladder_names()]
     return oracle, ens, ladder
 
 
@@ -134,7 +140,8 @@ def _candidates(name: str, entry: dict, oracle_trace: dict) -> dict:
 
 
 def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10, jobs: int = 1,
-              controllers=STUDY_CONTROLLERS, progress: bool = True, publish: bool = True, **sweep_kwargs) -> dict:
+              controllers=STUDY_CONTROLLERS, progress: bool = True, publish: bool = True, plant: str = "sim",
+              vehicle: str | None = None, **sweep_kwargs) -> dict:
     """Fly the study (a resumable sweep), score the predictors and write ``study.json``.
 
     Parameters
@@ -147,11 +154,14 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
         Ensemble members per model and controller.
     publish : bool
         Also copy ``study.json`` into ``models_dir`` (where the report reads it).
+    plant, vehicle
+        Where the study flies (:class:`scenarios.runner.RunSpec`); the reference simulator and the default
+        vehicle by default.
     sweep_kwargs
-        ``engine``, ``address``, ``resume`` of :func:`scenarios.runner.sweep`.
+        ``engine``, ``address``, ``resume`` of :func:`scenarios.sweep.sweep`.
     """
     models = zoo_models(models_dir)
-    oracle, ens, ladder = study_specs(models, members, controllers)
+    oracle, ens, ladder = study_specs(models, members, controllers, plant, vehicle)
     t0 = time.perf_counter()
     results = sweep([oracle, *ens, *ladder], out_dir, jobs=jobs, progress=progress, **sweep_kwargs)
     wall = time.perf_counter() - t0
@@ -182,8 +192,10 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
            "candidates": CANDIDATES, "kstep": KSTEP, "oracle_run": oracle.run_id,
            "oracle_rmse_m": ref.get("rmse_position_m"), "models": rows, "scores": scores,
            "refused": refused_models(models_dir),
-           "runs": len(results), "code_version": code_version(),
-           "command": f"pinnmpc study --models {models_dir} --out {out_dir} --members {members}",
+           "runs": len(results), "code_version": code_version(), "plant": plant,
+           "vehicle": oracle.vehicle_data.name,
+           "command": f"pinnmpc study --models {models_dir} --out {out_dir} --members {members}"
+                      + ("" if plant == "sim" else f" --plant {plant}") + ("" if vehicle is None else f" --vehicle {vehicle}"),
            "wall_time_s": wall, "date": time.strftime("%Y-%m-%d")}
     path = write_json(Path(out_dir) / "study.json", out)
     if publish:

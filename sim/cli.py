@@ -10,6 +10,20 @@ from .files import write_json
 from .params import FIDELITIES, INPUT_LOGS, THETA_NAMES
 
 
+def add_plant_options(p, plant_help: str = "") -> None:
+    """``--plant`` and ``--vehicle``, as every command that flies or simulates has them."""
+    from .plants import PLANTS
+    from .vehicle import vehicle_names
+
+    p.add_argument("--plant", choices=PLANTS, default="sim",
+                   help="what flies: sim, this project's simulator (default); rotorpy, RotorPy with the vehicle's "
+                        "motor lag and its aerodynamics; rotorpy-ideal, RotorPy with instant motors and no drag "
+                        "(pip install -e '.[rotorpy]')" + plant_help)
+    p.add_argument("--vehicle", default=None, metavar="NAME|FILE.toml",
+                   help=f"the vehicle: {', '.join(vehicle_names())} (default rolling-spider), or a vehicle file "
+                        f"(docs/plants.md)")
+
+
 def register(sub) -> None:
     """Add this package's subcommands to the ``pinnmpc`` parser."""
     p = sub.add_parser("data", help="generate a seeded excitation dataset (.npz)",
@@ -29,6 +43,7 @@ def register(sub) -> None:
                         "inside the rotor limits; not with motor lag)")
     p.add_argument("--out", required=True, type=Path, help="output file, .npz")
     p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
+    add_plant_options(p, " ; --fidelity applies to sim only")
     p.set_defaults(handler=cmd_data)
 
     p = sub.add_parser("fisher", help="Fisher information and Cramer-Rao bounds of the six parameters",
@@ -45,13 +60,15 @@ def cmd_data(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc data``."""
     from .excitation import make_dataset
     from .params import NoiseModel
+    from .vehicle import load_vehicle
 
     if args.out.suffix != ".npz":
         raise ValueError(f"--out must end in .npz; found {str(args.out)!r}")
+    vehicle = load_vehicle(args.vehicle)
     ds = make_dataset(args.regime, args.n_traj, args.duration, args.seed,
                       noise=NoiseModel() if args.noise == "default" else NoiseModel.none(),
-                      fidelity=FIDELITIES[args.fidelity], inputs=args.inputs,
-                      progress=sys.stderr.isatty())
+                      fidelity=vehicle.named_fidelity(args.fidelity), inputs=args.inputs,
+                      progress=sys.stderr.isatty(), plant=args.plant, vehicle=vehicle)
     ds.save(args.out)
     s = ds.summary()
     lo, hi = s["envelope_deg"]

@@ -360,10 +360,21 @@ def _split(n: int, rng: np.random.Generator) -> np.ndarray:
     return labels
 
 
+def _step_plants(plants, x, u, k):
+    """One period of one plant per trajectory (plants that are not batched): a StepResult of the stacked outputs."""
+    from .simulator import StepResult
+
+    if k == 0:
+        for pl, xi in zip(plants, x):
+            pl.reset(xi)
+    outs = [pl.step(ui) for pl, ui in zip(plants, u)]
+    return StepResult(*(np.stack([getattr(o, f) for o in outs]) for f in ("x", "rotor_speed", "wrench", "saturated")))
+
+
 def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.0, seed: int = 0, *,
                  noise: NoiseModel | None = None, fidelity: Fidelity = NOMINAL,
                  params: QuadParams | None = None, inputs: str = "commanded", progress: bool = False,
-                 with_clean: bool = False):
+                 with_clean: bool = False, plant: str = "sim", vehicle=None):
     """Fly seeded excitation trajectories and log them.
 
     Parameters
@@ -382,7 +393,14 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
     fidelity : Fidelity
         Simulator fidelity (nominal by default).
     params : QuadParams, optional
-        True parameters; reference values when omitted.
+        True parameters; the vehicle's (reference values) when omitted.
+    plant : str
+        What flies the excitation: ``"sim"`` (this package's simulator, batched over the trajectories; default),
+        ``"rotorpy"`` or ``"rotorpy-ideal"`` (RotorPy, one vehicle at a time: about ten times slower; see
+        :mod:`sim.plant`). RotorPy's set-ups are their own, so ``fidelity`` must then be nominal.
+    vehicle : Vehicle, name or file, optional
+        The vehicle flown (:mod:`sim.vehicle`); its parameters are the true ones and its limits the excitation
+        controller's. The default vehicle (the Rolling Spider) when omitted.
     inputs : {"commanded", "realized"}
         What ``u`` logs: the controller's wrench command (default; where a
         rotor saturates it is not the wrench applied), or the wrench the
@@ -414,7 +432,22 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
     if inputs == "realized" and fidelity.motor_tau > 0:
         raise SimInputError("inputs='realized' needs a simulator without motor lag (fidelity.motor_tau = 0); "
                             f"found motor_tau {fidelity.motor_tau} s")
-    p = QuadParams() if params is None else params
+    from .vehicle import load_vehicle
+
+    veh = load_vehicle(vehicle)
+    if params is not None and vehicle is not None and params != veh.params:
+        raise SimInputError("give params or vehicle, not both (a vehicle carries its parameters)")
+    p = veh.params if params is None else params
+    from .plants import PLANTS
+    if plant not in PLANTS:
+        raise SimInputError(f"plant must be one of {', '.join(PLANTS)}; found {plant!r}")
+    if plant != "sim" and not fidelity.is_nominal:
+        raise SimInputError(f"fidelity is a set-up of the reference simulator (plant 'sim'); plant {plant!r} has its "
+                            f"own: give a nominal fidelity")
+    if plant == "rotorpy-ideal":
+        p = dataclasses.replace(p, c_d=0.0)     # that plant has no drag: its true equations have none
+    if inputs == "realized" and plant == "rotorpy":
+        raise SimInputError("inputs='realized' needs a plant without motor lag; plant 'rotorpy' has the vehicle's")
     n_steps = int(round(duration / DT))
     if n_steps < 1:
         raise SimInputError(f"duration must be at least one control period ({DT} s); found {duration}")
@@ -428,6 +461,12 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
 
     refs = _references(rngs, n_steps, reg, p)
     sim = Simulator(p, fidelity)
+    plants = None
+    if plant != "sim":
+        from .plants import make_plant
+        plants = [make_plant(plant, veh.replace(**{k: getattr(p, k) for k in ("m", "Jxx", "Jyy", "Jzz", "kt", "kq",
+                                                                              "d", "c_d", "n_max")}))
+                  for _ in range(n_traj)]
 
     x_true = np.zeros((n_traj, n_steps + 1, 12))
     x0 = np.zeros((n_traj, 12))
@@ -447,7 +486,10 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
     for k in steps:
         uk = ctrl(x, refs.pos[:, k], refs.vel[:, k], refs.acc[:, k], refs.att[:, k])
         uk = uk + refs.dither[:, k]
-        res = sim._step(x, uk, rotor, k * DT)
+        if plants is None:
+            res = sim._step(x, uk, rotor, k * DT)
+        else:
+            res = _step_plants(plants, x, uk, k)
         rotor = res.rotor_speed
         u[:, k], n_log[:, k], wrench[:, k], sat[:, k] = uk, res.rotor_speed, res.wrench, res.saturated
         x = res.x
@@ -477,6 +519,8 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
         "fidelity": dataclasses.asdict(fidelity),
         "inputs": inputs,
         "params": dataclasses.asdict(p),
+        "plant": plant,
+        "vehicle": veh.name,
         "split_fractions": list(SPLIT_FRACTIONS),
     }
     if inputs == "realized":

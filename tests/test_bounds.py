@@ -18,7 +18,8 @@ from scenarios.bounds import (BOUNDS_FILE, FLOOR, MARGIN, MODEL_CASES, MODEL_FLO
                               format_table, generate, load_bounds, specs_to_fly)
 from scenarios.campaign import shipped_models
 from scenarios.errors import BoundsError
-from scenarios.runner import RunSpec, sweep
+from scenarios.runner import RunSpec
+from scenarios.sweep import sweep
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -136,6 +137,11 @@ def test_generate_sets_tolerances_from_a_measured_run(tmp_path):
     # A run missing from the results is a clear error.
     with pytest.raises(BoundsError, match="no run of m3"):
         generate(_synthetic_results(), ["m3"])
+    # The same cases flown on another plant or vehicle (the main job's RotorPy runs) do not set these bounds.
+    elsewhere = [{**r, "plant": "rotorpy", "rmse_position_m": 9.0, "crashed": False}
+                 for r in _synthetic_results()]
+    elsewhere += [{**r, "vehicle": "hummingbird", "crashed": True} for r in _synthetic_results()]
+    assert generate(_synthetic_results() + elsewhere, ["m1", "m2"], "a synthetic run") == f.read_text()
 
 
 def test_check_reports_each_kind_of_violation():

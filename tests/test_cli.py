@@ -93,3 +93,31 @@ def test_train_check_and_evaluate_round_trip(tmp_path, capsys):
 def test_evaluate_rejects_an_empty_folder(tmp_path, capsys):
     assert main(["evaluate", str(tmp_path)]) == 2
     assert "no .onnx models" in capsys.readouterr().err
+
+
+def test_data_from_another_plant_and_vehicle_trains_unchanged(tmp_path, capsys):
+    """`pinnmpc data --plant rotorpy-ideal --vehicle hummingbird` writes the usual format; `pinnmpc train` takes it."""
+    from sim.plant import SimPlant
+    from sim.vehicle import load_vehicle
+
+    pytest.importorskip("rotorpy")
+    out = tmp_path / "hb.npz"
+    assert main(["data", "--regime", "small", "--n-traj", "6", "--duration", "3", "--seed", "2", "--noise", "none",
+                 "--plant", "rotorpy-ideal", "--vehicle", "hummingbird", "--out", str(out)]) == 0
+    ds = load_dataset(out)
+    assert (ds.meta["plant"], ds.meta["vehicle"], ds.meta["params"]["m"]) == ("rotorpy-ideal", "hummingbird", 0.5)
+    assert ds.meta["params"]["c_d"] == 0.0          # RotorPy's ideal set-up has no drag, so its truth has none
+    # Each sample is one period of that plant: the same as one of our simulator with the vehicle and no drag.
+    sim = SimPlant(load_vehicle("hummingbird").replace(c_d=0.0))
+    worst = 0.0
+    for i, k in [(0, 0), (2, 150), (5, 299)]:
+        sim.reset(ds.x[i, k])
+        worst = max(worst, float(np.max(np.abs(sim.step(ds.u[i, k]).x - ds.x_next[i, k]))))
+    assert worst < 1e-9
+    m = tmp_path / "m"
+    assert main(["train", "--arch", "baseline", "--profile", "quick", "--data", str(out), "--out", str(m)]) == 0
+    assert main(["check-model", str(m / "baseline.onnx")]) == 0
+    # The prior is the data's vehicle biased, not the Rolling Spider: theta-hat is of the Hummingbird's size.
+    from mpc.contract import check_model
+    assert 0.3 < check_model(m / "baseline.onnx").theta["m"] < 0.8
+    capsys.readouterr()

@@ -49,7 +49,7 @@ def test_readme_is_short_and_has_the_two_set_up_commands():
     text = (REPO / "README.md").read_text(encoding="utf-8")
     assert len(text.encode("utf-8")) < README_MAX_BYTES
     blocks = re.findall(r"```bash\n(.*?)```", text, re.S)
-    assert blocks[0].strip() == "python -m pip install -e . && pinnmpc run"
+    assert blocks[0].strip() == 'python -m pip install -e ".[rotorpy]" && pinnmpc run'
     assert blocks[1].strip() == 'python -m pip install -e ".[test]" && python -m pytest'
     assert (REPO / ".ci" / "run").read_text().strip().endswith(blocks[1].strip())
 

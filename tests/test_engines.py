@@ -9,7 +9,8 @@ import pytest
 import scenarios.runner as runner
 from scenarios.errors import ScenarioError
 from scenarios.metrics import TIMING_FIELDS, TRACE_TIMING_FIELDS
-from scenarios.runner import RunSpec, cache_key, sweep
+from scenarios.runner import RunSpec, cache_key
+from scenarios.sweep import sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 BASELINE = str(ROOT / "models" / "baseline.onnx")

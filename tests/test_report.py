@@ -30,6 +30,7 @@ HEADINGS = (
     "Table VI: identification under model mismatch",
     "Closed-loop results",
     "High-fidelity plant: models trained on its own data",
+    "Other plants and vehicles",
     "Hover: settled error and gust recovery",
     "Speed ladder: maximum trackable speed",
     "Ensembles: crash probability and RMSE with intervals",
@@ -366,3 +367,34 @@ def test_a_malformed_study_is_named(results_dir):
     (results_dir / "study.json").write_text("{not json")
     with pytest.raises(ReportError, match="study.json"):
         build_report(results_dir)
+
+
+def test_runs_on_other_plants_have_their_own_section_and_stay_out_of_the_others():
+    from reports.plants import NO_RUNS, plants_section, split_by_plant
+
+    def run(model, rmse, plant=None, vehicle=None, crashed=False):
+        r = _result("figure8-fast", "sqp", model, rmse, crashed, None)
+        if plant:
+            r["plant"] = plant
+        if vehicle:
+            r["vehicle"] = vehicle
+        return r
+
+    runs = [run("oracle", 1e-5), run("alpha", 0.030),            # results written before plants existed
+            run("oracle", 2e-5, "rotorpy-ideal"), run("alpha", 0.0303, "rotorpy-ideal"),
+            run("nominal", 0.045, "rotorpy"), run("alpha", 0.040, "rotorpy"),
+            run("nominal", 0.002, "sim", "hummingbird"), run("nominal", None, "rotorpy", "crazyflie", crashed=True)]
+    mine, others = split_by_plant(runs, {"full": False})
+    assert [r["model"] for r in mine] == ["oracle", "alpha"] and len(others) == 6
+    text = plants_section(mine, others)
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
+            for line in text.splitlines() if line.startswith("| ") and "model" not in line}
+    assert rows["oracle"] == ["0.01", "0.02", "–"] and rows["alpha"] == ["30", "30.3", "40"]
+    assert rows["nominal"] == ["0.01", "–", "45"]           # on our simulator the nominal equations are the oracle
+    assert "1 learned model(s) do better: alpha" in text and "within 1.0 %" in text
+    assert "| crazyflie | figure8-fast | SQP | nominal | – | – | crashed at" in text
+    assert "| hummingbird | figure8-fast | SQP | nominal | 2 | – | – |" in text
+    assert plants_section(mine, []) == NO_RUNS
+    # A folder flown on another plant: its own runs are those, ours the others.
+    mine, others = split_by_plant(runs, {"plant": "rotorpy"})
+    assert {r["model"] for r in mine} == {"nominal", "alpha"} and len(others) == 6

@@ -14,6 +14,7 @@ from sim.plant import SimPlant
 from sim.plants import make_plant
 from sim.rotorpy_plant import (
     FLIP,
+    INTEGRATORS,
     ROTORPY_INDEX,
     RotorPyPlant,
     from_rotorpy_state,
@@ -387,3 +388,33 @@ def test_flying_rotorpy_does_not_import_torch():
             "import importlib.util; print(importlib.util.find_spec('torch') is not None)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
+
+
+ACCEPT = {"oracle_rmse_m": 1e-3}    # the oracle on RotorPy's ideal set-up: within 1 mm of the figure-8
+
+
+def test_the_oracle_flies_rotorpy_within_a_millimetre(tmp_path, capsys):
+    import json
+
+    from scenarios.cli import main
+
+    out = tmp_path / "r.json"
+    assert main(["fly", "--plant", "rotorpy-ideal", "--model", "oracle", "--controller", "sqp", "--scenario",
+                 "figure8-fast", "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert (r["plant"], r["vehicle"], r["model"], r["crashed"]) == ("rotorpy-ideal", "rolling-spider", "oracle", False)
+    assert r["rmse_position_m"] <= ACCEPT["oracle_rmse_m"]
+    assert r["plant_spec"]["integrator"]["rtol"] == INTEGRATORS["ideal"]["rtol"]
+    assert "rotorpy-ideal" in capsys.readouterr().out
+
+
+def test_rotorpy_with_aerodynamics_has_no_oracle_and_says_so(capsys):
+    from scenarios.cli import main
+
+    assert main(["fly", "--plant", "rotorpy", "--model", "oracle", "--controller", "lqr", "--scenario", "hover"]) == 2
+    err = capsys.readouterr().err
+    assert "has no known equations" in err and "--model nominal" in err and err.count("\n") == 1
+    # The high-fidelity set-up belongs to our simulator.
+    assert main(["fly", "--plant", "rotorpy-ideal", "--model", "nominal", "--controller", "lqr", "--scenario",
+                 "hover+highfi"]) == 2
+    assert "high-fidelity" in capsys.readouterr().err

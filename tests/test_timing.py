@@ -7,8 +7,11 @@ import pytest
 
 from scenarios.errors import ScenarioError
 from scenarios.library import get_scenario
-from scenarios.runner import RunSpec, _RealtimeClock, fly, sweep_batches
+from scenarios.loop import RealtimeClock
+from scenarios.runner import RunSpec, fly
+from scenarios.sweep import sweep_batches
 from sim import QuadParams, Simulator
+from sim.plant import SimPlant
 from sim.params import DT
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -29,12 +32,26 @@ def piece(x, u, ms, t=0.0):
     return Simulator(P, dt=ms * DT / 10, substeps=ms).step(x, u, t=t)
 
 
+def plant_at(x):
+    """The reference simulator as a plant, in state ``x``."""
+    plant = SimPlant()
+    plant.reset(x)
+    return plant
+
+
+def fly_period(clock, k, x):
+    """Period ``k`` of ``clock`` from state ``x``: (state at its end, input in effect at its end)."""
+    plant = plant_at(x)
+    u = clock.fly_period(plant, k)
+    return plant.x, u
+
+
 def test_an_input_takes_effect_after_its_latency_rounded_up_to_a_substep():
     u = HOVER_U + np.array([0.05, 1e-4, 0.0, 0.0])
-    clock = _RealtimeClock(P, get_scenario("hover"), HOVER_U)
+    clock = RealtimeClock(HOVER_U, get_scenario("hover").delay_steps)
     assert clock.idle(0)
     clock.command(0, u, 3.2e-3)                 # returns after 3.2 ms: takes effect from 4 ms
-    x1, _, u_end = clock.fly_period(0, hover_state(), None, 0.0)
+    x1, u_end = fly_period(clock, 0, hover_state())
     expected = piece(piece(hover_state(), HOVER_U, 4), u, 6)
     np.testing.assert_allclose(x1, expected, rtol=0, atol=TOL["state_abs"])
     assert np.array_equal(u_end, u) and clock.idle(1)
@@ -45,15 +62,19 @@ def test_an_input_takes_effect_after_its_latency_rounded_up_to_a_substep():
 def test_an_overrun_keeps_the_previous_input_and_skips_periods_until_it_returns():
     u0 = HOVER_U + np.array([0.02, 0.0, 0.0, 0.0])
     u1 = HOVER_U + np.array([-0.03, 0.0, 2e-4, 0.0])
-    clock = _RealtimeClock(P, get_scenario("hover"), HOVER_U)
+    clock = RealtimeClock(HOVER_U, get_scenario("hover").delay_steps)
+    plant = plant_at(hover_state())
     clock.command(0, u0, 0.4e-3)                # 0.4 ms -> from 1 ms
-    x, n, _ = clock.fly_period(0, hover_state(), None, 0.0)
+    clock.fly_period(plant, 0)
+    x = plant.x
     assert clock.idle(1)
     clock.command(1, u1, 23.5e-3)               # an overrun: returns at 10 + 24 = 34 ms
     assert not clock.idle(2) and not clock.idle(3) and clock.idle(4)
-    x_a, n, ua = clock.fly_period(1, x, n, 0.01)
-    x_b, n, ub = clock.fly_period(2, x_a, n, 0.02)
-    x_c, n, uc = clock.fly_period(3, x_b, n, 0.03)
+    ua = clock.fly_period(plant, 1)
+    ub = clock.fly_period(plant, 2)
+    x_b = plant.x
+    uc = clock.fly_period(plant, 3)
+    x_c = plant.x
     assert np.array_equal(ua, u0) and np.array_equal(ub, u0) and np.array_equal(uc, u1)
     np.testing.assert_allclose(x_b, piece(piece(x, u0, 10), u0, 10), rtol=0, atol=TOL["state_abs"])
     np.testing.assert_allclose(x_c, piece(piece(x_b, u0, 4), u1, 6), rtol=0, atol=TOL["state_abs"])
@@ -61,13 +82,15 @@ def test_an_overrun_keeps_the_previous_input_and_skips_periods_until_it_returns(
 
 def test_delay_periods_add_to_the_latency():
     u = HOVER_U + np.array([0.05, 0.0, 0.0, 0.0])
-    clock = _RealtimeClock(P, get_scenario("hover+delay"), HOVER_U)   # 3 periods of delay
+    clock = RealtimeClock(HOVER_U, get_scenario("hover+delay").delay_steps)   # 3 periods of delay
     clock.command(0, u, 1.5e-3)                 # takes effect at 30 + 2 = 32 ms
-    x = hover_state()
+    plant = plant_at(hover_state())
     for k in range(3):
-        x, _, uk = clock.fly_period(k, x, None, 0.01 * k)
+        uk = clock.fly_period(plant, k)
         assert np.array_equal(uk, HOVER_U)
-    x3, _, u3 = clock.fly_period(3, x, None, 0.03)
+    x = plant.x
+    u3 = clock.fly_period(plant, 3)
+    x3 = plant.x
     assert np.array_equal(u3, u)
     np.testing.assert_allclose(x3, piece(piece(x, HOVER_U, 2), u, 8), rtol=0, atol=TOL["state_abs"])
 

@@ -222,3 +222,18 @@ def test_study_of_a_two_model_zoo(tmp_path):
     runs_before = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "res" / "runs").iterdir()}
     run_study(zoo, tmp_path / "res", members=2, jobs=1, controllers=("ltv",), progress=False)
     assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "res" / "runs").iterdir()} == runs_before
+
+
+def test_the_study_flies_on_the_plant_and_vehicle_it_is_given(tmp_path, capsys):
+    from scenarios.cli import main
+    from scenarios.zoo import study_specs
+
+    models = {"a": {"path": str(Path(__file__).resolve().parents[1] / "models" / "baseline.onnx")}}
+    ref, ens, ladder = study_specs(models, 2, ("sqp",), plant="rotorpy", vehicle="hummingbird")
+    every = [ref, *ens, *ladder]
+    assert {(s.plant, s.vehicle_data.name) for s in every} == {("rotorpy", "hummingbird")}
+    assert ref.model == "nominal"          # RotorPy with aerodynamics has no oracle: the reference is the nominal one
+    assert study_specs(models, 2, ("sqp",))[0].model == "oracle"
+    # Publishing a study flown elsewhere over the shipped zoo's study.json is refused before anything flies.
+    assert main(["study", "--plant", "rotorpy", "--members", "1", "--out", str(tmp_path / "z")]) == 2
+    assert "--no-publish" in capsys.readouterr().err and not (tmp_path / "z").exists()

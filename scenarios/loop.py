@@ -1,0 +1,192 @@
+"""The closed loop on one screen: plant, sensor, controller, clock.
+
+Each part is a small object with one job, and each can be replaced::
+
+    plant      sim.plant.Plant           advance(u, duration) -> the true state
+    sensor     StateSensor               measure(x) -> what the controller sees
+    controller a pinn-mpc controller     controller(x_measured, t) -> (u, info)
+    clock      IdealClock | RealtimeClock when each computed input takes effect
+
+Per control period ``k`` (``t = k dt``): if the controller is idle, the
+sensor reads the plant, the controller is called and timed, and the clock
+is told when its input takes effect; then the clock flies the plant through
+the period with whatever input is in effect; then the crash test. The loop
+records everything in a :class:`Trace`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.params import DT, NU, NX, SUBSTEPS
+from sim.plant import PLANT_TICK_S
+
+from .metrics import crash_reason
+
+#: The control period and the plant's time resolution, ms (the resolution of real-time latencies).
+PERIOD_MS = int(round(DT * 1e3))
+SUBSTEP_MS = PERIOD_MS // SUBSTEPS
+
+
+class StateSensor:
+    """The full state plus white Gaussian noise (or exactly, with no noise model).
+
+    Parameters
+    ----------
+    noise : sim.params.NoiseModel or None
+        Standard deviations per state; None: the true state.
+    rng : numpy.random.Generator
+        Draws the noise (one (12,) draw per reading).
+    """
+
+    def __init__(self, noise=None, rng: np.random.Generator | None = None):
+        self.noise = noise
+        self._std = None if noise is None else noise.state_std
+        self.rng = np.random.default_rng() if rng is None else rng
+
+    def measure(self, x: np.ndarray) -> np.ndarray:
+        """What the controller sees of the true state ``x`` (12,)."""
+        if self._std is None:
+            return x
+        return x + self._std * self.rng.standard_normal(x.shape)
+
+
+class IdealClock:
+    """Each input takes effect at the start of its period (``delay_steps`` periods later with a delay).
+
+    The controller is called every period; its compute time is not charged.
+    Before the first (delayed) input arrives, ``hover`` holds the vehicle.
+    """
+
+    realtime = False
+
+    def __init__(self, hover: np.ndarray, delay_steps: int = 0):
+        self._pending = [np.asarray(hover, dtype=float)] * int(delay_steps)
+        self.u = np.asarray(hover, dtype=float)
+
+    def idle(self, k: int) -> bool:
+        return True
+
+    def command(self, k: int, u: np.ndarray, latency_s: float) -> None:
+        self._pending.append(u)
+        self.u = self._pending.pop(0)
+
+    def fly_period(self, plant, k: int) -> np.ndarray:
+        """Advance the plant through period ``k``; the input in effect at its end."""
+        plant.advance(self.u, DT)
+        return self.u
+
+
+class RealtimeClock:
+    """When each computed input takes effect under real-time timing.
+
+    The controller is called at a period boundary ``k dt`` only when it is
+    idle. A call that took ``L`` seconds of wall time returns ``ceil(L / 1 ms)``
+    ms later; its input takes effect from then on (plus the delay periods)
+    and the controller is idle again from then. Until then the previous input
+    stays applied (before the first one, ``hover``). A period whose input
+    changes mid-way is flown in pieces of whole milliseconds.
+    """
+
+    realtime = True
+
+    def __init__(self, hover: np.ndarray, delay_steps: int = 0):
+        self.delay_ms = PERIOD_MS * int(delay_steps)
+        self.u = np.asarray(hover, dtype=float)
+        self.events: list[tuple[int, np.ndarray]] = []    # (time the input takes effect, ms; input)
+        self.busy_until_ms = 0
+
+    def idle(self, k: int) -> bool:
+        return self.busy_until_ms <= PERIOD_MS * k
+
+    def command(self, k: int, u: np.ndarray, latency_s: float) -> None:
+        lat_ms = max(SUBSTEP_MS, int(np.ceil(latency_s * 1e3 / SUBSTEP_MS - 1e-9)) * SUBSTEP_MS)
+        self.busy_until_ms = PERIOD_MS * k + lat_ms
+        self.events.append((self.busy_until_ms + self.delay_ms, np.array(u, dtype=float)))
+
+    def fly_period(self, plant, k: int) -> np.ndarray:
+        """Advance the plant through period ``k`` in pieces; the input in effect at its end."""
+        now, t1 = PERIOD_MS * k, PERIOD_MS * (k + 1)
+        while now < t1:
+            while self.events and self.events[0][0] <= now:
+                self.u = self.events.pop(0)[1]
+            nxt = t1 if not self.events else min(t1, self.events[0][0])
+            plant.advance(self.u, (nxt - now) * 1e-3 if nxt - now != PERIOD_MS else DT)
+            now = nxt
+        return self.u
+
+
+@dataclass
+class Trace:
+    """Arrays of one flight (K planned periods; units in comments)."""
+
+    x: np.ndarray             # (K + 1, 12) true states
+    x_measured: np.ndarray    # (K, 12) what the controller saw (NaN where it was not called)
+    u: np.ndarray             # (K, 4) input in effect at the end of each period
+    u_command: np.ndarray     # (K, 4) the controller's output (NaN where it was not called)
+    solve_s: np.ndarray       # (K,) the controller's own solve time, s
+    latency_s: np.ndarray     # (K,) wall time of the call, s (NaN where not called)
+    called: np.ndarray        # (K,) bool: the controller was called this period
+    iterations: np.ndarray    # (K,)
+    status: np.ndarray        # (K,) the controller's status string
+    solver_failed: np.ndarray  # (K,) bool: a fallback produced the input
+    lqr_fallback: np.ndarray  # (K,) bool: the LQR fallback produced it
+    steps: int = 0            # periods flown
+    crash_step: int | None = None
+    crash_reason: str | None = None
+
+    @classmethod
+    def empty(cls, K: int) -> "Trace":
+        return cls(x=np.full((K + 1, NX), np.nan), x_measured=np.full((K, NX), np.nan),
+                   u=np.full((K, NU), np.nan), u_command=np.full((K, NU), np.nan), solve_s=np.zeros(K),
+                   latency_s=np.full(K, np.nan), called=np.zeros(K, dtype=bool),
+                   iterations=np.zeros(K, dtype=np.int64), status=np.full(K, "", dtype="<U40"),
+                   solver_failed=np.zeros(K, dtype=bool), lqr_fallback=np.zeros(K, dtype=bool))
+
+
+def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, progress=None) -> Trace:
+    """Fly ``steps`` control periods from the plant's current state; the :class:`Trace`.
+
+    ``x_ref`` (steps + 1, 12): the reference at each period boundary (the
+    crash test's). ``progress``: an optional wrapper of the period range
+    (for example ``tqdm``). The loop ends early at a crash.
+    """
+    from mpc.controller import collector_paused
+
+    tr = Trace.empty(steps)
+    tr.x[0] = plant.x
+    periods = range(steps) if progress is None else progress(range(steps))
+    for k in periods:
+        t = k * DT
+        if clock.idle(k):
+            xm = sensor.measure(plant.x)
+            tr.x_measured[k] = xm
+            # In real time the garbage collector waits until the call has returned: a collection triggered
+            # by the plant's allocations is not the controller's time.
+            with collector_paused(clock.realtime):
+                c0 = time.perf_counter()
+                u_cmd, info = controller(xm, t)
+                tr.latency_s[k] = time.perf_counter() - c0
+            tr.called[k] = True
+            tr.u_command[k] = u_cmd
+            tr.solve_s[k] = info.solve_time_s
+            tr.iterations[k] = info.iterations
+            tr.status[k] = info.status
+            tr.solver_failed[k] = info.fallback is not None
+            tr.lqr_fallback[k] = info.fallback == "lqr"
+            clock.command(k, u_cmd, tr.latency_s[k])
+        tr.u[k] = clock.fly_period(plant, k)
+        x = plant.x
+        tr.x[k + 1] = x
+        tr.steps = k + 1
+        why = crash_reason(x, x_ref[k + 1])
+        if why is not None:
+            tr.crash_step, tr.crash_reason = k + 1, why
+            break
+    return tr
+
+
+__all__ = ["IdealClock", "PERIOD_MS", "PLANT_TICK_S", "RealtimeClock", "StateSensor", "Trace", "fly_loop"]
