@@ -7,7 +7,7 @@ impulse, the high-fidelity plant, measurement noise, input delay, seed)::
 
     # five-waypoints.toml
     waypoints = [[0, 0, -1], [1, 0, -1.5], [1, 1, -1], [0, 1, -1.5], [0, 0, -1]]
-    path_duration_s = 8.0
+    duration = 8.0                      # s: the path (the flight, duration_s, adds 1 s of hover)
 
     from scenarios import get_scenario
     s = get_scenario("five-waypoints.toml")          # or load_scenario_file(path)
@@ -30,10 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.params import DT, NoiseModel, QuadParams
+from sim.params import DT, NoiseModel
 
 from .errors import ScenarioError
-from .scenario import HOVER_DURATION_S, NOISE, GustImpulse, Scenario, WindGusts
+from .scenario import HOVER_DURATION_S, NOISE, START_MAP, GustImpulse, Scenario, WindGusts
 from .metrics import CRASH_TILT_RAD
 
 #: The references a file may give; exactly one of them.
@@ -254,14 +254,15 @@ def _tilt_demand(traj, stretch: float = 1.0):
 
     Stretching time by ``k`` divides velocities by ``k`` and accelerations by
     ``k^2``; the tilt is the angle between the thrust vector
-    ``g e3 - a - c_d v|v|`` and the vertical (default vehicle's ``g``, ``c_d``).
+    ``g e3 - a - c_d v|v|`` and the vertical (the ``g``, ``c_d`` of
+    :data:`scenarios.scenario.START_MAP`, through which every scenario is built).
     """
     path = traj.path
     s = np.linspace(0.0, 1.0, TILT_SAMPLES)
     t = (path.knot_times[:-1, None] + path.durations[:, None] * s[None, :]).ravel()
     t = np.minimum(t, path.duration_s)
     d = path.derivatives(t, order=2)
-    p = QuadParams()
+    p = START_MAP
     v, a = d[1] / stretch, d[2] / stretch ** 2
     thrust = -a - p.c_d * v * np.abs(v)
     thrust[:, 2] += p.g
