@@ -1,6 +1,7 @@
 """RotorPy as a plant: frames, rotor order and set-ups checked against the reference simulator."""
 
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -371,6 +372,11 @@ def test_missing_rotorpy_is_a_one_line_error(monkeypatch):
         make_plant("rotorpy")
     assert isinstance(e.value, ValueError)
     assert str(e.value) == "plant 'rotorpy' needs RotorPy: pip install -e '.[rotorpy]'"
+    # The main job then leaves its RotorPy runs out instead of failing them.
+    from scenarios import campaign
+    monkeypatch.setattr(campaign, "rotorpy_available", lambda: False)
+    plan = campaign.main_plan(Path(__file__).resolve().parents[1] / "models")
+    assert campaign.plant_plan() == [] and {s.plant for s in plan} == {"sim"}
 
 
 def test_flying_rotorpy_does_not_import_torch():
