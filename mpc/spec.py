@@ -14,6 +14,7 @@ default vehicle (the Parrot Rolling Spider) when none is given.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -117,8 +118,6 @@ class VehicleSpec:
         base = cls.from_vehicle(vehicle)
         params = getattr(model, "params", None)       # equations (an AnalyticModel) know their own drag
         if params is not None and getattr(params, "c_d", None) is not None and params.c_d != base.c_d:
-            import dataclasses
-
             base = dataclasses.replace(base, c_d=params.c_d)
         theta = getattr(model, "theta", None)
         if theta is None:
@@ -126,8 +125,6 @@ class VehicleSpec:
         theta = np.asarray(theta, dtype=float).reshape(-1)
         if theta.shape != (6,):
             raise ConfigurationError(f"model theta must have 6 entries (m, Jxx, Jyy, Jzz, kt, kq); found {theta.shape}")
-        import dataclasses
-
         m, Jxx, Jyy, Jzz, kt, kq = (float(v) for v in theta)
         return dataclasses.replace(base, m=m, Jxx=Jxx, Jyy=Jyy, Jzz=Jzz, kt=kt, kq=kq,
                                    source=f"theta of {getattr(model, 'name', 'model')}")

@@ -25,18 +25,12 @@ def where(run: dict) -> tuple[str, str]:
 
 
 def split_by_plant(runs: list[dict], plan: dict | None) -> tuple[list[dict], list[dict]]:
-    """(runs on the folder's own plant and vehicle, the others). The folder's own: the plan's, else the defaults."""
+    """(runs on the folder's own plant and vehicle, the others). The folder's own: the plan's (its vehicle by name),
+    else the defaults."""
     plan = plan or {}
-    own = (plan.get("plant") or DEFAULT_PLANT, _vehicle_name(plan.get("vehicle")))
+    own = (plan.get("plant") or DEFAULT_PLANT, plan.get("vehicle") or DEFAULT_VEHICLE)
     mine = [r for r in runs if where(r) == own]
     return mine, [r for r in runs if where(r) != own]
-
-
-def _vehicle_name(v) -> str:
-    if not v:
-        return DEFAULT_VEHICLE
-    from pathlib import Path
-    return Path(v).stem if str(v).endswith(".toml") else str(v)
 
 
 def _cell(run: dict | None) -> str:

@@ -138,9 +138,13 @@ def _on(spec: RunSpec, plant: str, vehicle: str | None) -> RunSpec | None:
     no known equations; a high-fidelity scenario (a set-up of our simulator) is dropped elsewhere."""
     import dataclasses
 
-    if plant != "sim" and "+highfi" in spec.scenario:
+    from sim.plants import KNOWN_EQUATIONS
+
+    from .library import get_scenario
+
+    if plant != "sim" and get_scenario(spec.scenario).high_fidelity:
         return None
-    model = "nominal" if plant == "rotorpy" and spec.model == "oracle" else spec.model
+    model = "nominal" if spec.model == "oracle" and plant not in KNOWN_EQUATIONS else spec.model
     return dataclasses.replace(spec, model=model, plant=plant, vehicle=vehicle)
 
 
@@ -281,8 +285,11 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
         if engine == "ray" else f"{jobs} processes"
     stage(f"closed-loop sweep: {len(specs)} runs on {where}")
     results = sweep(specs, out, jobs=jobs, progress=progress, engine=engine, address=address, resume=resume)
+    from sim.vehicle import load_vehicle
+
     write_json(out / "results.json", {"plan": {"full": full, "models_dir": str(models_dir), "plant": plant,
-                                           "vehicle": vehicle, "rotorpy": rotorpy_available(),
+                                           "vehicle": None if vehicle is None else load_vehicle(vehicle).name,
+                                           "rotorpy": rotorpy_available(),
                                            "specs": [spec_dict(s) for s in specs]}, "runs": results})
     stage("report")
     report = build_report(out)

@@ -22,7 +22,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim.params import DT, NU, NX, SUBSTEPS
-from sim.plant import PLANT_TICK_S
 
 from .metrics import crash_reason
 
@@ -114,7 +113,7 @@ class RealtimeClock:
             while self.events and self.events[0][0] <= now:
                 self.u = self.events.pop(0)[1]
             nxt = t1 if not self.events else min(t1, self.events[0][0])
-            plant.advance(self.u, (nxt - now) * 1e-3 if nxt - now != PERIOD_MS else DT)
+            plant.advance(self.u, (nxt - now) * 1e-3)
             now = nxt
         return self.u
 
@@ -189,4 +188,4 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
     return tr
 
 
-__all__ = ["IdealClock", "PERIOD_MS", "PLANT_TICK_S", "RealtimeClock", "StateSensor", "Trace", "fly_loop"]
+__all__ = ["IdealClock", "PERIOD_MS", "RealtimeClock", "StateSensor", "Trace", "fly_loop"]

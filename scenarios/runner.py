@@ -72,18 +72,17 @@ def model_params(model: str, plant: str, vehicle):
     and refuses it. ``nominal`` and ``analytic:...``: the nominal equations
     with the vehicle's values (scaled).
     """
-    import dataclasses
-
     from mpc.models import parse_analytic
     from sim.params import THETA_NAMES
+    from sim.plants import known_equations
 
     p = vehicle.params
     if model == "oracle":
-        if plant == "rotorpy":
-            raise ScenarioError("plant 'rotorpy' (RotorPy with motor lag and aerodynamics) has no known equations, so "
-                                "it has no oracle; fly --model nominal (the rigid-body equations with the vehicle's "
-                                "values) or a learned model")
-        return dataclasses.replace(p, c_d=0.0) if plant == "rotorpy-ideal" else p
+        own = known_equations(plant, p)
+        if own is None:
+            raise ScenarioError(f"plant {plant!r} has no known equations, so it has no oracle; fly --model nominal "
+                                f"(the rigid-body equations with the vehicle's values) or a learned model")
+        return own
     if model == "nominal":
         return p
     factors = parse_analytic(model)
@@ -242,13 +241,15 @@ def _wind(sc):
 
 def reference_spec(plant: str, vehicle):
     """The vehicle numbers of the flatness map that makes a reference feasible on ``plant`` flying ``vehicle``:
-    the vehicle's, without drag on ``rotorpy-ideal`` (that plant has none)."""
+    the vehicle's, with the drag of the plant's own equations where they are known (none on ``rotorpy-ideal``)."""
     import dataclasses
 
     from mpc.spec import VehicleSpec
+    from sim.plants import known_equations
 
     spec = VehicleSpec.from_vehicle(vehicle)
-    return dataclasses.replace(spec, c_d=0.0) if plant == "rotorpy-ideal" else spec
+    own = known_equations(plant, vehicle.params)
+    return spec if own is None or own.c_d == spec.c_d else dataclasses.replace(spec, c_d=own.c_d)
 
 
 def reference_states(ref, times: np.ndarray, spec) -> np.ndarray:
@@ -314,9 +315,10 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
     X_ref = reference_states(ref, t_all, ref_spec)
     x0 = start_state(sc, ref_spec)
     error = None
+    sha = _sha256(spec.model)
     base = {"run_id": spec.run_id, "scenario": sc.name, "controller": spec.controller,
-            "model": spec.model_name, "model_file": None if _sha256(spec.model) is None else str(spec.model),
-            "model_sha256": _sha256(spec.model), "seed": sc.seed, "member": spec.member, "horizon": spec.horizon,
+            "model": spec.model_name, "model_file": None if sha is None else str(spec.model),
+            "model_sha256": sha, "seed": sc.seed, "member": spec.member, "horizon": spec.horizon,
             "timing": spec.timing, "plant": spec.plant, "vehicle": vehicle.name}
     t0 = time.perf_counter()
     realtime = spec.timing == "realtime"

@@ -95,8 +95,10 @@ def study_specs(models: dict[str, dict], members: int = 10, controllers=STUDY_CO
     """
     if isinstance(members, bool) or not isinstance(members, int) or members < 1:
         raise ScenarioError(f"members must be an integer >= 1; found {members!r}")
+    from sim.plants import KNOWN_EQUATIONS
+
     where = {"plant": plant, "vehicle": vehicle}
-    oracle = RunSpec(STUDY_SCENARIO, "sqp", "nominal" if plant == "rotorpy" else "oracle", **where)
+    oracle = RunSpec(STUDY_SCENARIO, "sqp", "oracle" if plant in KNOWN_EQUATIONS else "nominal", **where)
     ens = [RunSpec(STUDY_SCENARIO, c, m["path"], member=k, **where) for m in models.values() for c in controllers
            for k in range(members)]
     ladder = [RunSpec(s, LADDER_CONTROLLER, m["path"], **where) for m in models.values() for s in ladder_names()]

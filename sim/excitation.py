@@ -37,7 +37,9 @@ from . import __version__
 from ._validate import choice, positive_finite, positive_int
 from .errors import DatasetError, SimInputError
 from .params import DT, INPUT_LOGS, NOMINAL, Fidelity, NoiseModel, QuadParams
+from .plants import PLANTS, known_equations, make_plant
 from .simulator import Simulator
+from .vehicle import load_vehicle
 
 FORMAT_VERSION = 1
 SPLIT_NAMES = ("train", "val", "test")
@@ -360,13 +362,10 @@ def _split(n: int, rng: np.random.Generator) -> np.ndarray:
     return labels
 
 
-def _step_plants(plants, x, u, k):
+def _step_plants(plants, u):
     """One period of one plant per trajectory (plants that are not batched): a StepResult of the stacked outputs."""
     from .simulator import StepResult
 
-    if k == 0:
-        for pl, xi in zip(plants, x):
-            pl.reset(xi)
     outs = [pl.step(ui) for pl, ui in zip(plants, u)]
     return StepResult(*(np.stack([getattr(o, f) for o in outs]) for f in ("x", "rotor_speed", "wrench", "saturated")))
 
@@ -432,20 +431,16 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
     if inputs == "realized" and fidelity.motor_tau > 0:
         raise SimInputError("inputs='realized' needs a simulator without motor lag (fidelity.motor_tau = 0); "
                             f"found motor_tau {fidelity.motor_tau} s")
-    from .vehicle import load_vehicle
-
     veh = load_vehicle(vehicle)
     if params is not None and vehicle is not None and params != veh.params:
         raise SimInputError("give params or vehicle, not both (a vehicle carries its parameters)")
     p = veh.params if params is None else params
-    from .plants import PLANTS
     if plant not in PLANTS:
         raise SimInputError(f"plant must be one of {', '.join(PLANTS)}; found {plant!r}")
     if plant != "sim" and not fidelity.is_nominal:
         raise SimInputError(f"fidelity is a set-up of the reference simulator (plant 'sim'); plant {plant!r} has its "
                             f"own: give a nominal fidelity")
-    if plant == "rotorpy-ideal":
-        p = dataclasses.replace(p, c_d=0.0)     # that plant has no drag: its true equations have none
+    p = known_equations(plant, p) or p      # the truth is the plant's own equations where they are known
     if inputs == "realized" and plant == "rotorpy":
         raise SimInputError("inputs='realized' needs a plant without motor lag; plant 'rotorpy' has the vehicle's")
     n_steps = int(round(duration / DT))
@@ -461,16 +456,16 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
 
     refs = _references(rngs, n_steps, reg, p)
     sim = Simulator(p, fidelity)
-    plants = None
-    if plant != "sim":
-        from .plants import make_plant
-        plants = [make_plant(plant, veh.replace(**{k: getattr(p, k) for k in ("m", "Jxx", "Jyy", "Jzz", "kt", "kq",
-                                                                              "d", "c_d", "n_max")}))
-                  for _ in range(n_traj)]
-
     x_true = np.zeros((n_traj, n_steps + 1, 12))
     x0 = np.zeros((n_traj, 12))
     x0[:, 0:3] = refs.pos[:, 0]
+    plants = None
+    if plant != "sim":     # one plant per trajectory (RotorPy flies one vehicle), each started at its x0
+        plants = [make_plant(plant, veh.replace(**{k: getattr(p, k) for k in ("m", "Jxx", "Jyy", "Jzz", "kt", "kq",
+                                                                              "d", "c_d", "n_max")}))
+                  for _ in range(n_traj)]
+        for pl, xi in zip(plants, x0):
+            pl.reset(xi)
     x_true[:, 0] = x0
     ctrl = ExcitationController(p, reg, x0)
     u = np.zeros((n_traj, n_steps, 4))
@@ -489,7 +484,7 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
         if plants is None:
             res = sim._step(x, uk, rotor, k * DT)
         else:
-            res = _step_plants(plants, x, uk, k)
+            res = _step_plants(plants, uk)
         rotor = res.rotor_speed
         u[:, k], n_log[:, k], wrench[:, k], sat[:, k] = uk, res.rotor_speed, res.wrench, res.saturated
         x = res.x

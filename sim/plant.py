@@ -30,7 +30,6 @@ RotorPy is an optional dependency (``pip install -e '.[rotorpy]'``); see
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -38,9 +37,9 @@ import numpy as np
 from ._validate import as_batch, nonnegative_finite
 from .errors import SimInputError
 from .params import DT, NOMINAL, NU, NX, SUBSTEPS, Fidelity
+from .simulator import WindFn
 from .vehicle import Vehicle, load_vehicle
 
-WindFn = Callable[[float], np.ndarray]
 
 #: Resolution of :meth:`Plant.advance`, s (the reference simulator's RK4 substep).
 PLANT_TICK_S = DT / SUBSTEPS

@@ -2,13 +2,31 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 from .errors import SimInputError
-from .params import NOMINAL
+from .params import NOMINAL, QuadParams
 from .plant import Plant, SimPlant, WindFn
 from .vehicle import load_vehicle
 
 #: Plant names, the default first.
 PLANTS = ("sim", "rotorpy", "rotorpy-ideal")
+#: Plants whose equations this project knows (they have an oracle): our simulator's nominal set-up, and RotorPy
+#: without motor lag and aerodynamics (the same rigid body, no drag). RotorPy's aerodynamics have no such form here.
+KNOWN_EQUATIONS = ("sim", "rotorpy-ideal")
+
+
+def known_equations(name: str, params: QuadParams) -> QuadParams | None:
+    """The parameters of the rigid-body equations plant ``name`` integrates for a vehicle of ``params``, or None.
+
+    ``sim``: ``params`` (its nominal set-up); ``rotorpy-ideal``: ``params`` without drag; ``rotorpy``: None (its
+    motor lag and aerodynamics are not in the nominal equations).
+    """
+    if name not in PLANTS:
+        raise SimInputError(f"plant must be one of {', '.join(PLANTS)}; found {name!r}")
+    if name not in KNOWN_EQUATIONS:
+        return None
+    return dataclasses.replace(params, c_d=0.0) if name == "rotorpy-ideal" else params
 
 
 def make_plant(name: str = "sim", vehicle=None, *, high_fidelity: bool = False, payload_kg: float = 0.0,

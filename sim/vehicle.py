@@ -38,10 +38,11 @@ VEHICLE_DIR = Path(__file__).resolve().parent / "vehicles"
 #: The vehicle of every command that is given none.
 DEFAULT_VEHICLE = "rolling-spider"
 #: RotorPy's aerodynamic coefficients beyond the high-fidelity plant's rotor drag, for the Rolling Spider. RotorPy
-#: ships no such vehicle: these scale the Hummingbird preset's effects to the Rolling Spider's weight (translational
-#: lift per unit weight, the same at any airspeed) and take the induced-inflow drag equal to the in-plane rotor drag.
-_ROLLING_SPIDER_K_Z = HIGH_FIDELITY.rotor_drag          # N s / (m RU) per rotor, induced inflow (RotorPy k_z)
-_ROLLING_SPIDER_K_H = 3.39e-3 * QuadParams().m / 0.500  # N / (m/s)^2 per rotor, translational lift (RotorPy k_h)
+#: ships no such vehicle: the induced-inflow drag is taken equal to the in-plane rotor drag, and the translational
+#: lift is the Hummingbird preset's (3.39e-3 N/(m/s)^2 at 0.5 kg) scaled to this vehicle's weight (x 0.068 / 0.5), so
+#: that it lifts the same share of the weight at any airspeed.
+_ROLLING_SPIDER_K_Z = HIGH_FIDELITY.rotor_drag   # N s / (m RU) per rotor, induced inflow (RotorPy k_z)
+_ROLLING_SPIDER_K_H = 4.6104e-4                  # N / (m/s)^2 per rotor, translational lift (RotorPy k_h)
 
 
 @dataclass(frozen=True)
