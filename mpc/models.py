@@ -110,7 +110,7 @@ class AnalyticModel(PredictionModel):
         return np.asarray(self._mapped("step", n)(x.T, u.T, self._theta)).T   # theta broadcast over the map
 
     def linearize(self, x, u):
-        """``(x_next, A, B)`` by CasADi's automatic differentiation (compiled, see :mod:`mpc.compiled`)."""
+        """``(x_next, A, B)`` by CasADi's automatic differentiation (compiled, see :mod:`sim.compiled`)."""
         x, u = _batch(x, u)
         n = len(x)
         xn, A, B = self._mapped("lin", n)(x.T, u.T, self._theta)
@@ -128,21 +128,27 @@ def _numeric_functions(params: QuadParams):
     ``theta`` is an input, so one compiled library serves every parameter
     set that differs only in ``(m, Jxx, Jyy, Jzz, kt, kq)``.
     """
+    from sim.compiled import compiled
+
+    key = tuple(getattr(params, n) for n in ("g", "c_d", "d"))
+    if key not in _NUMERIC:
+        step, lin = numeric_sources(params)
+        _NUMERIC[key] = (compiled(step), compiled(lin))
+    return _NUMERIC[key]
+
+
+def numeric_sources(params: QuadParams):
+    """The CasADi ``step`` and ``lin`` of :func:`_numeric_functions` before compilation (to precompile them)."""
     import casadi as ca
 
     from sim.dynamics_casadi import step_function
 
-    from .compiled import compiled
-
-    key = tuple(getattr(params, n) for n in ("g", "c_d", "d"))
-    if key not in _NUMERIC:
-        F = step_function(params, symbolic_theta=True)
-        xs, us, th = ca.SX.sym("x", NX), ca.SX.sym("u", NU), ca.SX.sym("theta", len(THETA_NAMES))
-        xn = F(xs, us, th)
-        step = ca.Function("pinnmpc_step", [xs, us, th], [xn])
-        lin = ca.Function("pinnmpc_lin", [xs, us, th], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, us)])
-        _NUMERIC[key] = (compiled(step), compiled(lin))
-    return _NUMERIC[key]
+    F = step_function(params, symbolic_theta=True)
+    xs, us, th = ca.SX.sym("x", NX), ca.SX.sym("u", NU), ca.SX.sym("theta", len(THETA_NAMES))
+    xn = F(xs, us, th)
+    step = ca.Function("pinnmpc_step", [xs, us, th], [xn])
+    lin = ca.Function("pinnmpc_lin", [xs, us, th], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, us)])
+    return step, lin
 
 
 #: How an ONNX model's A and B are obtained: its derivative graph, or central differences of the model.

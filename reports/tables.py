@@ -320,7 +320,8 @@ def provenance_section(prov: dict | None, plan: dict | None = None) -> str:
     top = [(k, f"`{prov[k]}`" if k in ("git_commit", "command") else prov[k])
            for k in ("git_commit", "command", "started", "finished", "jobs", "full") if prov.get(k) is not None]
     if prov.get("wall_time_s") is not None:
-        top.append(("wall time", f"{fmt(prov['wall_time_s'], '.1f')} s"))
+        untimed = isinstance(prov.get("stage_seconds"), dict) and "report" not in prov["stage_seconds"]
+        top.append(("wall time" + (" up to the report" if untimed else ""), f"{fmt(prov['wall_time_s'], '.1f')} s"))
     if top:
         out.append("\n".join(_bullets(top)))
     for title, key in (("Versions", "versions"), ("Machine", "machine")):
@@ -344,8 +345,11 @@ def provenance_section(prov: dict | None, plan: dict | None = None) -> str:
                    + md_table(["model", "sha256", "seed", "data seed", "training command"], rows))
     stages = prov.get("stage_seconds")
     if isinstance(stages, dict) and stages:
-        out.append("Wall time per stage (in the order run):\n\n"
-                   + md_table(["stage", "wall time (s)"], [[k, fmt(v, ".1f")] for k, v in stages.items()]))
+        rows = [[k, fmt(v, ".1f")] for k, v in stages.items()]
+        if "report" not in stages:
+            rows.append(["report", "not yet timed when this report was built (`pinnmpc report` on this folder "
+                                   "shows it)"])
+        out.append("Wall time per stage (in the order run):\n\n" + md_table(["stage", "wall time (s)"], rows))
     if plan and plan.get("models_dir") is not None:
         out.append(f"Closed-loop plan: models from `{plan['models_dir']}`"
                    + (f", full = {plan['full']}" if "full" in plan else "")

@@ -45,12 +45,13 @@ def register(sub) -> None:
 
     p = sub.add_parser("run", help="the main job: Tables I-III, every closed-loop run, the report",
                        description="Evaluates the shipped models (Tables I-III, Fisher bounds), flies every "
-                                   "scenario (hover, the figure-8 speed ladder, random paths, the yaw turn, and the "
-                                   "variants of hover and figure8-fast but +highfi) with the real-time SQP (oracle "
+                                   "base scenario (hover, the figure-8 speed ladder, random paths, the yaw turn) "
+                                   "and the disturbance variants of figure8-fast with the real-time SQP (oracle "
                                    "and every shipped model) and the LQR, the LTV-MPC on its CI-bound cases, "
-                                   "figure8-fast with the IPOPT NMPC on the oracle, and figure8-fast with "
-                                   "real-time timing (SQP, LTV-MPC and NMPC, every model), then writes "
-                                   "DIR/report.md and DIR/report.html. About 9 minutes on 2 cores (--full: hours).")
+                                   "figure8-fast with real-time timing (SQP, LTV-MPC and NMPC, every model), the "
+                                   "high-fidelity plant and, with RotorPy installed, other plants and vehicles; "
+                                   "then writes DIR/report.md and DIR/report.html. About 8 minutes on 2 cores "
+                                   "(--full: hours).")
     p.add_argument("--out", type=Path, default=Path("results/main"), help="results folder (default results/main)")
     p.add_argument("--jobs", type=int, default=None, help="worker processes (default: number of CPUs)")
     p.add_argument("--models", type=Path, default=Path("models"), help="folder of ONNX models (default models)")

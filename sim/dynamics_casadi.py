@@ -12,14 +12,14 @@ from collections.abc import Mapping
 import casadi as ca
 
 from .params import DT, NU, NX, SUBSTEPS, THETA_NAMES, QuadParams
-from .rotors import mixer
+from .rotors import SPIN, mixer
 
 
 def _get(p, name):
     return p[name] if isinstance(p, Mapping) else getattr(p, name)
 
 
-def dynamics_casadi(x, u, p=None, accel=None):
+def dynamics_casadi(x, u, p=None, accel=None, torque=None):
     """Symbolic ``dx/dt`` of the nominal model.
 
     Parameters
@@ -32,7 +32,9 @@ def dynamics_casadi(x, u, p=None, accel=None):
         Parameters; a mapping may hold CasADi symbols for any of ``m, Jxx,
         Jyy, Jzz, kt, kq, g, c_d, d``. Reference values when omitted.
     accel : casadi expression, shape (3, 1), optional
-        Extra world-frame acceleration (wind), m/s^2.
+        Extra world-frame acceleration (wind, rotor drag), m/s^2.
+    torque : casadi expression, shape (3, 1), optional
+        Extra body-frame torque (rotor gyroscopic torque), N m.
 
     Returns
     -------
@@ -43,6 +45,8 @@ def dynamics_casadi(x, u, p=None, accel=None):
     wp, wq, wr = x[6], x[7], x[8]
     vx, vy, vz = x[9], x[10], x[11]
     thrust, tx, ty, tz = u[0], u[1], u[2], u[3]
+    if torque is not None:
+        tx, ty, tz = tx + torque[0], ty + torque[1], tz + torque[2]
     m, Jxx, Jyy, Jzz = _get(p, "m"), _get(p, "Jxx"), _get(p, "Jyy"), _get(p, "Jzz")
     g, c_d = _get(p, "g"), _get(p, "c_d")
 
@@ -138,3 +142,61 @@ def step_function(p: QuadParams | None = None, *, symbolic_theta: bool = False,
         names.append("accel")
     x_next = rk4_casadi(lambda s: dynamics_casadi(s, w, vals, a), x, dt / substeps, substeps)
     return ca.Function("step", args, [x_next], names, ["x_next"])
+
+
+def rotation_matrix_casadi(phi, theta, psi):
+    """Symbolic body-to-world rotation R = Rz(psi) Ry(theta) Rx(phi) (3, 3), as :func:`sim.dynamics.rotation_matrix`."""
+    sphi, cphi = ca.sin(phi), ca.cos(phi)
+    sth, cth = ca.sin(theta), ca.cos(theta)
+    spsi, cpsi = ca.sin(psi), ca.cos(psi)
+    return ca.vertcat(
+        ca.horzcat(cpsi * cth, cpsi * sth * sphi - spsi * cphi, cpsi * sth * cphi + spsi * sphi),
+        ca.horzcat(spsi * cth, spsi * sth * sphi + cpsi * cphi, spsi * sth * cphi - cpsi * sphi),
+        ca.horzcat(-sth, cth * sphi, cth * cphi))
+
+
+def high_fidelity_rates_casadi(x, w, n, p, fidelity, accel=None):
+    """Symbolic ``dx/dt`` of the high-fidelity simulator's rigid body (12, 1), as ``Simulator._rates_hifi``.
+
+    ``w`` is the wrench (4, 1) acting now, ``n`` the rotor speeds (4, 1, RU) that drive rotor drag and the
+    gyroscopic torque, ``fidelity`` a :class:`sim.params.Fidelity` (its motor lag is the caller's).
+    """
+    torque = None
+    m = _get(p, "m")
+    if fidelity.rotor_drag > 0.0:
+        R = rotation_matrix_casadi(x[3], x[4], x[5])
+        v_b = R.T @ x[9:12]
+        f_b = ca.vertcat(-fidelity.rotor_drag * ca.sum1(n) * v_b[0], -fidelity.rotor_drag * ca.sum1(n) * v_b[1], 0.0)
+        a_drag = (R @ f_b) / m
+        accel = a_drag if accel is None else a_drag + accel
+    if fidelity.rotor_gyro > 0.0:
+        omega_r = sum(float(SPIN[i]) * n[i] for i in range(4))
+        torque = ca.vertcat(-fidelity.rotor_gyro * omega_r * x[7], fidelity.rotor_gyro * omega_r * x[6], 0.0)
+    return dynamics_casadi(x, w, p, accel, torque)
+
+
+def high_fidelity_step_function(p: QuadParams, fidelity, *, dt: float = DT, substeps: int = SUBSTEPS) -> ca.Function:
+    """CasADi function for one period of the high-fidelity simulator (one vehicle), as ``Simulator.step_full``.
+
+    ``F(x (12), n0 (4), n_cmd (4), w (4), accel (3)) -> (x_next (12), n_next (4))``: with a motor lag the rotors
+    start at ``n0`` and follow ``n_cmd`` (RU) through the first-order lag, and the wrench comes from their speeds
+    (``w`` is unused); without one they run at ``n_cmd`` and ``w`` (N, N m) acts, and ``n_next = n_cmd``.
+    ``accel`` (m/s^2) is the wind; ``p``'s mass should include a payload.
+    """
+    x, n0, n_cmd = ca.SX.sym("x", NX), ca.SX.sym("n0", 4), ca.SX.sym("n_cmd", 4)
+    w, a = ca.SX.sym("w", NU), ca.SX.sym("accel", 3)
+    vals = {k: getattr(p, k) for k in ("m", "Jxx", "Jyy", "Jzz", "kt", "kq", "g", "c_d", "d")}
+    h = dt / substeps
+    tau = fidelity.motor_tau
+    if tau > 0.0:
+        def f(z):
+            s, nn = z[:NX], z[NX:]
+            w_now = wrench_from_rotor_sq_casadi(nn * nn, vals)
+            return ca.vertcat(high_fidelity_rates_casadi(s, w_now, nn, vals, fidelity, a), (n_cmd - nn) / tau)
+        z = rk4_casadi(f, ca.vertcat(x, n0), h, substeps)
+        x_next, n_next = z[:NX], z[NX:]
+    else:
+        x_next = rk4_casadi(lambda s: high_fidelity_rates_casadi(s, w, n_cmd, vals, fidelity, a), x, h, substeps)
+        n_next = n_cmd
+    return ca.Function("step_high_fidelity", [x, n0, n_cmd, w, a], [x_next, n_next],
+                       ["x", "n0", "n_cmd", "w", "accel"], ["x_next", "n_next"])

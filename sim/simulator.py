@@ -76,6 +76,7 @@ class Simulator:
         self.wind = wind
         self._body = _MassParams(self.p, self.payload_kg) if self.payload_kg else self.p
         self._single = None   # CasADi step of one vehicle, built on first use
+        self._single_hifi = None
 
     # ------------------------------------------------------------------ API
     def step(self, x, u, t: float = 0.0) -> np.ndarray:
@@ -152,6 +153,13 @@ class Simulator:
             x1 = rk4_step(lambda s: rates(s, w, body, accel=wind), x, h, self.substeps)
             return StepResult(x1, np.broadcast_to(n_cmd, x1.shape[:-1] + (4,)).copy(), w, rot.saturated)
 
+        if x.ndim == 1 and w.ndim == 1:
+            # One vehicle: the CasADi form of the same step (held equal by the tests), about ten times faster.
+            n = n_cmd if n0 is None or fid.motor_tau == 0.0 else np.asarray(n0, dtype=float).reshape(4)
+            a = np.zeros(3) if wind is None else np.broadcast_to(wind, (3,))
+            x1, n1 = self._single_step_hifi()(x, n, n_cmd, w, a)
+            w0 = wrench_from_rotor_sq(n * n, p) if fid.motor_tau > 0.0 else w
+            return StepResult(np.asarray(x1).reshape(NX), np.asarray(n1).reshape(4), w0, rot.saturated)
         if fid.motor_tau > 0.0:
             n = n_cmd if n0 is None else np.broadcast_to(n0, n_cmd.shape)
 
@@ -176,6 +184,17 @@ class Simulator:
             p = dataclasses.replace(self.p, m=self.p.m + self.payload_kg) if self.payload_kg else self.p
             self._single = step_function(p, dt=self.dt, substeps=self.substeps, accel_input=True)
         return self._single
+
+    def _single_step_hifi(self):
+        """CasADi step of one vehicle on the high-fidelity simulator (built once per simulator)."""
+        if self._single_hifi is None:
+            import dataclasses
+
+            from .dynamics_casadi import high_fidelity_step_function
+
+            p = dataclasses.replace(self.p, m=self.p.m + self.payload_kg) if self.payload_kg else self.p
+            self._single_hifi = high_fidelity_step_function(p, self.fidelity, dt=self.dt, substeps=self.substeps)
+        return self._single_hifi
 
     def _rates_hifi(self, s, w, n, wind):
         """Nominal rates plus rotor drag and rotor gyroscopic torque."""

@@ -39,8 +39,8 @@ def cache_dir() -> Path:
     return Path(os.environ.get("PINNMPC_CACHE") or Path.home() / ".cache" / "pinn-mpc")
 
 
-def compiled(fn: ca.Function) -> ca.Function:
-    """``fn`` compiled to C and loaded (cached by its code), or ``fn`` itself if that is not possible."""
+def _source(fn: ca.Function) -> tuple[str, bytes, str, Path]:
+    """``(name, C code, cache key, library path)`` of ``fn``."""
     with tempfile.TemporaryDirectory() as tmp:
         name = fn.name()
         gen = ca.CodeGenerator(f"{name}.c", {"with_header": False})
@@ -49,9 +49,41 @@ def compiled(fn: ca.Function) -> ca.Function:
         gen.generate(str(Path(tmp)) + os.sep)
         code = src_path.read_bytes()
     key = hashlib.sha256(code + " ".join(FLAGS).encode()).hexdigest()[:20]
+    return name, code, key, cache_dir() / f"{name}-{key}.so"
+
+
+def precompile(fns, jobs: int = 2) -> int:
+    """Compile the libraries of ``fns`` (CasADi functions) that are not in the cache yet, ``jobs`` at a time.
+
+    The later :func:`compiled` calls of the same functions, in this process or in workers, then only load
+    them. Returns how many were compiled. Failures are left for :func:`compiled` to report.
+    """
+    import concurrent.futures as cf
+
+    todo = {}
+    for fn in fns:
+        name, code, key, lib = _source(fn)
+        if not lib.is_file():
+            todo[lib] = (code, name)
+    if not todo:
+        return 0
+
+    def build(item):
+        lib, (code, name) = item
+        try:
+            _compile(code, name, lib)
+        except (OSError, subprocess.SubprocessError):
+            pass
+    with cf.ThreadPoolExecutor(max(1, int(jobs))) as pool:      # the compiler runs outside Python's lock
+        list(pool.map(build, todo.items()))
+    return len(todo)
+
+
+def compiled(fn: ca.Function) -> ca.Function:
+    """``fn`` compiled to C and loaded (cached by its code), or ``fn`` itself if that is not possible."""
+    name, code, key, lib = _source(fn)
     if key in _loaded:
         return _loaded[key]
-    lib = cache_dir() / f"{name}-{key}.so"
     try:
         if not lib.is_file():
             _compile(code, name, lib)
