@@ -441,8 +441,11 @@ def realtime_table(runs: list[dict]) -> str:
             f"{DT_S * 1e3:.0f} ms period keeps the previous input until it returns, and the periods it overran are "
             "skipped (the controller is not called). Ideal timing applies every input at once. The SQP runs "
             f"with its {budget_ms:g} ms budget in real time and without it (at most its iteration limit) in ideal "
-            "timing.\n\n"
-            + md_table(header, rows))
+            "timing."
+            + (" \"Not flown\": the case was not flown in ideal timing in this folder (`pinnmpc run` leaves the NMPC's "
+               "ideal-timing runs, about 90 s of a core each, to `--full`)." if any(row[3] == "not flown" for row in rows)
+               else "")
+            + "\n\n" + md_table(header, rows))
 
 
 def ensemble_table(runs: list[dict]) -> str:

@@ -398,3 +398,14 @@ def test_runs_on_other_plants_have_their_own_section_and_stay_out_of_the_others(
     # A folder flown on another plant: its own runs are those, ours the others.
     mine, others = split_by_plant(runs, {"plant": "rotorpy"})
     assert {r["model"] for r in mine} == {"nominal", "alpha"} and len(others) == 6
+
+
+def test_realtime_table_says_why_an_ideal_run_is_missing():
+    from reports.tables import realtime_table
+
+    rt = {"scenario": "figure8-fast", "controller": "nmpc", "model": "oracle", "timing": "realtime",
+          "rmse_position_m": 0.1, "crashed": False, "solve_ms": {"median": 150.0, "p95": 200.0, "max": 230.0}}
+    alone = realtime_table([rt])
+    assert "| not flown |" in alone and "`--full`" in alone
+    both = realtime_table([rt, {**rt, "timing": "ideal", "rmse_position_m": 1e-5}])
+    assert "not flown" not in both.lower() and "| 1e-05 |" in both
