@@ -166,7 +166,8 @@ def high_fidelity_rates_casadi(x, w, n, p, fidelity, accel=None):
     if fidelity.rotor_drag > 0.0:
         R = rotation_matrix_casadi(x[3], x[4], x[5])
         v_b = R.T @ x[9:12]
-        f_b = ca.vertcat(-fidelity.rotor_drag * ca.sum1(n) * v_b[0], -fidelity.rotor_drag * ca.sum1(n) * v_b[1], 0.0)
+        k = -fidelity.rotor_drag * ca.sum1(n)
+        f_b = ca.vertcat(k * v_b[0], k * v_b[1], 0.0)
         a_drag = (R @ f_b) / m
         accel = a_drag if accel is None else a_drag + accel
     if fidelity.rotor_gyro > 0.0:

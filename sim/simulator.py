@@ -174,26 +174,28 @@ class Simulator:
         x1 = rk4_step(lambda s: self._rates_hifi(s, w, n_cmd, wind), x, h, self.substeps)
         return StepResult(x1, np.broadcast_to(n_cmd, x1.shape[:-1] + (4,)).copy(), w, rot.saturated)
 
+    def _carried_params(self) -> QuadParams:
+        """The vehicle's parameters with the payload added to the mass (for the CasADi forms of the step)."""
+        import dataclasses
+
+        return dataclasses.replace(self.p, m=self.p.m + self.payload_kg) if self.payload_kg else self.p
+
     def _single_step(self):
         """CasADi ``F(x, u, accel) -> x_next`` of one period for one vehicle (built once per simulator)."""
         if self._single is None:
-            import dataclasses
-
             from .dynamics_casadi import step_function
 
-            p = dataclasses.replace(self.p, m=self.p.m + self.payload_kg) if self.payload_kg else self.p
-            self._single = step_function(p, dt=self.dt, substeps=self.substeps, accel_input=True)
+            self._single = step_function(self._carried_params(), dt=self.dt, substeps=self.substeps,
+                                         accel_input=True)
         return self._single
 
     def _single_step_hifi(self):
         """CasADi step of one vehicle on the high-fidelity simulator (built once per simulator)."""
         if self._single_hifi is None:
-            import dataclasses
-
             from .dynamics_casadi import high_fidelity_step_function
 
-            p = dataclasses.replace(self.p, m=self.p.m + self.payload_kg) if self.payload_kg else self.p
-            self._single_hifi = high_fidelity_step_function(p, self.fidelity, dt=self.dt, substeps=self.substeps)
+            self._single_hifi = high_fidelity_step_function(self._carried_params(), self.fidelity, dt=self.dt,
+                                                            substeps=self.substeps)
         return self._single_hifi
 
     def _rates_hifi(self, s, w, n, wind):
