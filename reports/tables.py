@@ -347,8 +347,8 @@ def provenance_section(prov: dict | None, plan: dict | None = None) -> str:
     if isinstance(stages, dict) and stages:
         rows = [[k, fmt(v, ".1f")] for k, v in stages.items()]
         if "report" not in stages:
-            rows.append(["report", "not yet timed when this report was built (`pinnmpc report` on this folder "
-                                   "shows it)"])
+            rows.append(["report", ("not yet timed when this report was built (`pinnmpc report` on this folder "
+                                    "shows it)")])
         out.append("Wall time per stage (in the order run):\n\n" + md_table(["stage", "wall time (s)"], rows))
     if plan and plan.get("models_dir") is not None:
         out.append(f"Closed-loop plan: models from `{plan['models_dir']}`"
@@ -428,8 +428,10 @@ def realtime_table(runs: list[dict]) -> str:
     header = ["scenario", "controller", "model", "RMSE ideal (m)", "RMSE real time (m)", "crash (real time)",
               "solve median / p95 / max (ms)", "deadline misses", "skipped periods", "solver failures", "fallbacks"]
     rows = []
+    unflown = False     # a real-time run without its ideal-timing twin in this folder
     for r in sorted(rt, key=lambda r: (r["scenario"], controller_key(r["controller"]), model_key(r["model"]))):
         i = ideal.get((r["scenario"], r["controller"], r["model"]))
+        unflown |= i is None
         s = r.get("solve_ms") or {}
         rows.append([r["scenario"], controller_label(r["controller"]), r["model"],
                      "not flown" if i is None else (crash_text(i) if i.get("crashed") else fmt(i.get("rmse_position_m"))),
@@ -443,7 +445,7 @@ def realtime_table(runs: list[dict]) -> str:
             f"with its {budget_ms:g} ms budget in real time and without it (at most its iteration limit) in ideal "
             "timing."
             + (" \"Not flown\": the case was not flown in ideal timing in this folder (`pinnmpc run` leaves the NMPC's "
-               "ideal-timing runs, about 90 s of a core each, to `--full`)." if any(row[3] == "not flown" for row in rows)
+               "ideal-timing runs, about 90 s of a core each, to `--full`)." if unflown
                else "")
             + "\n\n" + md_table(header, rows))
 

@@ -47,18 +47,12 @@ from .library import scenario_names
 from .runner import RunSpec, spec_dict
 from .sweep import sweep
 
-#: Scenarios the NMPC flies in ideal timing in the main job (every scenario with ``full=True``): none, since an
-#: IPOPT run costs about 90 s of a core (the oracle on figure8-fast), a sixth of the sweep. It flies figure8-fast
-#: in real time with every model (:data:`REALTIME_SCENARIOS`), where it crashes within a second.
-NMPC_SCENARIOS = ()
 #: Scenarios the LTV-MPC flies in the main job (every scenario with ``full=True``): those of its CI bounds.
 #: The SQP flies every scenario.
 LTV_SCENARIOS = ("hover", "figure8-slow", "figure8-fast", "figure8-2.0s", "yaw-turn")
 #: Scenarios flown with real-time timing too, by the SQP, the LTV-MPC and the NMPC with every model.
 REALTIME_SCENARIOS = ("figure8-fast",)
 REALTIME_CONTROLLERS = ("sqp", "ltv", "nmpc")
-#: Models the NMPC flies in the main job (every model with ``full=True``).
-NMPC_MODELS = ("oracle",)
 #: Ensembles of ``full=True``: these scenarios, flown by these controllers with every model from ENSEMBLE_MEMBERS
 #: members each (:meth:`scenarios.library.Scenario.member`). 6 models x 2 controllers x 10 members on figure8-fast
 #: is about 280 worker-seconds, more than the default main job's budget leaves.
@@ -115,7 +109,7 @@ def main_scenarios(full: bool = False) -> list[str]:
     names = scenario_names()
     if full:
         return names
-    return [n for n in names if "+" not in n or n.startswith("figure8-fast+") and not n.endswith("+highfi")]
+    return [n for n in names if "+" not in n or (n.startswith("figure8-fast+") and not n.endswith("+highfi"))]
 
 
 def rotorpy_available() -> bool:
@@ -169,7 +163,9 @@ def main_plan(models_dir="models", full: bool = False, scenarios: list[str] | No
     specs = []
     for sc in names:
         for m in models:
-            if full or (sc in NMPC_SCENARIOS and m in NMPC_MODELS):
+            # The NMPC in ideal timing only with full: an IPOPT run costs about 90 s of a core (the oracle on
+            # figure8-fast), a sixth of the default sweep. It flies REALTIME_SCENARIOS with every model.
+            if full:
                 specs.append(RunSpec(sc, "nmpc", m))
             specs.append(RunSpec(sc, "sqp", m))
             if full or sc in LTV_SCENARIOS:

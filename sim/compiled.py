@@ -62,7 +62,7 @@ def precompile(fns, jobs: int = 2) -> int:
 
     todo = {}
     for fn in fns:
-        name, code, key, lib = _source(fn)
+        name, code, _, lib = _source(fn)
         if not lib.is_file():
             todo[lib] = (code, name)
     if not todo:
