@@ -31,6 +31,16 @@ class MPCBase:
         self.reference = self.ff.states
         self.Q, self.R, self.P = self.lqr.Q, self.lqr.R, self.lqr.P
         self.u_hover = self.lqr.u_hover
+        #: Length of the planned state: 12, plus the model's extra states (:mod:`mpc.extended`).
+        self.nx = model.nx
+        self.tracker = self.lqr.tracker
+        from .extended import extra_scale
+        from .lqr import DEFAULT_STATE_SCALE
+
+        #: Acceptable deviations of the planned state (nx,): the default weights' for the rigid body, the model's
+        #: extra states' own (steps and defects are measured in these).
+        self.state_scale = np.concatenate([DEFAULT_STATE_SCALE, extra_scale(model, self.ff.trim_extra)]) \
+            if model.n_extra else DEFAULT_STATE_SCALE.copy()
         self.failures_in_a_row = 0
         self.counts = {"solver_failures": 0, "shifted_plan": 0, "lqr_fallback": 0}
 
@@ -41,11 +51,16 @@ class MPCBase:
         controllers that plan their first period ahead (:class:`mpc.sqp.SQPMPC`).
         """
         self.ff.prepare(t_end + self.N * self.ff.dt)
+        self.tracker.reset()
+
+    def applied(self, u) -> None:
+        """The input (4,) in effect during the period just flown (to carry the model's extra states)."""
+        self.tracker.applied(u)
 
     def _horizon_reference(self, t: float):
-        """Reference states (N + 1, 12) and feed-forward inputs (N, 4) over the horizon from time ``t`` (s)."""
+        """Reference states (N + 1, nx) and feed-forward inputs (N, 4) over the horizon from time ``t`` (s)."""
         times = t + DT * np.arange(self.N + 1)
-        return self.ff.states(times), self.ff.inputs(times[:self.N])
+        return self.ff.full_states(times), self.ff.inputs(times[:self.N])
 
     def _success(self) -> None:
         self.failures_in_a_row = 0

@@ -7,6 +7,9 @@ accuracy of the three ways to get a model's A and B over a 30-stage horizon (:fu
 For the oracle and each shipped ONNX model, each controller flies a 5 s
 hover (from a 0.3 m offset) and two laps of ``figure8-fast`` (period 3 s,
 A = 0.75 m) on the nominal simulator, with the input applied at once. The
+model ``oracle_highfi`` (the high-fidelity equations, with the rotor speeds
+as four extra states that the controller carries) flies the same cases on
+the high-fidelity simulator (not with the NMPC: about 0.4 s per solve). The
 SQP runs with its default 8 ms budget. The solve time of every call is
 recorded (median / p95 / max, ms; the max also without the SQP's counted
 cold-start periods) with the deadline misses (> 10 ms), solver failures and
@@ -54,15 +57,21 @@ def _controller(kind: str, model, reference):
         return SQPMPC(model, reference, SQPSettings(horizon=HORIZON))
     if kind == "ltv":
         return LTVMPC(model, reference, LTVSettings(horizon=HORIZON))
-    return LQRController(reference)
+    return LQRController(reference, model)
 
 
-def run(kind: str, model, reference, x0: np.ndarray, seconds: float) -> dict:
-    """Fly one case; solve-time statistics, counts, position RMSE and (SQP) iterations and time split."""
+def run(kind: str, model, reference, x0: np.ndarray, seconds: float, fidelity=None) -> dict:
+    """Fly one case; solve-time statistics, counts, position RMSE and (SQP) iterations and time split.
+
+    ``fidelity``: the simulator's (nominal when None); with a motor lag its rotor speeds carry over.
+    """
+    from sim.params import NOMINAL
+
     ctrl = _controller(kind, model, reference)
     steps = int(round(seconds / DT))
     ctrl.prepare(steps * DT, x0=x0)   # the SQP plans its first period before take-off
-    sim = Simulator()
+    sim = Simulator(fidelity=NOMINAL if fidelity is None else fidelity)
+    n = None
     x = x0.copy()
     times, err, iters, cold = [], [], [], []
     split = dict.fromkeys(SPLIT, 0.0)
@@ -79,7 +88,10 @@ def run(kind: str, model, reference, x0: np.ndarray, seconds: float) -> dict:
             cold.append(info.extra["cold_start"])
             for key in SPLIT:
                 split[key] += info.extra["time_split_s"][key]
-        x = sim.step(x, u)
+        out = sim.step_full(x, u, rotor_speed=n)
+        x, n = out.x, out.rotor_speed
+        if hasattr(ctrl, "applied"):
+            ctrl.applied(u)       # the command just flown (the controller carries its model's extra states)
         err.append(np.linalg.norm(x[0:3] - reference(np.array([t + DT]))[0, 0:3]))
         if not np.all(np.isfinite(x)) or err[-1] > 2.0:
             break
@@ -109,6 +121,10 @@ def floor_us(model, repeat: int = 200, single: bool = False) -> float:
     x = np.zeros((HORIZON, NX))
     x[:, 2] = -1.0
     u = np.tile([0.667, 0.0, 0.0, 0.0], (HORIZON, 1))
+    if model.n_extra:
+        from .extended import extra_equilibrium
+
+        x = np.hstack([x, extra_equilibrium(model, x, u)])
     lin = model.linearize_single if single else model.linearize
     lin(x, u)
     t0 = time.perf_counter()
@@ -198,7 +214,10 @@ def main(argv=None) -> int:
     if not args.models.is_dir():
         raise SystemExit(f"--models: {str(args.models)!r} is not a folder")
     files = model_files(args.models)
-    models = [("oracle", AnalyticModel())] + [(f.stem, OnnxModel(f)) for f in files]
+    from sim.params import HIGH_FIDELITY
+
+    models = [("oracle", AnalyticModel()), ("oracle_highfi", AnalyticModel(fidelity=HIGH_FIDELITY))] + [
+        (f.stem, OnnxModel(f)) for f in files]
     out = {"python": platform.python_version(), "cpus": os.cpu_count(), "horizon": HORIZON, "cases": []}
     print(f"{'ctrl':<6}{'model':<22}{'case':<14}{'median':>8}{'p95':>8}{'max':>8}{'max*':>8} ms"
           f"{'misses':>8}{'fail':>6}{'fallb':>6}{'RMSE m':>9}{'floor us':>10}{'f32 us':>8}")
@@ -207,11 +226,13 @@ def main(argv=None) -> int:
         fl = floor_us(model)
         fl32 = floor_us(model, single=True)
         for kind in kinds:
-            if kind == "lqr" and name != "oracle":
+            if kind == "lqr" and name not in ("oracle", "oracle_highfi"):
                 continue  # LQR uses the analytic hover linearization whatever the model
+            if kind == "nmpc" and model.n_extra:
+                continue  # about 0.4 s per IPOPT solve with the 16-state high-fidelity equations
             for case in cases:
                 ref, x0, secs = all_cases[case]
-                r = run(kind, model, ref, x0, secs)
+                r = run(kind, model, ref, x0, secs, fidelity=getattr(model, "fidelity", None))
                 out["cases"].append({"controller": kind, "model": name, "case": case, "floor_us": fl, "floor_single_us": fl32, **r})
                 s = r["solve_ms"]
                 print(f"{kind:<6}{name:<22}{case:<14}{s['median']:>8.2f}{s['p95']:>8.2f}{s['max']:>8.1f}"

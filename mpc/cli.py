@@ -40,6 +40,9 @@ def format_model_info(info, ready=None) -> str:
         f"  dt              {info.dt:g} s",
         f"  theta           {theta}",
         f"  jacobian graph  {jac}",
+        f"  extra states    " + ("none (the 12 rigid-body states)" if not info.extra_states else
+                                 f"{len(info.extra_states)}: {', '.join(info.extra_states)} (state length "
+                                 f"{info.nx}; the controllers carry them from period to period)"),
         f"  provenance      dataset seed {opt(info.dataset_seed)}, config hash "
         f"{opt(info.config_hash, lambda h: h[:12])}, code {opt(info.code_version)}",
         f"  test metrics    {opt(info.test_metrics, lambda m: ', '.join(m) or '(none)')}",

@@ -2,9 +2,16 @@
 
 A model file maps one control period of the quadrotor::
 
-    inputs   x  float[B, 12]   state, order sim.params.STATE_NAMES (NED, ZYX Euler)
-             u  float[B, 4]    wrench command (T, tau_x, tau_y, tau_z), N and N m
-    output   x_next float[B, 12]   state after DT = 0.01 s
+    inputs   x  float[B, 12 + E]   state, order sim.params.STATE_NAMES (NED, ZYX Euler), then E extra states
+             u  float[B, 4]        wrench command (T, tau_x, tau_y, tau_z), N and N m
+    output   x_next float[B, 12 + E]   state after DT = 0.01 s
+
+The ``E`` extra states (none unless declared) are the model's own: actuator
+states such as rotor speeds or a lagging wrench, or a window of past states
+and inputs. A model that has them names them in the metadata key
+``extra_states`` (a JSON list of E names); the controllers carry them from
+period to period (:mod:`mpc.extended`). Their optional ``extra_scale`` (a
+JSON list of E positive numbers, in their units) sizes steps and defects.
 
 ``B`` is a dynamic batch dimension; ``float`` is float32 or float64, the same
 for every tensor. ``metadata_props`` must hold ``dt`` (the only required key);
@@ -15,7 +22,7 @@ provenance is shown in reports.
 Exact derivatives are optionally shipped beside the model as a *derivative
 graph* ``<stem>.jac.onnx`` (see :func:`jacobian_path`) with the same inputs and
 the outputs ``x_next`` [B, 12], ``A`` = d x_next / d x [B, 12, 12] and
-``B`` = d x_next / d u [B, 12, 4]. Without one, the controllers take A and B
+``B`` = d x_next / d u [B, 12, 4] (12 + E wherever the state appears). Without one, the controllers take A and B
 from batched central differences of the model (:func:`central_differences`).
 
 :func:`check_model` validates a file against all of this, runs it with
@@ -39,10 +46,12 @@ from sim.params import DT, INPUT_NAMES, STATE_NAMES, THETA_NAMES, QuadParams
 
 from .errors import ModelContractError
 
-#: Version written to the ``pinnmpc.contract`` metadata key: 2 requires only ``dt``.
-CONTRACT_VERSION = "2"
-#: Versions this code reads (1: every key of OPTIONAL_METADATA was required; the shipped models are version 1).
-READABLE_VERSIONS = ("1", "2")
+#: Version written to the ``pinnmpc.contract`` metadata key: 3 allows extra states; like 2, it requires only ``dt``.
+CONTRACT_VERSION = "3"
+#: Versions this code reads (1: every key of OPTIONAL_METADATA was required; the shipped models are version 1;
+#: 2: only ``dt`` required; 3: extra states). A file of any of them is read by the same rules: a version-1 or -2
+#: file simply has no extra states.
+READABLE_VERSIONS = ("1", "2", "3")
 
 #: Metadata every model must carry: ``dt`` (float, s; equal to ``sim.params.DT``).
 REQUIRED_METADATA = ("dt",)
@@ -51,9 +60,10 @@ REQUIRED_METADATA = ("dt",)
 #: ``state_names`` / ``input_names`` (JSON lists, must equal the conventions),
 #: ``theta`` (JSON object over THETA_NAMES, SI units: the vehicle spec's m, J, kt, kq),
 #: ``training_config`` (JSON object), ``config_hash`` (:func:`config_hash` of it),
-#: ``dataset_seed`` (int), ``code_version`` (free text), ``test_metrics`` (JSON object).
+#: ``dataset_seed`` (int), ``code_version`` (free text), ``test_metrics`` (JSON object),
+#: ``extra_states`` (JSON list of the extra states' names), ``extra_scale`` (JSON list of their scales, > 0).
 OPTIONAL_METADATA = ("pinnmpc.contract", "architecture", "state_names", "input_names", "theta", "training_config",
-                     "config_hash", "dataset_seed", "code_version", "test_metrics")
+                     "config_hash", "dataset_seed", "code_version", "test_metrics", "extra_states", "extra_scale")
 
 NX = len(STATE_NAMES)
 NU = len(INPUT_NAMES)
@@ -66,12 +76,17 @@ NU = len(INPUT_NAMES)
 DT_TOL = 1e-12
 JAC_XNEXT_RTOL = {"float64": 1e-9, "float32": 1e-5}
 JAC_FD_RTOL = 1e-3
-#: Relative central-difference step per model dtype: the step of variable i is FD_STEP * max(|z_i|, FD_SCALE[i]).
+#: Relative central-difference step per model dtype: the step of variable i is FD_STEP * max(|z_i|, FD_SCALE).
 FD_STEP = {"float64": 1e-6, "float32": 1e-3}
-#: Size below which a variable's step stops shrinking, in its own unit (m, rad, rad/s, m/s, N, N m): 1 for all.
-#: A smaller torque scale (hover torques are about 1e-3 N m) makes a float32 model's differences noisier than
-#: the quantity they measure (tested: a 10 % error of a float32 B then goes unseen); float64 does not need it.
-FD_SCALE = np.ones(NX + NU)
+#: Size below which a variable's step stops shrinking, in its own unit (m, rad, rad/s, m/s, N, N m, and the extra
+#: states' own): 1 for all. A smaller torque scale (hover torques are about 1e-3 N m) makes a float32 model's
+#: differences noisier than the quantity they measure (tested: a 10 % error of a float32 B then goes unseen);
+#: float64 does not need it.
+FD_SCALE = 1.0
+#: Periods the checker holds a state and input to find a model's extra states at rest, and how still they must be
+#: then (largest change in one more period, relative to max(|e|, 1)), per dtype.
+SETTLE_PERIODS = 400
+SETTLE_RTOL = {"float64": 1e-8, "float32": 1e-4}
 #: Batch sizes of the test evaluations.
 TEST_BATCH_SIZES = (1, 3)
 
@@ -106,6 +121,10 @@ class ModelInfo:
         Every ``metadata_props`` entry, raw strings.
     jacobian : Path or None
         The derivative graph beside the model when present (and valid).
+    extra_states : tuple of str
+        Names of the states beyond the 12 rigid-body ones (empty for most models).
+    extra_scale : tuple of float or None
+        Their declared scales, or None.
     """
 
     path: Path
@@ -120,6 +139,13 @@ class ModelInfo:
     test_metrics: dict | None
     metadata: dict
     jacobian: Path | None
+    extra_states: tuple = ()
+    extra_scale: tuple | None = None
+
+    @property
+    def nx(self) -> int:
+        """Length of the model's state: 12 plus its extra states."""
+        return NX + len(self.extra_states)
 
     def to_dict(self) -> dict:
         """JSON-ready form: paths as strings, ``dtype`` as its name."""
@@ -130,6 +156,8 @@ class ModelInfo:
             "config_hash": self.config_hash, "dataset_seed": self.dataset_seed,
             "code_version": self.code_version, "test_metrics": self.test_metrics,
             "metadata": dict(self.metadata), "jacobian": None if self.jacobian is None else str(self.jacobian),
+            "extra_states": list(self.extra_states),
+            "extra_scale": None if self.extra_scale is None else list(self.extra_scale),
         }
 
 
@@ -284,28 +312,67 @@ def check_model(path) -> ModelInfo:
     path = Path(path)
     model = _load(path)
     where = str(path)
-    dtype = _check_io(model, where, {"x_next": (NX,)})
     meta = _metadata(model, where)
+    extra, extra_scale = _parse_extra_states(meta, where)
+    nx = NX + len(extra)
+    dtype = _check_io(model, where, {"x_next": (nx,)}, extra)
     fields = _parse_metadata(meta, where, path.stem)
 
     session = open_session(path)
     batches = []
     for b in TEST_BATCH_SIZES:
         x, u = _probe_batch(b, dtype)
+        x = _with_extra_at_rest(session, x, u, extra, where, "hover-like")
         (x_next,) = _run(session, x, u, where, ["x_next"])
-        _check_output(x_next, (b, NX), dtype, where, "x_next")
+        _check_output(x_next, (b, nx), dtype, where, "x_next")
         batches.append((x, u, x_next))
 
     jac = jacobian_path(path)
     if jac.exists():
         x, u = _envelope_batch(ENVELOPE_SAMPLES, dtype)
-        (x_next,) = _run(session, x, u, where, ["x_next"])
-        if np.all(np.isfinite(x_next)):     # a model that is not finite out there is checked where it is
+        try:
+            x = _with_extra_at_rest(session, x, u, extra, where, "envelope")
+            (x_next,) = _run(session, x, u, where, ["x_next"])
+        except ModelContractError:         # a model that is not finite out there is checked where it is
+            x_next = None
+        if x_next is not None and np.all(np.isfinite(x_next)):
             batches.append((x, u, x_next))
-        _check_jacobian(jac, path, session, dtype, batches)
+        _check_jacobian(jac, path, session, dtype, batches, extra)
     else:
         jac = None
-    return ModelInfo(path=path, dtype=dtype, metadata=meta, jacobian=jac, **fields)
+    return ModelInfo(path=path, dtype=dtype, metadata=meta, jacobian=jac, extra_states=extra,
+                     extra_scale=extra_scale, **fields)
+
+
+def _with_extra_at_rest(session, x: np.ndarray, u: np.ndarray, extra: tuple, where: str, what: str) -> np.ndarray:
+    """The test states ``x`` (b, 12) with the model's extra states at rest appended (b, 12 + E).
+
+    The extra states start at zero and the model is stepped with each state
+    and input held until they stop changing (:data:`SETTLE_PERIODS`,
+    :data:`SETTLE_RTOL`): a lag settles at its command, a shift register fills
+    with the held values. Extra states that do not settle are an error.
+    """
+    if not extra:
+        return x
+    ne = len(extra)
+    dtype = x.dtype
+    e = np.zeros((len(x), ne), dtype=dtype)
+    tol = SETTLE_RTOL[dtype.name]
+    change = np.inf
+    for _ in range(SETTLE_PERIODS):
+        (z,) = _run(session, np.hstack([x, e]), u, where, ["x_next"])
+        e_new = np.asarray(z[:, NX:], dtype=dtype)
+        if not np.all(np.isfinite(e_new)):
+            raise ModelContractError(f"{where}: its extra states {list(extra)} are not finite on the {what} test "
+                                     f"batch with the state and input held")
+        change = float(np.max(np.abs(e_new.astype(float) - e.astype(float)) / np.maximum(np.abs(e_new), 1.0)))
+        e = e_new
+        if change <= tol:
+            return np.hstack([x, e])
+    raise ModelContractError(f"{where}: its extra states {list(extra)} do not settle with the state and input held "
+                             f"on the {what} test batch (relative change {change:.2g} per period after "
+                             f"{SETTLE_PERIODS} periods; at most {tol:g} expected); the controllers cannot plan "
+                             f"with extra states that never come to rest")
 
 
 # --------------------------------------------------------------------------- file and graph structure
@@ -397,10 +464,11 @@ def _elem_dtype(vi, where: str, role: str) -> np.dtype:
                              f"found {_type_name(et)}")
 
 
-def _check_io(model, where: str, outputs: dict) -> np.dtype:
+def _check_io(model, where: str, outputs: dict, extra: tuple = ()) -> np.dtype:
     """Check inputs ``x``, ``u`` and the named outputs; return the common dtype.
 
-    ``outputs`` maps each required output name to its trailing dimensions.
+    ``outputs`` maps each required output name to its trailing dimensions; ``extra`` names the declared extra
+    states (the state is 12 + len(extra) long).
     """
     graph = model.graph
     initializers = {t.name for t in graph.initializer}
@@ -409,7 +477,8 @@ def _check_io(model, where: str, outputs: dict) -> np.dtype:
     if sorted(names) != ["u", "x"]:
         raise ModelContractError(f"{where}: graph inputs must be exactly ['x', 'u']; found {names}")
     by_name = {vi.name: vi for vi in inputs}
-    _check_shape(by_name["x"], where, "input", (NX,))
+    _check_state_width(by_name["x"], where, "input", extra)
+    _check_shape(by_name["x"], where, "input", (NX + len(extra),))
     _check_shape(by_name["u"], where, "input", (NU,))
     tx = _elem_dtype(by_name["x"], where, "input")
     tu = _elem_dtype(by_name["u"], where, "input")
@@ -421,6 +490,8 @@ def _check_io(model, where: str, outputs: dict) -> np.dtype:
     if sorted(out_names) != sorted(outputs):
         raise ModelContractError(f"{where}: graph outputs must be exactly {list(outputs)}; found {out_names}")
     for vi in graph.output:
+        if vi.name == "x_next":
+            _check_state_width(vi, where, "output", extra)
         _check_shape(vi, where, "output", outputs[vi.name])
         t = _elem_dtype(vi, where, "output")
         if t != tx:
@@ -429,7 +500,55 @@ def _check_io(model, where: str, outputs: dict) -> np.dtype:
     return tx
 
 
+def _check_state_width(vi, where: str, role: str, extra: tuple) -> None:
+    """A state tensor whose width does not match the declared extra states: one line that says which is which."""
+    tt = _tensor_type(vi, where, role)
+    if not tt.HasField("shape") or len(tt.shape.dim) != 2 or not tt.shape.dim[1].HasField("dim_value"):
+        return      # the shape check that follows names the defect
+    width, want = tt.shape.dim[1].dim_value, NX + len(extra)
+    if width == want:
+        return
+    if not extra:
+        if width < NX:
+            return  # the shape check that follows names the defect
+        raise ModelContractError(f"{where}: {role} {vi.name!r} has {width} states, but the model declares no extra "
+                                 f"states: a model with states beyond the 12 rigid-body ones must name them in "
+                                 f"metadata 'extra_states' (a JSON list of {width - NX} names)")
+    raise ModelContractError(f"{where}: {role} {vi.name!r} must have shape [batch, {want}] (12 rigid-body states "
+                             f"and the {len(extra)} extra states of metadata 'extra_states'); found [batch, {width}]")
+
+
 # --------------------------------------------------------------------------- metadata
+
+
+def _parse_extra_states(meta: dict, where: str) -> tuple[tuple, tuple | None]:
+    """``(extra_states, extra_scale)`` from the metadata, validated: names unique, non-empty, not the rigid body's;
+    scales finite, > 0, one per name."""
+    if "extra_states" not in meta:
+        if "extra_scale" in meta:
+            raise ModelContractError(f"{where}: metadata 'extra_scale' is given without the 'extra_states' it scales")
+        return (), None
+    names = _json(meta, "extra_states", where, list, "a JSON list of the extra states' names")
+    if not names or not all(isinstance(n, str) and n.strip() for n in names):
+        raise ModelContractError(f"{where}: metadata 'extra_states' must be a non-empty JSON list of non-empty names; "
+                                 f"found {_short(meta['extra_states'])!r}")
+    dup = sorted({n for n in names if names.count(n) > 1})
+    clash = [n for n in names if n in STATE_NAMES]
+    if dup or clash:
+        raise ModelContractError(f"{where}: metadata 'extra_states' must name each extra state once, and none like a "
+                                 f"rigid-body state {list(STATE_NAMES)}; found "
+                                 + ", ".join(p for p in (f"repeated {dup}" if dup else "",
+                                                         f"rigid-body names {clash}" if clash else "") if p))
+    scale = None
+    if "extra_scale" in meta:
+        scale = _json(meta, "extra_scale", where, list, f"a JSON list of {len(names)} positive numbers")
+        ok = len(scale) == len(names) and all(
+            not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and v > 0 for v in scale)
+        if not ok:
+            raise ModelContractError(f"{where}: metadata 'extra_scale' must be a JSON list of {len(names)} finite "
+                                     f"numbers > 0, one per extra state; found {_short(meta['extra_scale'])!r}")
+        scale = tuple(float(v) for v in scale)
+    return tuple(names), scale
 
 def _metadata(model, where: str) -> dict:
     meta: dict[str, str] = {}
@@ -582,7 +701,7 @@ def central_differences(run, x: np.ndarray, u: np.ndarray, dtype=np.float64):
     dtype : numpy dtype
         The model's element type; it sets the step (:data:`FD_STEP`) and the rounding of the perturbed points.
 
-    The step of variable ``i`` is ``FD_STEP * max(|z_i|, FD_SCALE[i])``; the
+    The step of variable ``i`` is ``FD_STEP * max(|z_i|, FD_SCALE)``; the
     difference is divided by the step the dtype can represent. The ``b``
     centres and ``2 x 16 b`` perturbed points go to ``run`` as one batch.
     Truncation error is O(step^2); rounding error about eps |x_next| / step
@@ -591,16 +710,17 @@ def central_differences(run, x: np.ndarray, u: np.ndarray, dtype=np.float64):
     dtype = np.dtype(dtype)
     z = np.concatenate([np.asarray(x, dtype=np.float64), np.asarray(u, dtype=np.float64)], axis=1)   # (b, n)
     b, n = z.shape
-    h = FD_STEP[dtype.name] * np.maximum(np.abs(z), FD_SCALE[:n])                            # (b, n)
+    nx = n - NU
+    h = FD_STEP[dtype.name] * np.maximum(np.abs(z), FD_SCALE)                                # (b, n)
     eye = np.eye(n)
     zp = (z[:, None, :] + eye * h[:, None, :]).astype(dtype)                   # (b, n, n): perturb coordinate j
     zm = (z[:, None, :] - eye * h[:, None, :]).astype(dtype)
     step = np.einsum("bjj->bj", zp.astype(np.float64) - zm.astype(np.float64))  # steps actually representable
     zz = np.concatenate([z[:, None, :].astype(dtype), zp, zm], axis=1).reshape(-1, n)   # (b * (1 + 2n), n)
-    out = np.asarray(run(np.ascontiguousarray(zz[:, :NX]), np.ascontiguousarray(zz[:, NX:])), dtype=np.float64)
-    out = out.reshape(b, 1 + 2 * n, NX)
-    jac = ((out[:, 1:n + 1] - out[:, n + 1:]) / step[:, :, None]).transpose(0, 2, 1)   # (b, 12, n)
-    return out[:, 0], jac[:, :, :NX], jac[:, :, NX:]
+    out = np.asarray(run(np.ascontiguousarray(zz[:, :nx]), np.ascontiguousarray(zz[:, nx:])), dtype=np.float64)
+    out = out.reshape(b, 1 + 2 * n, nx)
+    jac = ((out[:, 1:n + 1] - out[:, n + 1:]) / step[:, :, None]).transpose(0, 2, 1)   # (b, nx, n)
+    return out[:, 0], jac[:, :, :nx], jac[:, :, nx:]
 
 
 def _fd_jacobians(session, x: np.ndarray, u: np.ndarray, dtype: np.dtype, where: str):
@@ -634,11 +754,12 @@ def _envelope_batch(batch: int, dtype: np.dtype, seed: int = 0) -> tuple[np.ndar
 ENVELOPE_SAMPLES = 32
 
 
-def _check_jacobian(jac: Path, path: Path, model_session, dtype: np.dtype, batches: list) -> None:
+def _check_jacobian(jac: Path, path: Path, model_session, dtype: np.dtype, batches: list, extra: tuple = ()) -> None:
     """Validate the derivative graph ``jac`` of the model ``path`` on the test batches."""
     where = str(jac)
     jmodel = _load(jac)
-    jdtype = _check_io(jmodel, where, {"x_next": (NX,), "A": (NX, NX), "B": (NX, NU)})
+    nx = NX + len(extra)
+    jdtype = _check_io(jmodel, where, {"x_next": (nx,), "A": (nx, nx), "B": (nx, NU)}, extra)
     if jdtype != dtype:
         raise ModelContractError(f"{where}: derivative graph must use the element type of the model {path.name} "
                                  f"({dtype.name}); found {jdtype.name}")
@@ -647,9 +768,9 @@ def _check_jacobian(jac: Path, path: Path, model_session, dtype: np.dtype, batch
     for x, u, x_next in batches:
         b = x.shape[0]
         xj, a, bm = _run(session, x, u, where, ["x_next", "A", "B"])
-        _check_output(xj, (b, NX), dtype, where, "x_next")
-        _check_output(a, (b, NX, NX), dtype, where, "A")
-        _check_output(bm, (b, NX, NU), dtype, where, "B")
+        _check_output(xj, (b, nx), dtype, where, "x_next")
+        _check_output(a, (b, nx, nx), dtype, where, "A")
+        _check_output(bm, (b, nx, NU), dtype, where, "B")
         ref = x_next.astype(np.float64)
         diff = np.linalg.norm(xj.astype(np.float64) - ref, axis=1)
         scale = np.maximum(np.linalg.norm(ref, axis=1), np.finfo(dtype).tiny)

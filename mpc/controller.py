@@ -67,11 +67,11 @@ def figure8_reference(amplitude: float = 0.75, period: float = 6.0, height: floa
     return Figure8(amplitude, period, height, center)
 
 
-def check_state(x, name: str = "x") -> np.ndarray:
-    """The measured state as a finite (12,) array, else a clear error (before anything runs)."""
-    x = as_batch(x, name, NX)
-    if x.shape != (NX,):
-        raise ConfigurationError(f"{name} must be one state of shape (12,); found {x.shape}")
+def check_state(x, name: str = "x", nx: int = NX) -> np.ndarray:
+    """The measured state as a finite (nx,) array (12 unless stated), else a clear error (before anything runs)."""
+    x = as_batch(x, name, nx)
+    if x.shape != (nx,):
+        raise ConfigurationError(f"{name} must be one state of shape ({nx},); found {x.shape}")
     return x
 
 

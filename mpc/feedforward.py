@@ -16,7 +16,13 @@ gives, for any times on the control grid,
   call per iteration), started from the flatness wrench of the spec.
 
 The hover trim is the same fit at a constant hover state (the model's own
-equilibrium input). For the true equations the fit reproduces the plant's
+equilibrium input).
+
+A model with extra states (actuator or history states, :mod:`mpc.extended`)
+is fitted with its extra states at rest for the input (its quasi-steady
+response), and the reference's extra states are the model's own, flown
+along the reference states with the fitted inputs from their equilibrium at
+the start (:meth:`FeedForward.full_states`). For the true equations the fit reproduces the plant's
 inverse; for a learned model it is whatever that model believes.
 Fitted inputs are cached by time, so a controller that slides its horizon
 by one period fits one new input per period.
@@ -34,6 +40,9 @@ from .trajectory import FlatTrajectory, Hover, StateReference, flat_state, held_
 #: Gauss-Newton iterations of the fit (it stops earlier when the step is below STEP_TOL, in input scales).
 FIT_ITERATIONS = 2
 TRIM_ITERATIONS = 12
+#: Iterations of the fit along a model's own reference (its extra states included: the lead of a lagging motor is
+#: not in the first guess).
+MODEL_REFERENCE_FIT_ITERATIONS = 4
 STEP_TOL = 1e-7
 #: The hover state of the trim and the hover linearization: 1 m high (NED z = -1), level, at rest.
 HOVER_STATE = np.zeros(NX)
@@ -58,11 +67,30 @@ def fit_inputs(model, x0: np.ndarray, x1: np.ndarray, u_guess: np.ndarray, w: np
     u_scale : ndarray, shape (4,)
         Input scales for the damping and the stopping test.
     """
+    return _fit(model, x0, x1, u_guess, w, u_scale, iterations)[0]
+
+
+def _fit(model, x0, x1, u_guess, w, u_scale, iterations=FIT_ITERATIONS):
+    """:func:`fit_inputs` and the model's extra states at rest for the fitted inputs (K, n_extra), or None.
+
+    ``x0``, ``x1`` of the model's full width (K, nx) with ``w`` (nx,): a fit of the whole state, extra states
+    included (for a model that gives its own reference); of width 12: the rigid body, with the extra states at
+    rest for each input.
+    """
+    from .extended import extra_equilibrium, quasi_steady_input_jacobian
+
     u = np.array(u_guess, dtype=float, copy=True)
     D = np.diag(DAMPING / u_scale ** 2)
+    extended = model.n_extra > 0 and x0.shape[1] == NX
+    e = None
     for _ in range(iterations):
         with np.errstate(all="ignore"):
-            fx, _, B = model.linearize(x0, u)
+            if extended:
+                e = extra_equilibrium(model, x0, u, e)
+                fx, A, B = model.linearize(np.hstack([x0, e]), u)
+                fx, B = fx[:, :NX], quasi_steady_input_jacobian(A, B)
+            else:
+                fx, _, B = model.linearize(x0, u)
         r = fx - x1
         if not (np.all(np.isfinite(r)) and np.all(np.isfinite(B))):
             raise ConfigurationError("the prediction model returned non-finite values along the reference; "
@@ -73,7 +101,9 @@ def fit_inputs(model, x0: np.ndarray, x1: np.ndarray, u_guess: np.ndarray, w: np
         u += step
         if np.max(np.abs(step / u_scale)) < STEP_TOL:
             break
-    return u
+    if extended:
+        e = extra_equilibrium(model, x0, u, e)
+    return u, e
 
 
 class FeedForward:
@@ -103,6 +133,10 @@ class FeedForward:
         self.u_scale = np.asarray(u_scale, dtype=float)
         self._states: dict[int, np.ndarray] = {}
         self._inputs: dict[int, np.ndarray] = {}
+        self._extras: list[np.ndarray] = []       # the reference's extra states at periods 0, 1, ...
+        self.trim_extra = np.zeros(0)
+        #: The model gives its own reference states (full width) along flat trajectories.
+        self.model_reference = self.is_flat and model.reference_states(reference, np.zeros(1)) is not None
         self.trim = self.hover_trim()
 
     @property
@@ -125,9 +159,11 @@ class FeedForward:
 
     def states(self, times) -> np.ndarray:
         """Reference states (K, 12) at ``times`` (K,), s (computed once per time, cached)."""
-        return self._cached(self._states, times, self._compute_states).reshape(-1, NX)
+        return self._cached(self._states, times, self._compute_states)[:, :NX]
 
     def _compute_states(self, t: np.ndarray) -> np.ndarray:
+        if self.model_reference:
+            return self.model.reference_states(self.trajectory, t)
         if self.is_flat:
             return flat_state(self.trajectory.flat(t), self.spec)[0]
         return self.trajectory(t)
@@ -138,13 +174,64 @@ class FeedForward:
         """The model's own hover input (4,): the fit at the constant hover state :data:`HOVER_STATE`."""
         x = HOVER_STATE[None, :]
         guess = np.array([[self.spec.m * self.spec.g, 0.0, 0.0, 0.0]])
-        return fit_inputs(self.model, x, x, guess, self.w, self.u_scale, TRIM_ITERATIONS)[0]
+        u, e = _fit(self.model, x, x, guess, self.w, self.u_scale, TRIM_ITERATIONS)
+        if e is not None:
+            self.trim_extra = e[0]
+        return u[0]
+
+    def full_states(self, times) -> np.ndarray:
+        """Reference states with the model's extra states (K, nx) at ``times`` (K,) on the control grid, s.
+
+        The extra states are the model's own along the reference: from their
+        equilibrium under the first feed-forward input, flown period by period
+        with the reference states and the feed-forward inputs. Without extra
+        states this is :meth:`states`.
+        """
+        if self.model_reference:
+            return self._cached(self._states, times, self._compute_states)
+        x = self.states(times)
+        if self.model.n_extra == 0:
+            return x
+        k = np.round(np.asarray(times, dtype=float).ravel() / self.dt).astype(np.int64)
+        if np.any(k < 0):
+            raise ConfigurationError(f"reference times must be >= 0 s; found {float(np.min(times))}")
+        self._extend_extras(int(np.max(k)))
+        return np.hstack([x, np.array([self._extras[i] for i in k])])
+
+    def _extend_extras(self, k_max: int) -> None:
+        """The reference's extra states up to period ``k_max`` (computed once, in order)."""
+        from .extended import extra_equilibrium
+
+        k0 = len(self._extras)
+        if k0 > k_max:
+            return
+        if k0 == 0:
+            t0 = np.zeros(1)
+            self._extras.append(extra_equilibrium(self.model, self.states(t0), self.inputs(t0),
+                                                  self.trim_extra[None])[0])
+            k0 = 1
+        times = self.dt * np.arange(k0 - 1, k_max)      # periods k0 - 1 .. k_max - 1 give extras k0 .. k_max
+        xs, us = self.states(times), self.inputs(times)
+        e = self._extras[-1]
+        for i in range(len(times)):
+            with np.errstate(all="ignore"):
+                e = self.model.step(np.concatenate([xs[i], e]), us[i])[0, NX:]
+            self._extras.append(e)
 
     def inputs(self, times) -> np.ndarray:
         """Feed-forward inputs (K, 4) for the periods starting at ``times`` (K,), s (fitted once, cached)."""
         return self._cached(self._inputs, times, self._compute_inputs).reshape(-1, NU)
 
     def _compute_inputs(self, t: np.ndarray) -> np.ndarray:
+        if self.model_reference:
+            # The model's own reference, extra states included: the fit carries the whole state from one period to
+            # the next, so a lagging motor is commanded ahead of time.
+            from .extended import extra_scale
+
+            x0, x1 = self.full_states(t), self.full_states(t + self.dt)
+            w = np.concatenate([self.w, 1.0 / extra_scale(self.model, self.trim_extra) ** 2])
+            guess = held_wrench(self.trajectory, t, self.spec, self.dt)
+            return _fit(self.model, x0, x1, guess, w, self.u_scale, MODEL_REFERENCE_FIT_ITERATIONS)[0]
         x0, x1 = self.states(t), self.states(t + self.dt)
         if self.is_flat:
             guess = held_wrench(self.trajectory, t, self.spec, self.dt)
@@ -166,13 +253,15 @@ class FeedForward:
         times = self.dt * np.arange(n)
         for start in range(0, n, chunk):
             self.inputs(times[start:start + chunk])
+        if self.model.n_extra:
+            self._extend_extras(n - 1)
 
     def linearization_point(self) -> tuple[np.ndarray, np.ndarray]:
-        """Hover state (12,) at 1 m and the model's trim (4,)."""
-        return HOVER_STATE.copy(), self.trim.copy()
+        """Hover state (nx,) at 1 m, with the model's extra states at rest, and the model's trim (4,)."""
+        return np.concatenate([HOVER_STATE, self.trim_extra]), self.trim.copy()
 
     def hover_linearization(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(u_trim (4,), A (12, 12), B (12, 4))``: the model linearized at its own hover trim."""
+        """``(u_trim (4,), A (nx, nx), B (nx, 4))``: the model linearized at its own hover trim."""
         x, u = self.linearization_point()
         _, A, B = self.model.linearize(x, u)
         return u, A[0], B[0]

@@ -72,10 +72,10 @@ def hover_linearization(model: PredictionModel | None = None, spec=None):
     return FeedForward(model, None, spec, 1.0 / DEFAULT_STATE_SCALE ** 2, input_scale(spec)).hover_linearization()[1:]
 
 
-def _check_weights(Q, R):
+def _check_weights(Q, R, nx: int = NX):
     Q, R = np.asarray(Q, dtype=float), np.asarray(R, dtype=float)
-    if Q.shape != (NX, NX):
-        raise ConfigurationError(f"Q must have shape (12, 12); found {Q.shape}")
+    if Q.shape != (nx, nx):
+        raise ConfigurationError(f"Q must have shape ({nx}, {nx}); found {Q.shape}")
     if R.shape != (NU, NU):
         raise ConfigurationError(f"R must have shape (4, 4); found {R.shape}")
     if not np.allclose(Q, Q.T) or np.min(np.linalg.eigvalsh(Q)) < 0:
@@ -90,8 +90,19 @@ def _check_weights(Q, R):
 RICCATI_PSD_TOL = 1e-9
 
 
+def extended_weights(Q, n_extra: int) -> np.ndarray:
+    """The state weight (12 + n_extra, 12 + n_extra) of a model with extra states: ``Q`` on the rigid body, 0 on the
+    extra states (they are tracked only through what they do to the rigid body, and through the terminal cost)."""
+    Q = np.asarray(Q, dtype=float)
+    if n_extra == 0:
+        return Q
+    out = np.zeros((NX + n_extra, NX + n_extra))
+    out[:NX, :NX] = Q
+    return out
+
+
 def lqr(A, B, Q, R) -> tuple[np.ndarray, np.ndarray]:
-    """Gain ``K`` (4, 12) and Riccati solution ``P`` (12, 12) from ``control.dlqr``.
+    """Gain ``K`` (4, nx) and Riccati solution ``P`` (nx, nx) from ``control.dlqr`` (nx = 12 plus extra states).
 
     The control law is ``u = u_hover - K (x - x_ref)``. The solution is
     checked: for a pair that is not stabilizable (a mode the inputs cannot
@@ -102,7 +113,7 @@ def lqr(A, B, Q, R) -> tuple[np.ndarray, np.ndarray]:
     """
     import control
 
-    Q, R = _check_weights(Q, R)
+    Q, R = _check_weights(Q, R, np.shape(A)[0])
     try:
         K, P, _ = control.dlqr(A, B, Q, R)
     except Exception as e:  # python-control raises several types for a non-stabilizable pair
@@ -125,6 +136,9 @@ class LQRController:
 
     ``u = u_ff(t) - K (x - x_ref(t))``, projected onto the rotor-feasible set
     of the vehicle spec. The gain comes from the model's hover linearization.
+    For a model with extra states (:mod:`mpc.extended`) ``x`` and ``x_ref``
+    include them: the controller carries them from period to period, told the
+    applied input by :meth:`applied`.
 
     Parameters
     ----------
@@ -147,17 +161,42 @@ class LQRController:
         if not isinstance(self.spec, VehicleSpec):
             raise ConfigurationError(f"spec must be a VehicleSpec; found {type(self.spec).__name__}")
         Qd, Rd = default_weights(self.spec)
-        self.Q, self.R = _check_weights(Qd if Q is None else Q, Rd if R is None else R)
-        self.ff = FeedForward(self.model, reference, self.spec, np.diag(self.Q), input_scale(self.spec))
+        Q, self.R = _check_weights(Qd if Q is None else Q, Rd if R is None else R)
+        self.ff = FeedForward(self.model, reference, self.spec, np.diag(Q), input_scale(self.spec))
+        #: State weight over the model's whole state (the rigid body's ``Q``, zero on extra states).
+        self.Q = extended_weights(Q, self.model.n_extra)
         self.u_hover, self.A, self.B = self.ff.hover_linearization()
         if not (np.all(np.isfinite(self.A)) and np.all(np.isfinite(self.B)) and np.all(np.isfinite(self.u_hover))):
             raise ConfigurationError("the model's hover linearization is not finite; cannot compute an LQR gain")
         self.K, self.P = lqr(self.A, self.B, self.Q, self.R)
         self.reference = self.ff.states
+        from .extended import ExtraStateTracker
+
+        #: The model's extra states in flight (a no-op for a model without them).
+        self.tracker = ExtraStateTracker(self.model, self.start_extra)
+
+    def start_extra(self, x: np.ndarray, t: float = 0.0) -> np.ndarray:
+        """The model's extra states (n_extra,) at the first period, at time ``t`` (s), measured state ``x`` (12,).
+
+        A model that gives its own reference (:meth:`mpc.models.PredictionModel.reference_states`) starts from the
+        reference's extra states at ``t`` (a vehicle that starts on its reference has its rotors at the reference's
+        speeds); any other from its extra states at rest at ``x`` under the feed-forward input at ``t``.
+        """
+        from .extended import extra_equilibrium
+
+        tt = np.array([t])
+        if self.ff.model_reference:
+            return self.ff.full_states(tt)[0, NX:]
+        return extra_equilibrium(self.model, x[None], self.ff.inputs(tt), self.ff.trim_extra[None])[0]
+
+    def applied(self, u) -> None:
+        """The input (4,) in effect during the period just flown (to carry the model's extra states)."""
+        self.tracker.applied(u)
 
     def prepare(self, t_end: float, x0=None) -> None:
         """Compute the reference and feed-forward up to ``t_end`` (s) before a flight (``x0`` is not needed)."""
         self.ff.prepare(t_end)
+        self.tracker.reset()
 
     def input(self, x: np.ndarray, x_ref: np.ndarray, u_ff: np.ndarray | None = None) -> np.ndarray:
         """Feasible input (4,) for state ``x``, desired state ``x_ref`` and feed-forward ``u_ff`` (no checks)."""
@@ -169,5 +208,6 @@ class LQRController:
         x = check_state(x)
         with Timer() as tm:
             tt = np.array([t])
-            u = self.input(x, self.ff.states(tt)[0], self.ff.inputs(tt)[0])
+            z = self.tracker.full(x, t)
+            u = self.input(z, self.ff.full_states(tt)[0], self.ff.inputs(tt)[0])
         return u, ControlInfo(solve_time_s=tm.elapsed, status="lqr")

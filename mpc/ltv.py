@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from sim.params import NU, NX
+from sim.params import NU
 from sim.rotors import mixer_matrix, realize
 
 from .base import MPCBase
@@ -116,11 +116,11 @@ class LTVMPC(MPCBase):
         self.s = LTVSettings() if settings is None else settings
         N = self.s.horizon
         self.N = N
-        self.nx_var = (N + 1) * NX
+        self.nx_var = (N + 1) * self.nx
         self._Minv = np.linalg.inv(mixer_matrix(self.spec))     # wrench -> rotor speeds squared
-        from .lqr import DEFAULT_STATE_SCALE, input_scale
+        from .lqr import input_scale
 
-        self._sx, self._su = DEFAULT_STATE_SCALE, input_scale(self.spec)   # step sizes are measured in these
+        self._sx, self._su = self.state_scale, input_scale(self.spec)   # step sizes are measured in these
         self._build_pattern()
         self._status = osqp.SolverStatus
         self._solver = osqp.OSQP()
@@ -154,7 +154,7 @@ class LTVMPC(MPCBase):
 
     # ----------------------------------------------------------- QP set-up
     def _xi(self, k):
-        return k * NX
+        return k * self.nx
 
     def _ui(self, k):
         return self.nx_var + k * NU
@@ -175,14 +175,15 @@ class LTVMPC(MPCBase):
             vals.extend(b.ravel())
             return start, len(vals)
 
-        add(0, self._xi(0), np.eye(NX))                     # x_0 = measured state
-        r = NX
+        nx = self.nx
+        add(0, self._xi(0), np.eye(nx))                     # x_0 = measured state (and the extra states carried)
+        r = nx
         for k in range(N):
-            add(r, self._xi(k + 1), -np.eye(NX))            # -x_{k+1} + A_k x_k + B_k u_k = -c_k
-            a = add(r, self._xi(k), np.ones((NX, NX)))
-            b = add(r, self._ui(k), np.ones((NX, NU)))
+            add(r, self._xi(k + 1), -np.eye(nx))            # -x_{k+1} + A_k x_k + B_k u_k = -c_k
+            a = add(r, self._xi(k), np.ones((nx, nx)))
+            b = add(r, self._ui(k), np.ones((nx, NU)))
             self._dyn_slots.append((a, b))
-            r += NX
+            r += nx
         self._n_eq = r
         lo, hi = [np.zeros(r)], [np.zeros(r)]
         if self.s.constraints:
@@ -191,7 +192,7 @@ class LTVMPC(MPCBase):
                 r += NU
             lo.append(np.zeros(N * NU))
             hi.append(np.full(N * NU, self.spec.n_max_sq))
-            sel = np.zeros((2, NX))
+            sel = np.zeros((2, nx))
             sel[0, 3] = sel[1, 4] = 1.0
             for k in range(1, N + 1):
                 add(r, self._xi(k), sel)
@@ -199,7 +200,7 @@ class LTVMPC(MPCBase):
             lim = self.s.attitude_limit_rad
             lo.append(np.full(2 * N, -lim))
             hi.append(np.full(2 * N, lim))
-        # Entry indices of all A_k and B_k, in the order of A.ravel() and B.ravel() of (N, 12, *) arrays.
+        # Entry indices of all A_k and B_k, in the order of A.ravel() and B.ravel() of (N, nx, *) arrays.
         self._idx_A = np.concatenate([np.arange(a0, a1) for (a0, a1), _ in self._dyn_slots])
         self._idx_B = np.concatenate([np.arange(b0, b1) for _, (b0, b1) in self._dyn_slots])
         self._vals = np.asarray(vals, dtype=float)
@@ -219,7 +220,7 @@ class LTVMPC(MPCBase):
 
     # ------------------------------------------------------------- control
     def _nominal(self, x: np.ndarray, u_ref: np.ndarray):
-        """First iterate (N + 1, 12), (N, 4): the shifted previous plan, or the state held under the feed-forward."""
+        """First iterate (N + 1, nx), (N, 4): the shifted previous plan, or the state held under the feed-forward."""
         N = self.N
         if self._plan_x is None:
             return np.tile(x, (N + 1, 1)), u_ref.copy()
@@ -248,14 +249,15 @@ class LTVMPC(MPCBase):
         """Input (4,) and :class:`ControlInfo` for the measured state ``x`` at time ``t`` (s)."""
         x = check_state(x)
         with Timer() as tm:
+            z = self.tracker.full(x, t)     # the measured state, with the model's extra states carried
             ref, u_ref = self._horizon_reference(t)
-            out = self._iterate(x, ref, u_ref, tm)
+            out = self._iterate(z, ref, u_ref, tm)
         return out[0], ControlInfo(solve_time_s=tm.elapsed, **out[1])
 
     def _iterate(self, x, ref, u_ref, tm, guess=None):
         """Gauss-Newton SQP iterations of one period (one for the LTV-MPC); ``(u, ControlInfo fields)``.
 
-        ``guess``: a first iterate ``(X (N + 1, 12), U (N, 4))`` that replaces the
+        ``x``: the full state (nx,). ``guess``: a first iterate ``(X (N + 1, nx), U (N, 4))`` that replaces the
         shifted plan (and the cold start), also as OSQP's primal start.
         """
         N = self.N
@@ -279,9 +281,9 @@ class LTVMPC(MPCBase):
         done, qp_iterations, status, ok_any, converged = 0, 0, "", False, False
         ls_failures = 0
         mu = 0.0
-        y_last = None    # the last QP's dynamics multipliers (N, 12)
+        y_last = None    # the last QP's dynamics multipliers (N, nx)
         every = self._jacobian_every()
-        f_next = None    # the model's step along the line search's new iterate (N, 12), when it made one
+        f_next = None    # the model's step along the line search's new iterate (N, nx), when it made one
         while done < max_it:
             t_it = tm.now()
             # An iteration between Jacobian evaluations keeps A_k, B_k (and OSQP's factorization) and takes only the
@@ -318,9 +320,9 @@ class LTVMPC(MPCBase):
                 break
             done += 1
             ok_any = True
-            y_last = res.y[NX:self._n_eq].reshape(N, NX).copy()
+            y_last = res.y[self.nx:self._n_eq].reshape(N, self.nx).copy()
             optimal = res.info.status_val == self._status.OSQP_SOLVED
-            Xq = res.x[:self.nx_var].reshape(N + 1, NX)
+            Xq = res.x[:self.nx_var].reshape(N + 1, self.nx)
             Uq = res.x[self.nx_var:].reshape(N, NU)
             if line_search:
                 t_ls = tm.now()
@@ -432,8 +434,8 @@ class LTVMPC(MPCBase):
         c = fx - (A @ xb[:, :, None])[:, :, 0] - (B @ ub[:, :, None])[:, :, 0]
         mats = {} if same_matrices else {"Ax": self._constraint_values(A, B)}
         lo, hi = self._l0.copy(), self._u0.copy()
-        lo[:NX] = hi[:NX] = x
-        lo[NX:self._n_eq] = hi[NX:self._n_eq] = -c.ravel()
+        lo[:self.nx] = hi[:self.nx] = x
+        lo[self.nx:self._n_eq] = hi[self.nx:self._n_eq] = -c.ravel()
         q = self._linear_cost(ref, u_ref)
         if hess is not None:
             q = q + hess[1]
@@ -450,15 +452,15 @@ class LTVMPC(MPCBase):
         return res
 
     def _constraint_values(self, A, B):
-        """Values of the QP's constraint matrix (CSC order of ``_A0``) with the dynamics ``A`` (N, 12, 12) and ``B``
-        (N, 12, 4)."""
+        """Values of the QP's constraint matrix (CSC order of ``_A0``) with the dynamics ``A`` (N, nx, nx) and ``B``
+        (N, nx, 4)."""
         vals = self._vals.copy()
         vals[self._idx_A] = A.ravel()
         vals[self._idx_B] = B.ravel()
         return vals[self._perm]
 
     def _linear_cost(self, ref, u_ref):
-        """The QP's linear cost term for the reference ``ref`` (N + 1, 12) and feed-forward ``u_ref`` (N, 4): the cost
+        """The QP's linear cost term for the reference ``ref`` (N + 1, nx) and feed-forward ``u_ref`` (N, 4): the cost
         is ``z' H z / 2 + q' z`` with ``H`` the cost's Hessian."""
         N = self.N
         return np.concatenate([-(ref[:N] @ self.Q).ravel(), -(self.P @ ref[N]), -(u_ref @ self.R).ravel()])
@@ -469,6 +471,6 @@ class LTVMPC(MPCBase):
 
     def _shifted(self, z: np.ndarray) -> np.ndarray:
         N = self.N
-        xs = z[:self.nx_var].reshape(N + 1, NX)
+        xs = z[:self.nx_var].reshape(N + 1, self.nx)
         us = z[self.nx_var:].reshape(N, NU)
         return np.concatenate([np.vstack([xs[1:], xs[-1:]]).ravel(), np.vstack([us[1:], us[-1:]]).ravel()])

@@ -2,14 +2,21 @@
 
 A prediction model maps one control period, batched over samples::
 
-    x_next = model.step(x, u)                 # (N, 12), (N, 4) -> (N, 12)
-    x_next, A, B = model.linearize(x, u)      # A (N, 12, 12) = dx_next/dx, B (N, 12, 4) = dx_next/du
+    x_next = model.step(x, u)                 # (N, nx), (N, 4) -> (N, nx)
+    x_next, A, B = model.linearize(x, u)      # A (N, nx, nx) = dx_next/dx, B (N, nx, 4) = dx_next/du
+
+``nx`` is 12 (the rigid-body state) plus the model's extra states
+(:attr:`PredictionModel.extra_names`): actuator states such as rotor speeds,
+or a window of past states and inputs. The controllers plan over all ``nx``
+and carry the extra states from period to period (:mod:`mpc.extended`).
 
 Implementations:
 
 * :class:`AnalyticModel`: the nominal equations of :mod:`sim` (CasADi, RK4
   over 10 x 1 ms), with the reference parameters ("oracle") or with the
   parameters identified by a PINN (:meth:`AnalyticModel.from_onnx_theta`);
+  given a :class:`sim.params.Fidelity`, the high-fidelity simulator's
+  equations instead, with the rotor speeds as extra states when the motors lag;
 * :class:`OnnxModel`: any ONNX file that passes the model contract and has
   its derivative graph beside it, evaluated by onnxruntime (one session per
   file, thread count set). No torch anywhere.
@@ -25,10 +32,10 @@ from sim.params import NU, NX, THETA_NAMES, QuadParams
 from .errors import ModelContractError
 
 
-def _batch(x, u) -> tuple[np.ndarray, np.ndarray]:
-    """Validated float64 arrays (N, 12), (N, 4) with broadcast batch axes."""
-    x, u = broadcast_batch(as_batch(x, "x", NX), as_batch(u, "u", NU))
-    return np.ascontiguousarray(x.reshape(-1, NX)), np.ascontiguousarray(u.reshape(-1, NU))
+def _batch(x, u, nx: int = NX) -> tuple[np.ndarray, np.ndarray]:
+    """Validated float64 arrays (N, nx), (N, 4) with broadcast batch axes."""
+    x, u = broadcast_batch(as_batch(x, "x", nx), as_batch(u, "u", NU))
+    return np.ascontiguousarray(x.reshape(-1, nx)), np.ascontiguousarray(u.reshape(-1, NU))
 
 
 class PredictionModel:
@@ -38,14 +45,34 @@ class PredictionModel:
     name: str = "model"
     #: Parameters the model stands for, ``(m, Jxx, Jyy, Jzz, kt, kq)``, if known.
     theta: np.ndarray | None = None
+    #: Names of the states beyond the 12 rigid-body ones, in the order they follow them (empty: none).
+    extra_names: tuple[str, ...] = ()
+    #: Acceptable deviations of the extra states (n_extra,), in their own units, or None to derive them from the
+    #: model's hover equilibrium (:func:`mpc.extended.extra_scale`). They measure steps and defects only.
+    extra_scale: np.ndarray | None = None
+
+    @property
+    def n_extra(self) -> int:
+        """Number of extra (actuator or history) states."""
+        return len(self.extra_names)
+
+    @property
+    def nx(self) -> int:
+        """Length of the model's state: 12 plus its extra states."""
+        return NX + len(self.extra_names)
 
     def step(self, x, u) -> np.ndarray:  # pragma: no cover - interface
-        """Next states (N, 12) for states (N, 12) and wrenches (N, 4)."""
+        """Next states (N, nx) for states (N, nx) and wrenches (N, 4)."""
         raise NotImplementedError
 
     def linearize(self, x, u):  # pragma: no cover - interface
-        """``(x_next (N, 12), A (N, 12, 12), B (N, 12, 4))``, exact derivatives."""
+        """``(x_next (N, nx), A (N, nx, nx), B (N, nx, 4))``, exact derivatives."""
         raise NotImplementedError
+
+    def reference_states(self, trajectory, times) -> np.ndarray | None:
+        """The model's own reference states (K, nx) along a flat trajectory, or None (the default: the controllers'
+        flatness map gives the rigid-body states, and the extra states are the model's own along them)."""
+        return None
 
     def linearize_single(self, x, u):
         """As :meth:`linearize`, but ``A`` and ``B`` may be computed in single precision.
@@ -58,7 +85,7 @@ class PredictionModel:
 
 
 class AnalyticModel(PredictionModel):
-    """The nominal equations in CasADi, RK4 over one control period.
+    """The simulator's equations in CasADi, RK4 over one control period.
 
     Parameters
     ----------
@@ -66,23 +93,54 @@ class AnalyticModel(PredictionModel):
         Parameters (reference values, the "oracle", when omitted).
     name : str
         Name used in results.
+    fidelity : sim.params.Fidelity, optional
+        The high-fidelity simulator's effects to include (motor lag, rotor
+        drag, gyroscopic torque). None or nominal: the nominal rigid-body
+        equations. With a motor lag the model has four extra states, the
+        rotor speeds ``n1 .. n4`` (RU), and its input is still the wrench
+        command, turned into rotor commands as the plant does.
     """
 
-    def __init__(self, params: QuadParams | None = None, name: str = "oracle"):
+    def __init__(self, params: QuadParams | None = None, name: str = "oracle", fidelity=None):
         import casadi as ca
 
-        from sim.dynamics_casadi import step_function
+        from sim.dynamics_casadi import actuated_step_function, step_function
+        from sim.params import Fidelity
 
         self.params = QuadParams() if params is None else params
         if not isinstance(self.params, QuadParams):
             raise ModelContractError(f"params must be a QuadParams; found {type(params).__name__}")
+        if fidelity is not None and not isinstance(fidelity, Fidelity):
+            raise ModelContractError(f"fidelity must be a sim.params.Fidelity or None; found {type(fidelity).__name__}")
+        self.fidelity = None if fidelity is None or fidelity.is_nominal else fidelity
         self.name = name
         self.theta = self.params.theta
+        if self.fidelity is not None and self.fidelity.motor_tau > 0.0:
+            self.extra_names = ROTOR_STATE_NAMES
+            self.extra_scale = np.full(4, 0.1 * self.params.n_hover)
         #: CasADi function ``F(x, u) -> x_next`` (column vectors), for symbolic use (NMPC).
-        self.casadi_step = step_function(self.params)
+        self.casadi_step = step_function(self.params) if self.fidelity is None else \
+            actuated_step_function(self.params, self.fidelity)
         self._theta = ca.DM(self.params.theta)
-        self._step, self._lin = _numeric_functions(self.params)
+        self._step, self._lin = _numeric_functions(self.params, self.fidelity)
         self._maps: dict = {}
+
+    def reference_states(self, trajectory, times) -> np.ndarray | None:
+        """The model's own reference (K, nx) along a flat ``trajectory`` at ``times`` (K,), or None.
+
+        With high-fidelity effects, the flatness map of these equations
+        (:func:`mpc.trajectory.actuated_flat_state`: rotor drag tilts the
+        thrust, the gyroscopic torque adds to the torques) and the rotor speeds
+        that make the wrench; the controllers then follow a reference their
+        model can fly exactly. None for the nominal equations (the
+        controllers' own flatness map is theirs).
+        """
+        if self.fidelity is None:
+            return None
+        from .trajectory import actuated_flat_state
+
+        x, n, _ = actuated_flat_state(trajectory, times, self.params, self.fidelity)
+        return np.hstack([x, n]) if self.n_extra else x
 
     @classmethod
     def from_onnx_theta(cls, path) -> "AnalyticModel":
@@ -104,50 +162,65 @@ class AnalyticModel(PredictionModel):
         return self._maps[key]
 
     def step(self, x, u) -> np.ndarray:
-        """Next states (N, 12)."""
-        x, u = _batch(x, u)
+        """Next states (N, nx)."""
+        x, u = _batch(x, u, self.nx)
         n = len(x)
         return np.asarray(self._mapped("step", n)(x.T, u.T, self._theta)).T   # theta broadcast over the map
 
     def linearize(self, x, u):
         """``(x_next, A, B)`` by CasADi's automatic differentiation (compiled, see :mod:`sim.compiled`)."""
-        x, u = _batch(x, u)
+        nx = self.nx
+        x, u = _batch(x, u, nx)
         n = len(x)
         xn, A, B = self._mapped("lin", n)(x.T, u.T, self._theta)
-        A = np.asarray(A).reshape(NX, n, NX).transpose(1, 0, 2)
-        B = np.asarray(B).reshape(NX, n, NU).transpose(1, 0, 2)
+        A = np.asarray(A).reshape(nx, n, nx).transpose(1, 0, 2)
+        B = np.asarray(B).reshape(nx, n, NU).transpose(1, 0, 2)
         return np.asarray(xn).T, A, B
 
+
+#: Names of the rotor-speed states of an analytic model with motor lag (RU), rotors in the order of :mod:`sim.rotors`.
+ROTOR_STATE_NAMES = ("n1", "n2", "n3", "n4")
 
 _NUMERIC: dict = {}
 
 
-def _numeric_functions(params: QuadParams):
-    """Compiled ``step(x, u, theta)`` and ``lin(x, u, theta) -> (x_next, A, B)`` of the nominal equations.
+def _numeric_functions(params: QuadParams, fidelity=None):
+    """Compiled ``step(x, u, theta)`` and ``lin(x, u, theta) -> (x_next, A, B)`` of the equations.
 
     ``theta`` is an input, so one compiled library serves every parameter
-    set that differs only in ``(m, Jxx, Jyy, Jzz, kt, kq)``.
+    set that differs only in ``(m, Jxx, Jyy, Jzz, kt, kq)``; ``fidelity`` (a
+    non-nominal :class:`sim.params.Fidelity`) selects the high-fidelity equations.
     """
     from sim.compiled import compiled
 
     key = tuple(getattr(params, n) for n in ("g", "c_d", "d"))
+    if fidelity is not None:
+        key += (params.n_max_sq, fidelity.motor_tau, fidelity.rotor_drag, fidelity.rotor_gyro)
     if key not in _NUMERIC:
-        step, lin = numeric_sources(params)
+        step, lin = numeric_sources(params, fidelity)
         _NUMERIC[key] = (compiled(step), compiled(lin))
     return _NUMERIC[key]
 
 
-def numeric_sources(params: QuadParams):
+def numeric_sources(params: QuadParams, fidelity=None):
     """The CasADi ``step`` and ``lin`` of :func:`_numeric_functions` before compilation (to precompile them)."""
     import casadi as ca
 
-    from sim.dynamics_casadi import step_function
+    from sim.dynamics_casadi import actuated_step_function, step_function
 
-    F = step_function(params, symbolic_theta=True)
-    xs, us, th = ca.SX.sym("x", NX), ca.SX.sym("u", NU), ca.SX.sym("theta", len(THETA_NAMES))
+    sym = ca.SX
+    if fidelity is None or fidelity.is_nominal:
+        F, name = step_function(params, symbolic_theta=True), "pinnmpc"
+    else:
+        # Composed of substep calls: the expanded form's Jacobian is 3 MB of C and takes about 50 s to compile; this
+        # one 0.7 MB and 4 s, and a 30-stage linearization takes 3.8 ms instead of 2.9 (one run, this machine).
+        F, name = actuated_step_function(params, fidelity, symbolic_theta=True, composed=True), "pinnmpc_actuated"
+        sym = ca.MX
+    nx = F.size1_in(0)
+    xs, us, th = sym.sym("x", nx), sym.sym("u", NU), sym.sym("theta", len(THETA_NAMES))
     xn = F(xs, us, th)
-    step = ca.Function("pinnmpc_step", [xs, us, th], [xn])
-    lin = ca.Function("pinnmpc_lin", [xs, us, th], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, us)])
+    step = ca.Function(f"{name}_step", [xs, us, th], [xn])
+    lin = ca.Function(f"{name}_lin", [xs, us, th], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, us)])
     return step, lin
 
 
@@ -190,6 +263,8 @@ class OnnxModel(PredictionModel):
         self.path = self.info.path
         self.name = self.path.stem
         self.theta = None if self.info.theta is None else np.array([self.info.theta[n] for n in THETA_NAMES])
+        self.extra_names = tuple(self.info.extra_states)
+        self.extra_scale = None if self.info.extra_scale is None else np.array(self.info.extra_scale)
         self.dtype = self.info.dtype
         self._model = open_session(self.path, threads)
         if self.info.jacobian is None:
@@ -201,14 +276,14 @@ class OnnxModel(PredictionModel):
             self._jac_single = self._single_precision_session(threads)
 
     def step(self, x, u) -> np.ndarray:
-        """Next states (N, 12)."""
-        x, u = _batch(x, u)
+        """Next states (N, nx)."""
+        x, u = _batch(x, u, self.nx)
         out = self._model.run(["x_next"], {"x": x.astype(self.dtype), "u": u.astype(self.dtype)})[0]
         return out.astype(float)
 
     def linearize(self, x, u):
         """``(x_next, A, B)`` from the derivative graph (or central differences), one onnxruntime call for the batch."""
-        x, u = _batch(x, u)
+        x, u = _batch(x, u, self.nx)
         if self._jac is None:
             from .contract import central_differences
 
@@ -229,7 +304,7 @@ class OnnxModel(PredictionModel):
         """
         if self._jac_single is None:
             return self.linearize(x, u)     # float32 model, no derivative graph, or a float32 copy that disagrees
-        x, u = _batch(x, u)
+        x, u = _batch(x, u, self.nx)
         xn = self._model.run(["x_next"], {"x": x.astype(self.dtype), "u": u.astype(self.dtype)})[0]
         A, B = self._jac_single.run(["A", "B"], {"x": x.astype(np.float32), "u": u.astype(np.float32)})
         return xn.astype(float), A.astype(float), B.astype(float)
@@ -238,13 +313,14 @@ class OnnxModel(PredictionModel):
         """A float32 session of the derivative graph, or None (float32 model, or the copy disagrees)."""
         import warnings
 
-        from .contract import _probe_batch, open_session, single_precision
+        from .contract import _probe_batch, _with_extra_at_rest, open_session, single_precision
 
         if self.dtype == np.float32:
             return None   # the derivative graph is float32 already
         try:
             session = open_session(self.info.jacobian, threads, graph=single_precision(self.info.jacobian))
             x, u = _probe_batch(8, np.float64, seed=1)
+            x = _with_extra_at_rest(self._model, x, u, self.extra_names, str(self.path), "hover-like")
             _, A, B = self._jac.run(["x_next", "A", "B"], {"x": x, "u": u})
             A1, B1 = session.run(["A", "B"], {"x": x.astype(np.float32), "u": u.astype(np.float32)})
         except ModelContractError as e:

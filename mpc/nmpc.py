@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from sim.params import NU, NX
+from sim.params import NU
 from sim.rotors import mixer_matrix, realize
 
 from .base import MPCBase
@@ -85,9 +85,9 @@ class _HorizonJacobian(ca.Callback):
 
     def __init__(self, name, model, n, opts):
         ca.Callback.__init__(self)
-        self.model, self.n = model, n
-        self.sp_x, self.ids_x = _block_diagonal(n, NX, NX)
-        self.sp_u, self.ids_u = _block_diagonal(n, NX, NU)
+        self.model, self.n, self.nx = model, n, model.nx
+        self.sp_x, self.ids_x = _block_diagonal(n, self.nx, self.nx)
+        self.sp_u, self.ids_u = _block_diagonal(n, self.nx, NU)
         self.construct(name, opts)
 
     def get_n_in(self):
@@ -97,7 +97,7 @@ class _HorizonJacobian(ca.Callback):
         return 2
 
     def get_sparsity_in(self, i):
-        return ca.Sparsity.dense(NU if i == 1 else NX, self.n)  # X, U, then the nominal output
+        return ca.Sparsity.dense(NU if i == 1 else self.nx, self.n)  # X, U, then the nominal output
 
     def get_sparsity_out(self, i):
         return self.sp_x if i == 0 else self.sp_u
@@ -108,11 +108,11 @@ class _HorizonJacobian(ca.Callback):
 
 
 class _Horizon(ca.Callback):
-    """All N stages of an ONNX model in one onnxruntime call: (12 x N, 4 x N) -> 12 x N."""
+    """All N stages of an ONNX model in one onnxruntime call: (nx x N, 4 x N) -> nx x N."""
 
     def __init__(self, name, model, n, opts=None):
         ca.Callback.__init__(self)
-        self.model, self.n = model, n
+        self.model, self.n, self.nx = model, n, model.nx
         self.construct(name, {} if opts is None else opts)
 
     def get_n_in(self):
@@ -122,10 +122,10 @@ class _Horizon(ca.Callback):
         return 1
 
     def get_sparsity_in(self, i):
-        return ca.Sparsity.dense(NX if i == 0 else NU, self.n)
+        return ca.Sparsity.dense(self.nx if i == 0 else NU, self.n)
 
     def get_sparsity_out(self, i):
-        return ca.Sparsity.dense(NX, self.n)
+        return ca.Sparsity.dense(self.nx, self.n)
 
     def eval(self, arg):
         return [ca.DM(self.model.step(np.asarray(arg[0]).T, np.asarray(arg[1]).T).T)]
@@ -142,7 +142,7 @@ class _Horizon(ca.Callback):
         return True
 
     def get_jac_sparsity(self, oind, iind, symmetric):
-        return _block_diagonal(self.n, NX, NX if iind == 0 else NU)[0]
+        return _block_diagonal(self.n, self.nx, self.nx if iind == 0 else NU)[0]
 
 
 class NMPC(MPCBase):
@@ -173,16 +173,17 @@ class NMPC(MPCBase):
         # IPOPT works on scaled variables: X = sx * Xs, U = u_hover + su * Us, with sx and su the
         # acceptable deviations of the default weights (torques are ~1e-3 N m; unscaled, the
         # limited-memory Hessian needed ~50 iterations per period).
-        from .lqr import DEFAULT_STATE_SCALE, input_scale
+        from .lqr import input_scale
 
-        self._sx = DEFAULT_STATE_SCALE.copy()
+        nx = self.nx
+        self._sx = self.state_scale.copy()
         self._su = input_scale(self.spec)
-        Xs = ca.MX.sym("Xs", NX, N + 1)
+        Xs = ca.MX.sym("Xs", nx, N + 1)
         Us = ca.MX.sym("Us", NU, N)
         X = ca.mtimes(ca.diag(ca.DM(self._sx)), Xs)
         U = ca.repmat(ca.DM(self.u_hover), 1, N) + ca.mtimes(ca.diag(ca.DM(self._su)), Us)
-        x0 = ca.MX.sym("x0", NX)
-        ref = ca.MX.sym("ref", NX, N + 1)
+        x0 = ca.MX.sym("x0", nx)
+        ref = ca.MX.sym("ref", nx, N + 1)
         uref = ca.MX.sym("uref", NU, N)
         exact = self.s.hessian == "exact"
         if isinstance(self.model, AnalyticModel):
@@ -203,7 +204,7 @@ class NMPC(MPCBase):
         inv_sx = ca.DM(1.0 / self._sx)
         g = ca.vertcat(ca.vec((Xn - X[:, 1:]) * ca.repmat(inv_sx, 1, N)), (X[:, 0] - x0) * inv_sx,
                        ca.vec(ca.mtimes(Minv, U)) / self.spec.n_max_sq)
-        self._n_dyn = NX * N + NX
+        self._n_dyn = nx * N + nx
         w = ca.vertcat(ca.vec(Xs), ca.vec(Us))
         nlp = {"x": w, "f": cost, "g": g, "p": ca.vertcat(x0, ca.vec(ref), ca.vec(uref))}
         opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
@@ -215,14 +216,14 @@ class NMPC(MPCBase):
             **opts, "ipopt.warm_start_init_point": "yes", "ipopt.warm_start_bound_push": 1e-9,
             "ipopt.warm_start_mult_bound_push": 1e-9, "ipopt.mu_init": 1e-5, "ipopt.mu_strategy": "adaptive"})
         lim = self.s.attitude_limit_rad
-        lbX = np.full((NX, N + 1), -np.inf)
-        ubX = np.full((NX, N + 1), np.inf)
+        lbX = np.full((nx, N + 1), -np.inf)
+        ubX = np.full((nx, N + 1), np.inf)
         lbX[3:5, 1:], ubX[3:5, 1:] = -lim / self._sx[3:5, None], lim / self._sx[3:5, None]
         self._lbw = np.concatenate([lbX.ravel(order="F"), np.full(NU * N, -np.inf)])
         self._ubw = np.concatenate([ubX.ravel(order="F"), np.full(NU * N, np.inf)])
         self._lbg = np.concatenate([np.zeros(self._n_dyn), np.zeros(NU * N)])
         self._ubg = np.concatenate([np.zeros(self._n_dyn), np.ones(NU * N)])
-        self._nX = NX * (N + 1)
+        self._nX = nx * (N + 1)
         self._lam = None
 
     def update_settings(self, **changes) -> None:
@@ -238,9 +239,9 @@ class NMPC(MPCBase):
         self._w = w
 
     def _unpack(self, w):
-        """Physical X (N + 1, 12) and U (N, 4) from the scaled decision vector."""
+        """Physical X (N + 1, nx) and U (N, 4) from the scaled decision vector."""
         N = self.N
-        return (w[:self._nX].reshape(N + 1, NX) * self._sx,
+        return (w[:self._nX].reshape(N + 1, self.nx) * self._sx,
                 self.u_hover + w[self._nX:].reshape(N, NU) * self._su)
 
     def _pack(self, X, U):
@@ -257,15 +258,15 @@ class NMPC(MPCBase):
         return self._pack(X, U)
 
     def solve_from(self, x, t: float, X0, U0):
-        """Solve the period at ``(x, t)`` from the guess ``(X0 (N + 1, 12), U0 (N, 4))``, no warm start.
+        """Solve the period at ``(x, t)`` from the guess ``(X0 (N + 1, nx), U0 (N, 4))``, no warm start.
 
-        Returns ``(X (N + 1, 12), U (N, 4), IPOPT's return status)``; the
+        ``x`` is the full state (nx,). Returns ``(X (N + 1, nx), U (N, 4), IPOPT's return status)``; the
         controller's own warm start is left as it was.
         """
-        x = check_state(x)
+        x = check_state(x, nx=self.nx)
         X0, U0 = np.asarray(X0, dtype=float), np.asarray(U0, dtype=float)
-        if X0.shape != (self.N + 1, NX) or U0.shape != (self.N, NU):
-            raise ConfigurationError(f"X0 must be ({self.N + 1}, 12) and U0 ({self.N}, 4); "
+        if X0.shape != (self.N + 1, self.nx) or U0.shape != (self.N, NU):
+            raise ConfigurationError(f"X0 must be ({self.N + 1}, {self.nx}) and U0 ({self.N}, 4); "
                                      f"found {X0.shape} and {U0.shape}")
         ref, u_ref = self._horizon_reference(t)
         X0 = X0.copy()
@@ -280,6 +281,7 @@ class NMPC(MPCBase):
         x = check_state(x)
         N = self.N
         with Timer() as tm:
+            x = self.tracker.full(x, t)     # the measured state, with the model's extra states carried
             ref, u_ref = self._horizon_reference(t)
             args = dict(x0=self._guess(x, u_ref), p=np.concatenate([x, ref.ravel(), u_ref.ravel()]),
                         lbx=self._lbw, ubx=self._ubw,

@@ -55,7 +55,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.params import NU, NX
+from sim.params import NU
 from sim.rotors import realize
 
 from .controller import ControlInfo, Timer, check_state
@@ -197,7 +197,8 @@ class SQPMPC(LTVMPC):
         self._preflight = True
         try:
             with Timer() as tm:
-                _, fields = self._iterate(x0, *self._horizon_reference(0.0), tm)
+                z0 = np.concatenate([x0, self.lqr.start_extra(x0, 0.0)]) if self.model.n_extra else x0
+                _, fields = self._iterate(z0, *self._horizon_reference(0.0), tm)
         finally:
             self._preflight = False
         self.preflight = ControlInfo(solve_time_s=tm.elapsed, **fields)
@@ -224,16 +225,18 @@ class SQPMPC(LTVMPC):
         return np.concatenate([X.ravel(), U.ravel()])
 
     def solve_from(self, x, t: float, X0, U0):
-        """Solve the period at ``(x, t)`` from the first iterate ``(X0 (N + 1, 12), U0 (N, 4))``.
+        """Solve the period at ``(x, t)`` from the first iterate ``(X0 (N + 1, nx), U0 (N, 4))``.
+
+        ``x`` is the full state (nx,): the measured rigid-body state followed by the model's extra states.
 
         The controller's warm start is replaced by this guess (and its plan by
         the result). Returns ``(X, U, info)``; for comparisons with
         :meth:`mpc.nmpc.NMPC.solve_from` from the same guess.
         """
-        x = check_state(x)
+        x = check_state(x, nx=self.nx)
         X0, U0 = np.asarray(X0, dtype=float), np.asarray(U0, dtype=float)
-        if X0.shape != (self.N + 1, NX) or U0.shape != (self.N, 4):
-            raise ConfigurationError(f"X0 must be ({self.N + 1}, 12) and U0 ({self.N}, 4); "
+        if X0.shape != (self.N + 1, self.nx) or U0.shape != (self.N, 4):
+            raise ConfigurationError(f"X0 must be ({self.N + 1}, {self.nx}) and U0 ({self.N}, 4); "
                                      f"found {X0.shape} and {U0.shape}")
         with Timer() as tm:
             ref, u_ref = self._horizon_reference(t)
@@ -241,13 +244,13 @@ class SQPMPC(LTVMPC):
         return self._plan_x.copy(), self._plan_u.copy(), ControlInfo(solve_time_s=tm.elapsed, **fields)
 
     def rollout(self, x, ref, u_ref):
-        """The model flown from ``x`` under the feed-forward and the hover LQR: ``X (N + 1, 12), U (N, 4)``.
+        """The model flown from ``x`` under the feed-forward and the hover LQR: ``X (N + 1, nx), U (N, 4)``.
 
         Inputs are projected onto the rotor-feasible set; a non-finite model
         output ends the rollout (the rest holds the last finite state).
         """
         N = self.N
-        X = np.empty((N + 1, NX))
+        X = np.empty((N + 1, self.nx))
         U = np.empty((N, u_ref.shape[1]))
         X[0] = x
         for k in range(N):
@@ -262,18 +265,19 @@ class SQPMPC(LTVMPC):
         """With ``hessian="exact"``, a full 16 x 16 block per stage (state and input), ``P`` at the end."""
         if self.s.hessian != "exact":
             return super()._build_hessian()
-        N, nz = self.N, NX + NU
+        nx = self.nx
+        N, nz = self.N, nx + NU
         iu, ju = np.triu_indices(nz)
         base = np.zeros((nz, nz))
-        base[:NX, :NX], base[NX:, NX:] = self.Q, self.R
+        base[:nx, :nx], base[nx:, nx:] = self.Q, self.R
         rows, cols, vals = [], [], []
         for k in range(N):
-            idx = np.r_[self._xi(k) + np.arange(NX), self._ui(k) + np.arange(NU)]   # ascending: upper triangle
+            idx = np.r_[self._xi(k) + np.arange(nx), self._ui(k) + np.arange(NU)]   # ascending: upper triangle
             rows.append(idx[iu])
             cols.append(idx[ju])
             vals.append(base[iu, ju])
-        it, jt = np.triu_indices(NX)
-        idx = self._xi(N) + np.arange(NX)
+        it, jt = np.triu_indices(nx)
+        idx = self._xi(N) + np.arange(nx)
         rows.append(idx[it])
         cols.append(idx[jt])
         vals.append(self.P[it, jt])
@@ -288,7 +292,8 @@ class SQPMPC(LTVMPC):
     def _hessian_values(self, X, U, y):
         if self.s.hessian != "exact":
             return None
-        N, nz = self.N, NX + NU
+        nx = self.nx
+        N, nz = self.N, nx + NU
         blocks = np.broadcast_to(self._h_base, (N, nz, nz)).copy()
         if y is not None:
             blocks += self._lagrangian_curvature(X[:N], U, y)
@@ -305,20 +310,21 @@ class SQPMPC(LTVMPC):
         Z = np.hstack([X[:N], U])
         g = -np.einsum("kij,kj->ki", added, Z)                  # linear term of (z - z_k)' added (z - z_k) / 2
         dq = np.zeros(self.nx_var + N * NU)
-        dq[:self.nx_var - NX] = g[:, :NX].ravel()
-        dq[self.nx_var:] = g[:, NX:].ravel()
+        dq[:self.nx_var - nx] = g[:, :nx].ravel()
+        dq[self.nx_var:] = g[:, nx:].ravel()
         return vals[self._h_perm], dq
 
     def _lagrangian_curvature(self, X, U, y):
-        """``sum_i y_ki d2 f_i / dz2`` per stage (N, 16, 16) by central differences of the model's Jacobians."""
-        N, nz = self.N, NX + NU
+        """``sum_i y_ki d2 f_i / dz2`` per stage (N, nx + 4, nx + 4) by central differences of the model's Jacobians."""
+        nx = self.nx
+        N, nz = self.N, nx + NU
         Z = np.hstack([X, U])
         h = EXACT_FD_STEP * self._h_scale
         E = np.diag(h)
         pts = np.concatenate([Z[:, None, :] + E[None], Z[:, None, :] - E[None]], axis=1).reshape(-1, nz)
         with np.errstate(all="ignore"):
-            _, A, B = self.model.linearize(pts[:, :NX], pts[:, NX:])
-        J = np.concatenate([A, B], axis=2).reshape(N, 2, nz, NX, nz)
+            _, A, B = self.model.linearize(pts[:, :nx], pts[:, nx:])
+        J = np.concatenate([A, B], axis=2).reshape(N, 2, nz, nx, nz)
         g = np.einsum("ksjic,ki->ksjc", J, y)                   # gradient of y_k' f at each point
         H = (g[:, 0] - g[:, 1]) / (2.0 * h[None, :, None])
         H = 0.5 * (H + H.transpose(0, 2, 1))
@@ -340,7 +346,7 @@ class SQPMPC(LTVMPC):
         """The next iterate: the full step, a second-order correction, or a shortened step.
 
         Returns ``(X, U, alpha, accepted, phi(0), phi(new), defect(new), f(new))``; ``alpha`` is 1 for
-        the full step, ``-1`` for the second-order correction; ``f(new)`` (N, 12) is the model's step
+        the full step, ``-1`` for the second-order correction; ``f(new)`` (N, nx) is the model's step
         along the new iterate (for an iteration that reuses the Jacobians). A full step
         without sufficient decrease of the merit (Armijo, :data:`ARMIJO`) is
         first corrected: the QP is solved again with the model's defects at the
@@ -375,7 +381,7 @@ class SQPMPC(LTVMPC):
             res = resolve(ft - Xq[1:])
             if res is not None and res.x is not None and np.all(np.isfinite(res.x)) and res.info.status_val in (
                     self._status.OSQP_SOLVED, self._status.OSQP_SOLVED_INACCURATE):
-                Xc = res.x[:self.nx_var].reshape(N + 1, NX)
+                Xc = res.x[:self.nx_var].reshape(N + 1, self.nx)
                 Uc = res.x[self.nx_var:].reshape(N, -1)
                 fc, phi, ok = trial(Xc, Uc, -1.0)
                 if ok:

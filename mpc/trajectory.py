@@ -248,7 +248,7 @@ def _euler_and_derivatives(t, t1, t2, yaw, yaw1, yaw2):
     return n[:, 0], (phi, theta), (phi1, theta1), (phi2, theta2)
 
 
-def flat_state(f: FlatOutputs, spec=None) -> tuple[np.ndarray, np.ndarray]:
+def flat_state(f: FlatOutputs, spec=None, linear_drag=None) -> tuple[np.ndarray, np.ndarray]:
     """Reference states (K, 12) and wrench (K, 4) of flat outputs ``f``.
 
     Parameters
@@ -258,6 +258,12 @@ def flat_state(f: FlatOutputs, spec=None) -> tuple[np.ndarray, np.ndarray]:
         Parameters of the map (for example a :class:`mpc.spec.VehicleSpec`);
         the datasheet's (``VehicleSpec()``) when omitted.
         The states depend on ``g`` and ``c_d`` only.
+    linear_drag : tuple of three ndarrays (K,), optional
+        ``(c, dc/dt, d2c/dt2)``, 1/s: a drag force ``-m c (v - (z_b . v) z_b)``
+        perpendicular to the body's z axis, as rotor drag (blade flapping)
+        makes it with ``c = k_d sum(n) / m``. The thrust direction then is
+        that of ``g e3 - a - c_d v|v| - c v``, and the thrust grows by
+        ``m c (z_b . v)``.
 
     Returns
     -------
@@ -274,6 +280,9 @@ def flat_state(f: FlatOutputs, spec=None) -> tuple[np.ndarray, np.ndarray]:
     t0 = g * e3 - a - c_d * v * av
     t1 = -j - 2 * c_d * av * a
     t2 = -s - 2 * c_d * (sv * a * a + av * j)
+    if linear_drag is not None:
+        c, c1, c2 = (np.asarray(q, dtype=float)[:, None] for q in linear_drag)
+        t0, t1, t2 = t0 - c * v, t1 - c * a - c1 * v, t2 - c * j - 2 * c1 * a - c2 * v
     n, (phi, th), (phi1, th1), (phi2, th2) = _euler_and_derivatives(t0, t1, t2, f.yaw, f.yaw_rate, f.yaw_acc)
     psi, psi1, psi2 = f.yaw, f.yaw_rate, f.yaw_acc
     sp, cp, st, ct = np.sin(phi), np.cos(phi), np.sin(th), np.cos(th)
@@ -293,10 +302,62 @@ def flat_state(f: FlatOutputs, spec=None) -> tuple[np.ndarray, np.ndarray]:
     m, Jxx, Jyy, Jzz = spec.m, spec.Jxx, spec.Jyy, spec.Jzz
     u = np.empty((K, NU))
     u[:, 0] = m * n
+    if linear_drag is not None:
+        u[:, 0] += m * linear_drag[0] * np.sum(t0 / n[:, None] * v, axis=1)
     u[:, 1] = Jxx * p1 - (Jyy - Jzz) * q * r
     u[:, 2] = Jyy * q1 - (Jzz - Jxx) * p * r
     u[:, 3] = Jzz * r1 - (Jxx - Jyy) * p * q
     return x, u
+
+
+#: Time step of the differences that give the rotor-drag coefficient's derivatives in :func:`actuated_flat_state`, s.
+DRAG_FD_STEP = 1e-3
+#: Fixed-point iterations of :func:`actuated_flat_state` (rotor speeds -> drag and gyroscopic torque -> wrench).
+ACTUATED_ITERATIONS = 4
+
+
+def actuated_flat_state(traj: "FlatTrajectory", times, params, fidelity) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The flatness map of the high-fidelity equations: states (K, 12), rotor speeds (K, 4, RU) and wrench (K, 4).
+
+    With rotor drag (``fidelity.rotor_drag``) the body feels ``-k_d sum(n)``
+    times its velocity perpendicular to z_b, a linear drag whose coefficient
+    depends on the rotor speeds (:func:`flat_state`'s ``linear_drag``); with
+    gyroscopic torque (``fidelity.rotor_gyro``) the rotors add
+    ``-k_g (sum s_i n_i) (q, -p, 0)`` to the torque the body needs. Both depend
+    on the rotor speeds, which depend on the wrench: a fixed point, reached in
+    :data:`ACTUATED_ITERATIONS` passes. The drag coefficient's time
+    derivatives come from five-point differences over :data:`DRAG_FD_STEP`.
+    ``params`` is a :class:`sim.QuadParams` (mass, inertia, ``kt``, ``kq``,
+    arm, rotor limit, ``g``, ``c_d``); the rotor speeds are those that make
+    the wrench (clipped to the rotor limits), which a lagging motor reaches
+    only if commanded ahead of time.
+    """
+    from sim.rotors import SPIN, realize
+
+    t = _times(times)
+    h = DRAG_FD_STEP
+    offsets = h * np.arange(-2, 3)
+    f = traj.flat((t[:, None] + offsets[None, :]).ravel())
+    K = t.size
+    c = np.zeros((K, 5))
+    c1 = c2 = np.zeros(K * 5)
+    for _ in range(ACTUATED_ITERATIONS):
+        drag = (c.ravel(), c1, c2) if fidelity.rotor_drag > 0.0 else None
+        x, u = flat_state(f, params, linear_drag=drag)
+        n = np.zeros((len(u), 4))
+        for _ in range(ACTUATED_ITERATIONS if fidelity.rotor_gyro > 0.0 else 1):
+            wr = u.copy()
+            if fidelity.rotor_gyro > 0.0:
+                omega_r = np.sum(SPIN * n, axis=1)
+                wr[:, 1] += fidelity.rotor_gyro * omega_r * x[:, 7]
+                wr[:, 2] -= fidelity.rotor_gyro * omega_r * x[:, 6]
+            n = np.sqrt(realize(wr, params).n_sq)
+        c = (fidelity.rotor_drag * np.sum(n, axis=1) / params.m).reshape(K, 5)
+        d1 = (c[:, 0] - 8 * c[:, 1] + 8 * c[:, 3] - c[:, 4]) / (12 * h)
+        d2 = (-c[:, 0] + 16 * c[:, 1] - 30 * c[:, 2] + 16 * c[:, 3] - c[:, 4]) / (12 * h * h)
+        c1, c2 = np.repeat(d1, 5), np.repeat(d2, 5)
+    mid = np.arange(K) * 5 + 2
+    return x[mid], n[mid], wr[mid]
 
 
 #: Gauss-Legendre nodes and weights on [0, 1] (3 points, exact for degree 5).

@@ -186,7 +186,8 @@ def main_plan(models_dir="models", full: bool = False, scenarios: list[str] | No
 def highfi_plan(models_dir="models") -> list[RunSpec]:
     """The high-fidelity plant's runs (see :data:`HIGHFI_SCENARIOS`): ensembles where a scenario has members."""
     d = Path(models_dir)
-    models = ["oracle"] + [str(d / m) for m in HIGHFI_MODELS if (d / m).is_file()]
+    # The oracle is the plant's true equations (lag, drag, gyro); the nominal rigid-body equations fly beside it.
+    models = ["oracle", "nominal"] + [str(d / m) for m in HIGHFI_MODELS if (d / m).is_file()]
     specs = []
     for sc, members in HIGHFI_SCENARIOS.items():
         for c in HIGHFI_CONTROLLERS:
@@ -240,7 +241,7 @@ def provenance(models_dir) -> dict:
 
 def precompile_job(jobs: int) -> int:
     """Compile the CasADi functions the job will need (the sensitivities of the Fisher, evaluation and estimator
-    stages, the oracle's step and Jacobian), ``jobs`` compilers at a time; those in the cache are skipped.
+    stages, the oracles' steps and Jacobians), ``jobs`` compilers at a time; those in the cache are skipped.
 
     Without this they are compiled one after the other where first used, the oracle's by each sweep worker at
     once. Returns how many were compiled.
@@ -250,9 +251,12 @@ def precompile_job(jobs: int) -> int:
     from sim.fisher import USED_SENSITIVITIES, sensitivity_function
     from sim.params import QuadParams
 
+    from sim.vehicle import load_vehicle
+
     p = QuadParams()
-    return precompile([sensitivity_function(p, i, s) for i, s in USED_SENSITIVITIES] + list(numeric_sources(p)),
-                      jobs)
+    actuated = list(numeric_sources(p, load_vehicle(None).fidelity))     # the oracle of the +highfi scenarios
+    return precompile([sensitivity_function(p, i, s) for i, s in USED_SENSITIVITIES] + list(numeric_sources(p))
+                      + actuated, jobs)
 
 
 def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bool = False,

@@ -4,14 +4,17 @@ Each part is a small object with one job, and each can be replaced::
 
     plant      sim.plant.Plant           advance(u, duration) -> the true state
     sensor     StateSensor               measure(x) -> what the controller sees
-    controller a pinn-mpc controller     controller(x_measured, t) -> (u, info)
+    controller a pinn-mpc controller     controller(x_measured, t) -> (u, info); applied(u_mean)
     clock      IdealClock | RealtimeClock when each computed input takes effect
 
 Per control period ``k`` (``t = k dt``): if the controller is idle, the
 sensor reads the plant, the controller is called and timed, and the clock
 is told when its input takes effect; then the clock flies the plant through
-the period with whatever input is in effect; then the crash test. The loop
-records everything in a :class:`Trace`.
+the period with whatever input is in effect, and the controller is told
+the command that entered the actuators during the period (its time average,
+when it changed mid-way; before any input delay, which is the plant's): a
+controller whose model has actuator or history states carries them with
+it; then the crash test. The loop records everything in a :class:`Trace`.
 """
 
 from __future__ import annotations
@@ -65,6 +68,8 @@ class IdealClock:
     def __init__(self, hover: np.ndarray, delay_steps: int = 0):
         self._pending = [np.asarray(hover, dtype=float)] * int(delay_steps)
         self.u = np.asarray(hover, dtype=float)
+        #: The command that entered the actuators in the last period flown (before the plant's delay).
+        self.sent = self.u
 
     def idle(self, k: int) -> bool:
         return True
@@ -72,6 +77,7 @@ class IdealClock:
     def command(self, k: int, u: np.ndarray, latency_s: float) -> None:
         self._pending.append(u)
         self.u = self._pending.pop(0)
+        self.sent = u
 
     def fly_period(self, plant, k: int) -> np.ndarray:
         """Advance the plant through period ``k``; the input in effect at its end."""
@@ -97,6 +103,10 @@ class RealtimeClock:
         self.u = np.asarray(hover, dtype=float)
         self.events: list[tuple[int, np.ndarray]] = []    # (time the input takes effect, ms; input)
         self.busy_until_ms = 0
+        self._sent_now = self.u                            # the command at the actuators' input (before the delay)
+        self._sent_events: list[tuple[int, np.ndarray]] = []
+        #: Time average of the command that entered the actuators in the last period flown (before the delay).
+        self.sent = self.u
 
     def idle(self, k: int) -> bool:
         return self.busy_until_ms <= PERIOD_MS * k
@@ -105,6 +115,7 @@ class RealtimeClock:
         lat_ms = max(SUBSTEP_MS, int(np.ceil(latency_s * 1e3 / SUBSTEP_MS - 1e-9)) * SUBSTEP_MS)
         self.busy_until_ms = PERIOD_MS * k + lat_ms
         self.events.append((self.busy_until_ms + self.delay_ms, np.array(u, dtype=float)))
+        self._sent_events.append((self.busy_until_ms, np.array(u, dtype=float)))
 
     def fly_period(self, plant, k: int) -> np.ndarray:
         """Advance the plant through period ``k`` in pieces; the input in effect at its end."""
@@ -115,6 +126,15 @@ class RealtimeClock:
             nxt = t1 if not self.events else min(t1, self.events[0][0])
             plant.advance(self.u, (nxt - now) * 1e-3)
             now = nxt
+        # The command at the actuators' input over the same period, before the delay, averaged over time.
+        now, total = PERIOD_MS * k, np.zeros_like(self.u)
+        while now < t1:
+            while self._sent_events and self._sent_events[0][0] <= now:
+                self._sent_now = self._sent_events.pop(0)[1]
+            nxt = t1 if not self._sent_events else min(t1, self._sent_events[0][0])
+            total += (nxt - now) * self._sent_now
+            now = nxt
+        self.sent = total / PERIOD_MS
         return self.u
 
 
@@ -157,6 +177,7 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
 
     tr = Trace.empty(steps)
     tr.x[0] = plant.x
+    tell = getattr(controller, "applied", None)
     periods = range(steps) if progress is None else progress(range(steps))
     for k in periods:
         t = k * DT
@@ -178,6 +199,8 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
             tr.lqr_fallback[k] = info.fallback == "lqr"
             clock.command(k, u_cmd, tr.latency_s[k])
         tr.u[k] = clock.fly_period(plant, k)
+        if tell is not None:
+            tell(clock.sent)
         x = plant.x
         tr.x[k + 1] = x
         tr.steps = k + 1

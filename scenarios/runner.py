@@ -65,9 +65,9 @@ def model_name(model: str) -> str:
 def model_params(model: str, plant: str, vehicle):
     """The parameters (:class:`sim.QuadParams`) of an equation model on ``plant`` flying ``vehicle``.
 
-    ``oracle``: the plant's own equations: on ``sim``, the nominal equations
-    with the vehicle's values (on a ``+highfi`` scenario too, where the plant
-    has more); on ``rotorpy-ideal``, the same with no drag (that set-up has
+    ``oracle``: the plant's own equations: on ``sim``, the equations
+    with the vehicle's values (on a ``+highfi`` scenario with the vehicle's
+    high-fidelity effects too, :func:`high_fidelity_equations`); on ``rotorpy-ideal``, the same with no drag (that set-up has
     none); ``rotorpy`` (motor lag and aerodynamics) has no known equations
     and refuses it. ``nominal`` and ``analytic:...``: the nominal equations
     with the vehicle's values (scaled).
@@ -89,12 +89,27 @@ def model_params(model: str, plant: str, vehicle):
     return p.with_theta([getattr(p, n) * factors.get(n, 1.0) for n in THETA_NAMES])
 
 
+def high_fidelity_equations(model: str, plant: str, scenario) -> bool:
+    """True when ``model`` stands for the high-fidelity equations: the ``oracle`` on a ``+highfi`` scenario of the
+    reference simulator, where the vehicle's motor lag, rotor drag and gyroscopic torque are the plant's true
+    equations. Every other equation model is the nominal rigid-body equations."""
+    return model == "oracle" and plant == "sim" and bool(scenario.high_fidelity)
+
+
 def load_run_model(spec: "RunSpec"):
-    """The prediction model of ``spec``: an equation model on its plant and vehicle, or its ONNX file."""
+    """The prediction model of ``spec``: an equation model on its plant and vehicle, or its ONNX file.
+
+    The ``oracle`` of a ``+highfi`` scenario on the reference simulator is the high-fidelity equations with the
+    vehicle's motor lag (four rotor-speed states), rotor drag and gyroscopic torque.
+    """
     from mpc.models import AnalyticModel, load_model
 
     if spec.model in EQUATION_MODELS or spec.model.startswith("analytic:"):
-        return AnalyticModel(model_params(spec.model, spec.plant, spec.vehicle_data), name=spec.model_name)
+        fidelity = None
+        if high_fidelity_equations(spec.model, spec.plant, get_scenario(spec.scenario)):
+            fidelity = spec.vehicle_data.fidelity
+        return AnalyticModel(model_params(spec.model, spec.plant, spec.vehicle_data), name=spec.model_name,
+                             fidelity=fidelity)
     return load_model(spec.model)
 
 
@@ -260,6 +275,23 @@ def reference_states(ref, times: np.ndarray, spec) -> np.ndarray:
     return flat_state(ref.flat(times), spec)[0]
 
 
+def plant_reference(spec: "RunSpec", sc, times: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """The reference the plant itself can fly: states (K, 12) at ``times`` (K,), s, and its rotor speeds at the
+    first time (4,) where the plant's motors lag (else None).
+
+    On a ``+highfi`` scenario of the reference simulator this is the flatness map of the high-fidelity equations
+    (:func:`mpc.trajectory.actuated_flat_state`: rotor drag tilts the thrust); elsewhere the flatness map of the
+    plant's own rigid-body equations (:func:`reference_spec`). Positions and yaw are the flat outputs either way.
+    """
+    ref, v = sc.reference(), spec.vehicle_data
+    if high_fidelity_equations("oracle", spec.plant, sc):
+        from mpc.trajectory import actuated_flat_state
+
+        x, n, _ = actuated_flat_state(ref, times, v.params, v.fidelity)
+        return x, (n[0] if v.fidelity.motor_tau > 0.0 else None)
+    return reference_states(ref, times, reference_spec(spec.plant, v)), None
+
+
 def start_state(sc, spec) -> np.ndarray:
     """The scenario's initial state (12,) for the flatness map of ``spec``.
 
@@ -311,9 +343,11 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
     ref = sc.reference()
     K = sc.steps
     t_all = DT * np.arange(K + 1)
-    ref_spec = reference_spec(spec.plant, vehicle)
-    X_ref = reference_states(ref, t_all, ref_spec)
-    x0 = start_state(sc, ref_spec)
+    # The scenario's offsets from its reference at t = 0 are kept; the reference part of its start is the one this
+    # plant can fly (with its motors at the reference's speeds where they lag).
+    X_ref, n0 = plant_reference(spec, sc, t_all)
+    x0 = start_state(sc, reference_spec(spec.plant, vehicle))
+    x0 = x0 + X_ref[0] - reference_states(ref, t_all[:1], reference_spec(spec.plant, vehicle))[0]
     error = None
     sha = _sha256(spec.model)
     base = {"run_id": spec.run_id, "scenario": sc.name, "controller": spec.controller,
@@ -331,7 +365,7 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
         error = f"{type(e).__name__}: {e}"
         ctrl = None
     if ctrl is not None:
-        plant.reset(x0)
+        plant.reset(x0, rotor_speed=n0)
         sensor = StateSensor(sc.noise, np.random.default_rng([sc.seed, 0x5EED]))
         # Before the first (delayed or computed) command arrives, the vehicle's own hover thrust holds it.
         clock = (RealtimeClock if realtime else IdealClock)(plant.hover_input, sc.delay_steps)

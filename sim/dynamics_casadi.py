@@ -201,3 +201,68 @@ def high_fidelity_step_function(p: QuadParams, fidelity, *, dt: float = DT, subs
         n_next = n_cmd
     return ca.Function("step_high_fidelity", [x, n0, n_cmd, w, a], [x_next, n_next],
                        ["x", "n0", "n_cmd", "w", "accel"], ["x_next", "n_next"])
+
+
+def rotor_command_casadi(u, p, n_max_sq):
+    """Symbolic rotor speeds (4, 1, RU) the rotor layer commands for the wrench ``u`` (4, 1), as :func:`sim.rotors.realize`.
+
+    Each ``n_i^2`` of the allocation is clipped to ``[0, n_max_sq]``, as in the plant; the lower bound is
+    lifted to ``1e-9 n_max_sq`` so that the square root stays differentiable (a rotor asked for less than
+    3e-5 of its top speed, which the controllers never do).
+    """
+    kt, kq, lever = _get(p, "kt"), _get(p, "kq"), _get(p, "d") / 2.0 ** 0.5
+    rows = mixer(kt, kq, lever)
+    # The mixer's rows are orthogonal, so its inverse is its transpose with each row divided by its squared norm.
+    norms = [4.0 * kt * kt, 4.0 * (kt * lever) ** 2, 4.0 * (kt * lever) ** 2, 4.0 * kq * kq]
+    n_sq = ca.vertcat(*[sum(rows[r][i] * u[r] / norms[r] for r in range(4)) for i in range(4)])
+    n_sq = ca.fmin(ca.fmax(n_sq, 1e-9 * n_max_sq), n_max_sq)
+    return ca.sqrt(n_sq)
+
+
+def actuated_step_function(p: QuadParams, fidelity, *, symbolic_theta: bool = False, dt: float = DT,
+                           substeps: int = SUBSTEPS, composed: bool = False) -> ca.Function:
+    """One control period of the high-fidelity simulator's equations as a prediction model (CasADi).
+
+    ``F(z, u[, theta]) -> z_next``. ``u`` is the wrench command (4,), N and N m, turned into rotor commands
+    as the plant does (:func:`rotor_command_casadi`). With a motor lag (``fidelity.motor_tau > 0``) the state
+    ``z`` (16,) is the rigid-body state followed by the four rotor speeds (RU), which follow their commands
+    through the lag; without one ``z`` is the rigid-body state (12,) and the rotors run at their commands.
+    Rotor drag and gyroscopic torque act as in :meth:`sim.Simulator.step_full`. With ``symbolic_theta`` the
+    function takes ``theta = (m, Jxx, Jyy, Jzz, kt, kq)`` (6,) as its third argument.
+
+    ``composed``: the period as ``substeps`` calls of one RK4 substep function (an MX graph) instead of one
+    expanded expression. The same arithmetic; its derivatives generate about a tenth of the C code, which
+    compiles in seconds instead of a minute.
+    """
+    vals = {k: getattr(p, k) for k in ("m", "Jxx", "Jyy", "Jzz", "kt", "kq", "g", "c_d", "d")}
+    lag = fidelity.motor_tau > 0.0
+    nz = NX + 4 if lag else NX
+    z, u = ca.SX.sym("z", nz), ca.SX.sym("u", NU)
+    args_extra, names_extra = [], []
+    if symbolic_theta:
+        theta = ca.SX.sym("theta", 6)
+        vals.update({n: theta[i] for i, n in enumerate(THETA_NAMES)})
+        args_extra, names_extra = [theta], ["theta"]
+    n_cmd = rotor_command_casadi(u, vals, p.n_max_sq)
+    h = dt / substeps
+    tau = fidelity.motor_tau
+    if lag:
+        def f(s):
+            x, n = s[:NX], s[NX:]
+            w_now = wrench_from_rotor_sq_casadi(n * n, vals)
+            return ca.vertcat(high_fidelity_rates_casadi(x, w_now, n, vals, fidelity), (n_cmd - n) / tau)
+    else:
+        w = wrench_from_rotor_sq_casadi(n_cmd * n_cmd, vals)
+
+        def f(s):
+            return high_fidelity_rates_casadi(s, w, n_cmd, vals, fidelity)
+    if not composed:
+        z_next = rk4_casadi(f, z, h, substeps)
+        return ca.Function("step_actuated", [z, u, *args_extra], [z_next], ["x", "u", *names_extra], ["x_next"])
+    sub = ca.Function("actuated_substep", [z, u, *args_extra], [rk4_casadi(f, z, h, 1)])
+    Z, U = ca.MX.sym("z", nz), ca.MX.sym("u", NU)
+    extra = [ca.MX.sym("theta", 6)] if symbolic_theta else []
+    zz = Z
+    for _ in range(substeps):
+        zz = sub(zz, U, *extra)
+    return ca.Function("step_actuated", [Z, U, *extra], [zz], ["x", "u", *names_extra], ["x_next"])

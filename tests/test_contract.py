@@ -193,7 +193,9 @@ def test_valid_model_passes_and_reports_its_metadata(valid):
     assert list(info.theta) == list(THETA_NAMES)
     assert info.training_config == TRAINING_CONFIG and info.config_hash == config_hash(TRAINING_CONFIG)
     assert info.dataset_seed == 3 and info.code_version == "0.1.0+test" and info.test_metrics == TEST_METRICS
-    assert set(info.metadata) == set(REQUIRED_METADATA) | set(OPTIONAL_METADATA)
+    # every key but the extra states' (a 12-state model has none)
+    assert set(info.metadata) == set(REQUIRED_METADATA) | set(OPTIONAL_METADATA) - {"extra_states", "extra_scale"}
+    assert info.extra_states == () and info.nx == 12
     d = info.to_dict()
     assert json.loads(json.dumps(d)) == d and d["dtype"] == "float64" and d["jacobian"].endswith("toy.jac.onnx")
 
@@ -220,7 +222,7 @@ def test_only_dt_is_required_and_each_optional_key_may_be_left_out(tmp_path):
             info.test_metrics) == (None,) * 6
     assert info.architecture == "min"       # the file's stem
     assert json.loads(json.dumps(info.to_dict()))["theta"] is None
-    for i, key in enumerate(OPTIONAL_METADATA):
+    for i, key in enumerate(k for k in OPTIONAL_METADATA if not k.startswith("extra_")):   # the toy has no extras
         meta = _metadata(**{key: None})
         if key == "training_config":
             del meta["config_hash"]          # a hash needs the configuration it hashes
@@ -257,8 +259,8 @@ DEFECTS = {
                                             "u float32"),
     "integer dtype": (dict(dtype=np.int64), "must have element type float32 or float64; found int64"),
     "missing dt": (dict(meta=_metadata(dt=None)), "missing required key(s) ['dt']"),
-    "contract version": (dict(meta=_metadata(**{"pinnmpc.contract": "3"})),
-                         "'pinnmpc.contract' must be one of ['1', '2']"),
+    "contract version": (dict(meta=_metadata(**{"pinnmpc.contract": "4"})),
+                         "'pinnmpc.contract' must be one of ['1', '2', '3']"),
     "hash without config": (dict(meta=_metadata(training_config=None)), "'config_hash' is given without the "
                                                                          "'training_config'"),
     "dt": (dict(meta=_metadata(dt="0.02")), "metadata 'dt' must equal sim.params.DT = 0.01 s"),

@@ -381,11 +381,11 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     assert realtime == {("figure8-fast", c, m) for c in ("sqp", "ltv", "nmpc") for m in models}
     assert {s.scenario for s in main_plan(MODELS, full=True) if s.controller == "nmpc"} == set(scenario_names())
     assert len(models) == 1 + len(list(MODELS.glob("*.jac.onnx")))
-    # The high-fidelity plant: the oracle, the nominal-trained twins and the models trained on its own data, with
-    # ensemble members where the scenario has them, and no run twice.
+    # The high-fidelity plant: the oracle (its true equations), the nominal equations, the nominal-trained twins and
+    # the models trained on its own data, with ensemble members where the scenario has them, and no run twice.
     from scenarios.campaign import HIGHFI_MODELS, HIGHFI_SCENARIOS
-    expect = {(sc, "oracle" if m == "oracle" else Path(m).stem, k)
-              for sc, n in HIGHFI_SCENARIOS.items() for m in ("oracle",) + HIGHFI_MODELS
+    expect = {(sc, m if m in ("oracle", "nominal") else Path(m).stem, k)
+              for sc, n in HIGHFI_SCENARIOS.items() for m in ("oracle", "nominal") + HIGHFI_MODELS
               for k in ([None] if n == 1 else range(n))}
     assert {(s.scenario, s.model_name, s.member) for s in highfi} == expect
     assert {s.controller for s in highfi} == {"sqp"} and all(s.timing == "ideal" for s in highfi)
