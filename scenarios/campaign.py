@@ -241,7 +241,8 @@ def provenance(models_dir) -> dict:
 
 def precompile_job(jobs: int) -> int:
     """Compile the CasADi functions the job will need (the sensitivities of the Fisher, evaluation and estimator
-    stages, the oracles' steps and Jacobians), ``jobs`` compilers at a time; those in the cache are skipped.
+    stages, the lag-aware estimator's, the oracles' steps and Jacobians), ``jobs`` compilers at a time; those in
+    the cache are skipped.
 
     Without this they are compiled one after the other where first used, the oracle's by each sweep worker at
     once. Returns how many were compiled.
@@ -251,12 +252,13 @@ def precompile_job(jobs: int) -> int:
     from sim.fisher import USED_SENSITIVITIES, sensitivity_function
     from sim.params import QuadParams
 
+    from sim.motor_lag import lag_sensitivity_function
     from sim.vehicle import load_vehicle
 
     p = QuadParams()
     actuated = list(numeric_sources(p, load_vehicle(None).fidelity))     # the oracle of the +highfi scenarios
     return precompile([sensitivity_function(p, i, s) for i, s in USED_SENSITIVITIES] + list(numeric_sources(p))
-                      + actuated, jobs)
+                      + actuated + [lag_sensitivity_function(p, s) for s in (True, False)], jobs)
 
 
 def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bool = False,
