@@ -90,8 +90,7 @@ def run(kind: str, model, reference, x0: np.ndarray, seconds: float, fidelity=No
                 split[key] += info.extra["time_split_s"][key]
         out = sim.step_full(x, u, rotor_speed=n)
         x, n = out.x, out.rotor_speed
-        if hasattr(ctrl, "applied"):
-            ctrl.applied(u)       # the command just flown (the controller carries its model's extra states)
+        ctrl.applied(u)       # the command just flown (the controller carries its model's extra states)
         err.append(np.linalg.norm(x[0:3] - reference(np.array([t + DT]))[0, 0:3]))
         if not np.all(np.isfinite(x)) or err[-1] > 2.0:
             break

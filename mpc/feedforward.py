@@ -16,14 +16,16 @@ gives, for any times on the control grid,
   call per iteration), started from the flatness wrench of the spec.
 
 The hover trim is the same fit at a constant hover state (the model's own
-equilibrium input).
+equilibrium input). For the true equations the fit reproduces the plant's
+inverse; for a learned model it is whatever that model believes.
 
 A model with extra states (actuator or history states, :mod:`mpc.extended`)
 is fitted with its extra states at rest for the input (its quasi-steady
 response), and the reference's extra states are the model's own, flown
 along the reference states with the fitted inputs from their equilibrium at
-the start (:meth:`FeedForward.full_states`). For the true equations the fit reproduces the plant's
-inverse; for a learned model it is whatever that model believes.
+the start (:meth:`FeedForward.full_states`). A model that gives its own
+reference (:meth:`mpc.models.PredictionModel.reference_states`) is fitted
+over its whole state instead, extra states included.
 Fitted inputs are cached by time, so a controller that slides its horizon
 by one period fits one new input per period.
 """
@@ -253,7 +255,7 @@ class FeedForward:
         times = self.dt * np.arange(n)
         for start in range(0, n, chunk):
             self.inputs(times[start:start + chunk])
-        if self.model.n_extra:
+        if self.model.n_extra and not self.model_reference:    # a model's own reference carries its extra states
             self._extend_extras(n - 1)
 
     def linearization_point(self) -> tuple[np.ndarray, np.ndarray]:

@@ -292,21 +292,24 @@ def plant_reference(spec: "RunSpec", sc, times: np.ndarray) -> tuple[np.ndarray,
     return reference_states(ref, times, reference_spec(spec.plant, v)), None
 
 
-def start_state(sc, spec) -> np.ndarray:
-    """The scenario's initial state (12,) for the flatness map of ``spec``.
+def start_state(sc, spec, x_ref0: np.ndarray | None = None) -> np.ndarray:
+    """The scenario's initial state (12,) on the reference the plant flies.
 
     A scenario's ``x0`` is its reference at t = 0 (through
-    :data:`scenarios.scenario.START_MAP`, the default vehicle's) plus its offsets; the offsets are kept and the reference
-    part is taken through ``spec``'s map, so that a vehicle with other drag
-    starts on its own feasible reference. Unchanged for the default vehicle.
+    :data:`scenarios.scenario.START_MAP`, the default vehicle's) plus its offsets; the offsets are kept and the
+    reference part is replaced by the plant's: ``x_ref0`` (12,) where the plant has a map of its own (the
+    high-fidelity plant's, :func:`plant_reference`), else ``spec``'s flatness map, so that a vehicle with other
+    drag starts on its own feasible reference. Unchanged for the default vehicle on the nominal plant.
     """
     from .scenario import START_MAP
 
     x0 = np.array(sc.x0, dtype=float)
-    if (spec.g, spec.c_d) == (START_MAP.g, START_MAP.c_d):     # the only numbers the map's states depend on
-        return x0
     ref, t0 = sc.reference(), np.array([0.0])
-    return x0 + reference_states(ref, t0, spec)[0] - reference_states(ref, t0, START_MAP)[0]
+    if x_ref0 is None:
+        if (spec.g, spec.c_d) == (START_MAP.g, START_MAP.c_d):     # the only numbers the map's states depend on
+            return x0
+        x_ref0 = reference_states(ref, t0, spec)[0]
+    return x0 + x_ref0 - reference_states(ref, t0, START_MAP)[0]
 
 
 def make_run_plant(spec: "RunSpec", sc):
@@ -346,8 +349,8 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
     # The scenario's offsets from its reference at t = 0 are kept; the reference part of its start is the one this
     # plant can fly (with its motors at the reference's speeds where they lag).
     X_ref, n0 = plant_reference(spec, sc, t_all)
-    x0 = start_state(sc, reference_spec(spec.plant, vehicle))
-    x0 = x0 + X_ref[0] - reference_states(ref, t_all[:1], reference_spec(spec.plant, vehicle))[0]
+    own_map = high_fidelity_equations("oracle", spec.plant, sc)
+    x0 = start_state(sc, reference_spec(spec.plant, vehicle), X_ref[0] if own_map else None)
     error = None
     sha = _sha256(spec.model)
     base = {"run_id": spec.run_id, "scenario": sc.name, "controller": spec.controller,

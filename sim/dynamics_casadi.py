@@ -176,6 +176,19 @@ def high_fidelity_rates_casadi(x, w, n, p, fidelity, accel=None):
     return dynamics_casadi(x, w, p, accel, torque)
 
 
+def lagged_rates_casadi(z, n_cmd, p, fidelity, tau, accel=None):
+    """Symbolic ``dz/dt`` (16, 1) of the rigid body and its four lagging rotors, ``z = (x, n)``.
+
+    The wrench comes from the rotor speeds ``n`` (RU), which follow their commands ``n_cmd`` through a first-order
+    lag of time constant ``tau`` (s; a number or a symbol); the rigid body feels the high-fidelity effects of
+    ``fidelity`` (:func:`high_fidelity_rates_casadi`; none for the nominal fidelity) and the extra acceleration
+    ``accel``. The plant's step, the high-fidelity prediction model and the lag-aware estimator all use it.
+    """
+    x, n = z[:NX], z[NX:]
+    w_now = wrench_from_rotor_sq_casadi(n * n, p)
+    return ca.vertcat(high_fidelity_rates_casadi(x, w_now, n, p, fidelity, accel), (n_cmd - n) / tau)
+
+
 def high_fidelity_step_function(p: QuadParams, fidelity, *, dt: float = DT, substeps: int = SUBSTEPS) -> ca.Function:
     """CasADi function for one period of the high-fidelity simulator (one vehicle), as ``Simulator.step_full``.
 
@@ -190,11 +203,7 @@ def high_fidelity_step_function(p: QuadParams, fidelity, *, dt: float = DT, subs
     h = dt / substeps
     tau = fidelity.motor_tau
     if tau > 0.0:
-        def f(z):
-            s, nn = z[:NX], z[NX:]
-            w_now = wrench_from_rotor_sq_casadi(nn * nn, vals)
-            return ca.vertcat(high_fidelity_rates_casadi(s, w_now, nn, vals, fidelity, a), (n_cmd - nn) / tau)
-        z = rk4_casadi(f, ca.vertcat(x, n0), h, substeps)
+        z = rk4_casadi(lambda s: lagged_rates_casadi(s, n_cmd, vals, fidelity, tau, a), ca.vertcat(x, n0), h, substeps)
         x_next, n_next = z[:NX], z[NX:]
     else:
         x_next = rk4_casadi(lambda s: high_fidelity_rates_casadi(s, w, n_cmd, vals, fidelity, a), x, h, substeps)
@@ -248,9 +257,7 @@ def actuated_step_function(p: QuadParams, fidelity, *, symbolic_theta: bool = Fa
     tau = fidelity.motor_tau
     if lag:
         def f(s):
-            x, n = s[:NX], s[NX:]
-            w_now = wrench_from_rotor_sq_casadi(n * n, vals)
-            return ca.vertcat(high_fidelity_rates_casadi(x, w_now, n, vals, fidelity), (n_cmd - n) / tau)
+            return lagged_rates_casadi(s, n_cmd, vals, fidelity, tau)
     else:
         w = wrench_from_rotor_sq_casadi(n_cmd * n_cmd, vals)
 

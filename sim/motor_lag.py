@@ -38,9 +38,9 @@ import casadi as ca
 import numpy as np
 
 from .compiled import compiled
-from .dynamics_casadi import dynamics_casadi, rk4_casadi, rotor_command_casadi, wrench_from_rotor_sq_casadi
+from .dynamics_casadi import lagged_rates_casadi, rk4_casadi, rotor_command_casadi
 from .errors import SimInputError
-from .params import DT, NX, SUBSTEPS, THETA_NAMES, NoiseModel, QuadParams
+from .params import DT, NOMINAL, NX, SUBSTEPS, THETA_NAMES, NoiseModel, QuadParams
 
 #: The identified parameters: the nominal six and the motor time constant (s).
 LAG_THETA_NAMES = THETA_NAMES + ("tau_m",)
@@ -63,8 +63,7 @@ def lag_sensitivity_function(p: QuadParams, state: bool = True) -> ca.Function:
     n_cmd = rotor_command_casadi(u, vals, p.n_max_sq)
 
     def f(s):
-        x, n = s[:NX], s[NX:]
-        return ca.vertcat(dynamics_casadi(x, wrench_from_rotor_sq_casadi(n * n, vals), vals), (n_cmd - n) / th[6])
+        return lagged_rates_casadi(s, n_cmd, vals, NOMINAL, th[6])
 
     sub = ca.Function("lag_substep", [z, u, th], [rk4_casadi(f, z, DT / SUBSTEPS, 1)])
     Z, U, TH = ca.MX.sym("z", NZ), ca.MX.sym("u", 4), ca.MX.sym("theta", 7)
@@ -118,20 +117,19 @@ def rotor_trajectory(u: np.ndarray, theta7, p: QuadParams):
     (``sqrt(M^-1 u_k)``, clipped to the rotor limits), from ``n_0 = c_0``. Returns ``n`` (F, K + 1, 4) at the
     period boundaries and ``dn / dtheta`` (F, K + 1, 4, 7), absolute units.
     """
-    from .rotors import mixer
+    from .fisher import rotor_sensitivities
 
     th = np.asarray(theta7, dtype=float)
-    kt, kq, tau = th[4], th[5], th[6]
-    M0inv = np.linalg.inv(np.array(mixer(1.0, 1.0, p.lever), dtype=float))
-    part_t = (u[..., :3] / kt) @ M0inv[:, :3].T              # (F, K, 4): n^2 from thrust and roll/pitch
-    part_q = (u[..., 3:4] / kq) * M0inv[:, 3]                 # from yaw
-    n_sq = part_t + part_q
-    free = (n_sq > 0.0) & (n_sq < p.n_max_sq)
-    c = np.sqrt(np.clip(n_sq, 0.0, p.n_max_sq))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        dc = np.zeros(u.shape[:2] + (4, 7))
-        dc[..., 4] = np.where(free, -part_t / kt / (2.0 * c), 0.0)
-        dc[..., 5] = np.where(free, -part_q / kq / (2.0 * c), 0.0)
+    tau = th[6]
+    # The rotor command and its derivative with respect to kt and kq, as the Fisher information's telemetry channel
+    # has them (NaN where the allocation is negative), then clipped to the rotor limits.
+    n_cmd, dn_cmd = rotor_sensitivities(u.reshape(-1, 4), p.with_theta(th[:6]))
+    n_max = np.sqrt(p.n_max_sq)
+    with np.errstate(invalid="ignore"):
+        free = (n_cmd > 0.0) & (n_cmd < n_max)
+    c = np.where(np.isnan(n_cmd), 0.0, np.minimum(n_cmd, n_max)).reshape(u.shape)
+    dc = np.zeros(u.shape[:2] + (4, 7))
+    dc[..., :6] = np.where(free[:, :, None], dn_cmd, 0.0).reshape(u.shape + (6,))
     a = np.exp(-DT / tau)
     da = a * DT / tau ** 2
     F, K = u.shape[:2]
