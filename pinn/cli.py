@@ -14,7 +14,7 @@ from pathlib import Path
 from sim.files import write_json
 from sim.params import FIDELITIES, INPUT_LOGS
 
-ARCHS = ("baseline", "modular", "fourier", "proposed")
+ARCHS = ("baseline", "modular", "fourier", "proposed", "hybrid", "hybrid_lag")
 
 
 def register(sub) -> None:
@@ -23,6 +23,9 @@ def register(sub) -> None:
                        description="Physics-informed training with parameter identification; writes "
                                    "NAME.onnx, NAME.jac.onnx, NAME.pt into --out and updates --out/manifest.json.")
     p.add_argument("--arch", required=True, choices=ARCHS)
+    p.add_argument("--recipe", default=None, choices=("baseline", "proposed"),
+                   help="training recipe, if not the architecture's own (hybrid trains with the baseline recipe; "
+                        "--recipe proposed adds curriculum, scheduled sampling, dropout, energy and smoothness)")
     p.add_argument("--profile", default="quick", choices=("quick", "full"),
                    help="budget: quick (CI, < 60 s) or full (shipped models)")
     p.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
@@ -149,12 +152,16 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--dropout-until must lie in [0, 1]; found {args.dropout_until}")
     overrides = {"dropout_until": args.dropout_until} if args.dropout_until != 1.0 else {}
     ds, spec = _dataset(args)
-    name = args.name or default_name(args.arch, spec)
-    res, metrics = _train_one(ds, args.arch, args.profile, args.seed, args.threads, None,
+    own = args.arch if args.arch in ("baseline", "proposed") else "baseline"
+    recipe = None if args.recipe in (None, own) else args.recipe
+    name = args.name or default_name(args.arch if recipe is None else f"{args.arch}_{recipe}", spec)
+    res, metrics = _train_one(ds, args.arch, args.profile, args.seed, args.threads, recipe,
                               progress=sys.stderr.isatty(), **overrides)
-    training_config = {"name": name, "recipe": args.arch, "train": res.config.to_dict(), "data": spec}
+    training_config = {"name": name, "recipe": args.arch if recipe is None else f"{args.arch}+{recipe}",
+                       "train": res.config.to_dict(), "data": spec}
     paths = export_model(res.model, args.out, name, training_config, spec["seed"], metrics, res.stats)
-    cmd = (f"pinnmpc train --arch {args.arch} --profile {args.profile} --seed {args.seed} "
+    cmd = (f"pinnmpc train --arch {args.arch} " + (f"--recipe {recipe} " if recipe else "")
+           + f"--profile {args.profile} --seed {args.seed} "
            + (f"--data {args.data} " if args.data else f"--regime {spec['regime']} --data-seed {spec['seed']} "
               + (f"--fidelity {spec['fidelity']} " if "fidelity" in spec else "")
               + (f"--inputs {spec['inputs']} " if "inputs" in spec else ""))

@@ -110,13 +110,19 @@ def _spec_of(info) -> dict:
     return data_spec(info.training_config)
 
 
-def evaluate_model(path, ds=None, crlb: dict | None = None, n_starts: int = 200, info=None) -> dict:
-    """Table I and II entries of one ONNX model (``info``: its :func:`check_model` result, if already known)."""
+def evaluate_model(path, ds=None, crlb: dict | None = None, n_starts: int = 200, info=None,
+                   lag_crlb: dict | None = None) -> dict:
+    """Table I and II entries of one ONNX model (``info``: its :func:`check_model` result, if already known).
+
+    A motor-lag model's errors are in σ of the lag model's own bound ``lag_crlb`` (seven parameters, ``tau_m``
+    included) where given, as the lag-aware classical fit's.
+    """
     info = check_model(path) if info is None else info
     if ds is None:
         ds = regenerate(_spec_of(info))
     step = onnx_step(path)
     truth = QuadParams(**ds.meta["params"]).theta
+    extra, tau = model_extra_states(info, ds)
     out = {
         "name": Path(path).stem,
         "architecture": info.architecture,
@@ -124,20 +130,63 @@ def evaluate_model(path, ds=None, crlb: dict | None = None, n_starts: int = 200,
         "regime": ds.meta["regime"],
         "fidelity": fidelity_name(ds.meta.get("fidelity", {})),
         "inputs": ds.meta.get("inputs", "commanded"),
-        "one_step": one_step_mae(step, ds),
-        "rollout_100": rollout_mae(step, ds, horizon=100, n_starts=n_starts),
+        "one_step": one_step_mae(step, ds, extra=extra),
+        "rollout_100": rollout_mae(step, ds, horizon=100, n_starts=n_starts, extra=extra),
         "theta_true": dict(zip(THETA_NAMES, map(float, truth))),
     }
+    if tau is not None:
+        out["extra_states"] = list(info.extra_states)
+        out["tau_m"] = tau
+        tau_true = float(ds.meta.get("fidelity", {}).get("motor_tau", 0.0))
+        if tau_true > 0:
+            out["tau_m_true"] = tau_true
     if info.theta is None:      # a model that identifies no parameters: Table I only
         return out
     theta = np.array([info.theta[n] for n in THETA_NAMES])
     err = 100.0 * (theta - truth) / truth
     out["theta"] = dict(zip(THETA_NAMES, map(float, theta)))
     out["theta_err_pct"] = dict(zip(THETA_NAMES, map(float, err)))
+    if tau is not None and "tau_m_true" in out:
+        names, theta, truth = THETA_NAMES + ("tau_m",), np.r_[theta, tau], np.r_[truth, out["tau_m_true"]]
+        out["theta_err_pct"]["tau_m"] = float(100.0 * (tau - truth[-1]) / truth[-1])
+        if lag_crlb is not None:
+            out["crlb_std"] = lag_crlb
+            out["crlb"] = "lag"
+            out["err_over_crlb"] = {n: float(abs(theta[i] - truth[i]) / lag_crlb[n]) for i, n in enumerate(names)}
+            return out
     if crlb is not None:
         out["crlb_std"] = crlb
         out["err_over_crlb"] = {n: float(abs(theta[i] - truth[i]) / crlb[n]) for i, n in enumerate(THETA_NAMES)}
     return out
+
+
+def model_extra_states(info, ds):
+    """The extra states of a model along a dataset's flights, and its motor time constant.
+
+    Returns ``(None, None)`` for a model of the rigid body alone. A motor-lag model (rotor speeds ``n1`` .. ``n4``
+    as extra states, ``motor_tau`` in its metadata) gets the rotor speeds its own lag gives along the logged
+    commands (from the first command's speed; :func:`sim.motor_lag.rotor_trajectory` with its theta-hat and
+    tau-hat): ``((flights, steps, 4), tau_m)``. Other extra states cannot be reconstructed from a flight log.
+    """
+    if not info.extra_states:
+        return None, None
+    from sim.motor_lag import rotor_trajectory
+
+    if tuple(info.extra_states) != ("n1", "n2", "n3", "n4") or "motor_tau" not in info.metadata \
+            or info.theta is None:
+        raise ValueError(f"{info.path}: its extra states {list(info.extra_states)} cannot be reconstructed from a "
+                         "flight log (only a motor-lag model's rotor speeds n1..n4, with metadata 'motor_tau' and "
+                         "'theta', can)")
+    try:
+        tau = float(info.metadata["motor_tau"])
+    except ValueError:
+        tau = float("nan")
+    if not (np.isfinite(tau) and tau > 0):
+        raise ValueError(f"{info.path}: metadata 'motor_tau' must be a time constant > 0 s; found "
+                         f"{info.metadata['motor_tau']!r}")
+    theta7 = np.r_[[info.theta[n] for n in THETA_NAMES], tau]
+    n, _ = rotor_trajectory(ds.u, theta7, QuadParams(**ds.meta["params"]))
+    return n[:, :-1], tau
 
 
 def lag_summary(ds, clean=None) -> dict | None:
@@ -236,7 +285,8 @@ def _spec_task(task) -> tuple[dict, list[dict]]:
     summary = data_summary(ds, crlb, estimate=not NoiseModel(**ds.meta["noise"]).is_zero, clean=clean)
     if data_path is None:
         summary["spec"] = {k: v for k, v in spec.items() if k != "fingerprint"}
-    rows = [evaluate_model(f, ds, crlb) for f in files]
+    lag_crlb = (summary.get("estimator_lag") or {}).get("crlb_std")
+    rows = [evaluate_model(f, ds, crlb, lag_crlb=lag_crlb) for f in files]
     return summary, rows
 
 

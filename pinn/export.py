@@ -4,7 +4,9 @@
 model made it fail):
 
 * ``<name>.onnx``: ``x`` [B, 12], ``u`` [B, 4] -> ``x_next`` [B, 12] with the
-  normalization inside, a dynamic batch and the metadata of the contract;
+  normalization inside, a dynamic batch and the metadata of the contract (a
+  motor-lag model's state is [B, 16], its rotor speeds named in ``extra_states``,
+  its identified time constant in ``motor_tau``);
 * ``<name>.jac.onnx``: the same inputs -> ``x_next``, ``A = dx_next/dx``
   [B, 12, 12], ``B = dx_next/du`` [B, 12, 4], from the models' exact
   forward-mode Jacobian written with plain tensor operations;
@@ -51,8 +53,8 @@ class _Jac(torch.nn.Module):
         return self.model.forward_jacobian(x, u)
 
 
-def _export(module, path: Path, outputs: list[str]) -> None:
-    x = torch.zeros(3, 12, dtype=torch.float64)
+def _export(module, path: Path, outputs: list[str], nx: int = 12) -> None:
+    x = torch.zeros(3, nx, dtype=torch.float64)
     u = torch.zeros(3, 4, dtype=torch.float64)
     batch = torch.export.Dim("batch")
     # The exporter is chatty (warnings and log lines about unrelated packages).
@@ -121,10 +123,15 @@ def export_model(model, out_dir, name: str, training_config: dict, dataset_seed:
         "test_metrics": json.dumps(test_metrics, sort_keys=True),
         "torch_version": torch.__version__,
     }
+    extra = tuple(getattr(m64, "extra_states", ()))
+    if extra:
+        meta["extra_states"] = json.dumps(list(extra))
+    if hasattr(m64, "tau"):
+        meta["motor_tau"] = repr(float(m64.tau.detach()))
     path = out_dir / f"{name}.onnx"
     jac = jacobian_path(path)
-    _export(_Next(m64), path, ["x_next"])
-    _export(_Jac(m64), jac, ["x_next", "A", "B"])
+    _export(_Next(m64), path, ["x_next"], 12 + len(extra))
+    _export(_Jac(m64), jac, ["x_next", "A", "B"], 12 + len(extra))
     _set_metadata(path, meta)
     _set_metadata(jac, {k: meta[k] for k in ("pinnmpc.contract", "architecture", "config_hash")})
     if not torch_file:
@@ -142,7 +149,8 @@ def load_torch_model(path):
     d = blob["describe"]
     sd = blob["state_dict"]
     stats = {"in_mean": sd["in_mean"], "in_std": sd["in_std"], "out_scale": sd["out_scale"]}
-    stats.update({k: sd[k] for k in ("abs_in_mean", "abs_in_std", "abs_out_mean", "abs_out_std") if k in sd})
+    stats.update({k: sd[k] for k in ("abs_in_mean", "abs_in_std", "abs_out_mean", "abs_out_std", "physics",
+                                      "n_mean", "n_std", "rotor") if k in sd})
     model = build_model(blob["arch"], stats, sd["log_theta"].exp(), d["hidden"], d["layers"], d["dropout"],
                         d.get("variant"))
     model.load_state_dict(sd)

@@ -2,8 +2,10 @@
 
 A model is any ``step(x, u) -> x_next`` on numpy arrays (B, 12), (B, 4) ->
 (B, 12): a torch model wrapped by :func:`torch_step`, or an ONNX file through
-onnxruntime (:func:`pinn.evaluate.onnx_step`). Only :func:`torch_step` imports
-torch, when called.
+onnxruntime (:func:`pinn.evaluate.onnx_step`). A model with E extra states
+takes and returns (B, 12 + E); the metrics are then given the extra states
+along the data (``extra``, (flights, steps, E)) and measure the rigid body's
+errors. Only :func:`torch_step` imports torch, when called.
 """
 
 from __future__ import annotations
@@ -19,7 +21,11 @@ POSITION = slice(0, 3)
 ENVELOPE_POSITION_M = 1.0
 
 
-def one_step_mae(step, ds, split: str = "test", batch: int = 20000) -> dict:
+def _with_extra(x: np.ndarray, extra) -> np.ndarray:
+    return x if extra is None else np.concatenate([x, extra], axis=-1)
+
+
+def one_step_mae(step, ds, split: str = "test", batch: int = 20000, extra=None) -> dict:
     """Mean absolute one-step error per state on ``split``.
 
     Returns
@@ -29,9 +35,12 @@ def one_step_mae(step, ds, split: str = "test", batch: int = 20000) -> dict:
     """
     pairs = ds.pairs(split)
     x, u, y = pairs["x"], pairs["u"], pairs["x_next"]
+    if extra is not None:       # the model's extra states at each sample, flattened as the pairs are
+        sel = ds.split == ("train", "val", "test").index(split)
+        x = _with_extra(x, np.asarray(extra)[sel].reshape(len(x), -1))
     err = np.empty_like(y)
     for lo in range(0, len(x), batch):
-        err[lo:lo + batch] = np.abs(step(x[lo:lo + batch], u[lo:lo + batch]) - y[lo:lo + batch])
+        err[lo:lo + batch] = np.abs(step(x[lo:lo + batch], u[lo:lo + batch])[:, :NX] - y[lo:lo + batch])
     mae = err.mean(axis=0)
     out = dict(zip(STATE_NAMES, map(float, mae)))
     out["position"] = float(mae[POSITION].mean())
@@ -48,7 +57,8 @@ def rollout_starts(ds, split: str, horizon: int, n_starts: int, seed: int) -> np
     return np.column_stack([rng.choice(traj, n_starts), rng.integers(0, n_steps - horizon + 1, n_starts)])
 
 
-def rollout_mae(step, ds, split: str = "test", horizon: int = 100, n_starts: int = 200, seed: int = 0) -> dict:
+def rollout_mae(step, ds, split: str = "test", horizon: int = 100, n_starts: int = 200, seed: int = 0,
+                extra=None) -> dict:
     """Autoregressive ``horizon``-step rollouts with the recorded inputs.
 
     From ``n_starts`` seeded start points of the ``split`` trajectories, the
@@ -70,7 +80,7 @@ def rollout_mae(step, ds, split: str = "test", horizon: int = 100, n_starts: int
     """
     starts = rollout_starts(ds, split, horizon, n_starts, seed)
     ti, si = starts[:, 0], starts[:, 1]
-    x = ds.x[ti, si].copy()
+    x = _with_extra(ds.x[ti, si], None if extra is None else np.asarray(extra)[ti, si]).copy()
     err = np.zeros((len(starts), horizon, NX))
     alive = np.ones(len(starts), dtype=bool)
     div_step = np.zeros(len(starts), dtype=int)
@@ -78,12 +88,12 @@ def rollout_mae(step, ds, split: str = "test", horizon: int = 100, n_starts: int
         u = ds.u[ti, si + k]
         with np.errstate(all="ignore"):
             nxt = step(x, u)
-            bad = ~np.all(np.isfinite(nxt) & (np.abs(nxt) < FINITE_RANGE), axis=1)
+            bad = ~(np.all(np.isfinite(nxt), axis=1) & np.all(np.abs(nxt[:, :NX]) < FINITE_RANGE, axis=1))
         newly = bad & alive
         div_step[newly] = k + 1
         alive &= ~bad
         x = np.where(alive[:, None], nxt, x)
-        err[:, k] = np.abs(x - ds.x_next[ti, si + k])
+        err[:, k] = np.abs(x[:, :NX] - ds.x_next[ti, si + k])
     mae = err.mean(axis=(0, 1))
     left = ~alive | np.any(np.linalg.norm(err[:, :, POSITION], axis=2) > ENVELOPE_POSITION_M, axis=1)
     out = dict(zip(STATE_NAMES, map(float, mae)))
@@ -116,8 +126,12 @@ def torch_step(model):
 def test_metrics(model, ds) -> dict:
     """Compact test-split metrics of a torch model (stored in the ONNX metadata and the manifest)."""
     step = torch_step(model)
-    one = one_step_mae(step, ds)
-    roll = rollout_mae(step, ds)
+    extra = None
+    if getattr(model, "extra_states", ()):      # a motor-lag model: its own rotor speeds along the commands
+        from .train import model_rotor_speeds
+        extra = model_rotor_speeds(model, ds.u)
+    one = one_step_mae(step, ds, extra=extra)
+    roll = rollout_mae(step, ds, extra=extra)
     return {"one_step_mae": one,
             "rollout_100_mae": {k: v for k, v in roll.items() if k not in ("position_by_step", "divergence_steps")},
             "rollout_100_divergence_steps": roll["divergence_steps"]}

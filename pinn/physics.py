@@ -66,16 +66,127 @@ def rk4_increment(x: torch.Tensor, u: torch.Tensor, theta: torch.Tensor, p: Quad
     Returned as an increment (accumulated without forming ``x + dx``) so
     that the small increments of large states keep their float32 precision.
     """
-    h = dt / substeps
+    # Constants as tensors of the state's dtype: the ONNX exporter would store Python floats as float32.
+    def const(v):
+        return torch.tensor(v, dtype=x.dtype, device=x.device)
+
+    h, half, sixth, g, c_d = const(dt / substeps), const(0.5 * dt / substeps), const(dt / substeps / 6.0), \
+        const(p.g), const(p.c_d)
     z = torch.zeros_like(x)
     for _ in range(substeps):
         s = x + z
-        k1 = dynamics_torch(s, u, theta, p.g, p.c_d)
-        k2 = dynamics_torch(s + 0.5 * h * k1, u, theta, p.g, p.c_d)
-        k3 = dynamics_torch(s + 0.5 * h * k2, u, theta, p.g, p.c_d)
-        k4 = dynamics_torch(s + h * k3, u, theta, p.g, p.c_d)
-        z = z + (h / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
+        k1 = dynamics_torch(s, u, theta, g, c_d)
+        k2 = dynamics_torch(s + half * k1, u, theta, g, c_d)
+        k3 = dynamics_torch(s + half * k2, u, theta, g, c_d)
+        k4 = dynamics_torch(s + h * k3, u, theta, g, c_d)
+        z = z + sixth * (k1 + 2.0 * (k2 + k3) + k4)
     return z
+
+
+def dynamics_tangent_torch(x: torch.Tensor, u: torch.Tensor, theta: torch.Tensor, g: float, c_d: float,
+                           dx: torch.Tensor, du: torch.Tensor):
+    """:func:`dynamics_torch` and its derivative along tangents (forward mode, plain tensor operations).
+
+    Parameters
+    ----------
+    x, u, theta, g, c_d
+        As in :func:`dynamics_torch`; ``x`` (B, 12), ``u`` (B, 4).
+    dx : torch.Tensor, shape (B, 12, k)
+        Tangent of the state: ``k`` directions.
+    du : torch.Tensor, shape (B, 4, k)
+        Tangent of the input along the same directions.
+
+    Returns
+    -------
+    f : torch.Tensor, shape (B, 12)
+        ``dx/dt``.
+    df : torch.Tensor, shape (B, 12, k)
+        Its derivative along each direction: ``(df/dx) dx + (df/du) du``.
+
+    The partial derivatives are written out by hand so that the result exports to ONNX as a small graph (a
+    dual-number or traced autograd version was an order of magnitude larger and slower to run);
+    ``tests/test_pinn.py`` holds them equal to autograd of :func:`dynamics_torch`.
+    """
+    f = dynamics_torch(x, u, theta, g, c_d)
+    phi, th, psi = x[..., 3:4], x[..., 4:5], x[..., 5:6]
+    wp, wq, wr = x[..., 6:7], x[..., 7:8], x[..., 8:9]
+    m, Jxx, Jyy, Jzz = theta[0], theta[1], theta[2], theta[3]
+    d = [dx[:, i] for i in range(12)]          # each (B, k)
+    dT, dtx, dty, dtz = du[:, 0], du[:, 1], du[:, 2], du[:, 3]
+    sphi, cphi = torch.sin(phi), torch.cos(phi)
+    sth, cth = torch.sin(th), torch.cos(th)
+    spsi, cpsi = torch.sin(psi), torch.cos(psi)
+    tth, sec = sth / cth, 1.0 / cth
+    qs_rc = wq * sphi + wr * cphi              # (B, 1)
+    qc_rs = wq * cphi - wr * sphi
+    dphi, dth, dpsi = d[3], d[4], d[5]
+    # kinematics
+    d_phid = d[6] + qc_rs * tth * dphi + qs_rc * sec * sec * dth + sphi * tth * d[7] + cphi * tth * d[8]
+    d_thd = -qs_rc * dphi + cphi * d[7] - sphi * d[8]
+    d_psid = qc_rs * sec * dphi + qs_rc * tth * sec * dth + sphi * sec * d[7] + cphi * sec * d[8]
+    # Euler's equations
+    d_pd = ((Jyy - Jzz) * (wr * d[7] + wq * d[8]) + dtx) / Jxx
+    d_qd = ((Jzz - Jxx) * (wr * d[6] + wp * d[8]) + dty) / Jyy
+    d_rd = ((Jxx - Jyy) * (wq * d[6] + wp * d[7]) + dtz) / Jzz
+    # translation: a = -T/m b(phi, theta, psi) + g e_z - c_d v|v|
+    tm = u[..., 0:1] / m
+    bx = cpsi * sth * cphi + spsi * sphi
+    by = spsi * sth * cphi - cpsi * sphi
+    bz = cth * cphi
+    bx_phi, bx_th, bx_psi = -cpsi * sth * sphi + spsi * cphi, cpsi * cth * cphi, -spsi * sth * cphi + cpsi * sphi
+    by_phi, by_th, by_psi = -spsi * sth * sphi - cpsi * cphi, spsi * cth * cphi, cpsi * sth * cphi + spsi * sphi
+    bz_phi, bz_th = -cth * sphi, -sth * cphi
+    drag = -2.0 * c_d * x[..., 9:12].abs()     # d(-c_d v|v|)/dv
+    d_ax = -(bx * dT / m + tm * (bx_phi * dphi + bx_th * dth + bx_psi * dpsi)) + drag[..., 0:1] * d[9]
+    d_ay = -(by * dT / m + tm * (by_phi * dphi + by_th * dth + by_psi * dpsi)) + drag[..., 1:2] * d[10]
+    d_az = -(bz * dT / m + tm * (bz_phi * dphi + bz_th * dth)) + drag[..., 2:3] * d[11]
+    df = torch.stack([d[9], d[10], d[11], d_phid, d_thd, d_psid, d_pd, d_qd, d_rd, d_ax, d_ay, d_az], dim=1)
+    return f, df
+
+
+def rk4_increment_tangent(x: torch.Tensor, u: torch.Tensor, theta: torch.Tensor, g: float, c_d: float,
+                          dt: float = DT, substeps: int = SUBSTEPS):
+    """:func:`rk4_increment` and its exact Jacobians (the derivative of the discrete RK4 map, input held).
+
+    Parameters
+    ----------
+    x : torch.Tensor, shape (B, 12)
+    u : torch.Tensor, shape (B, 4)
+    theta : torch.Tensor, shape (6,)
+    g, c_d : float
+        Gravity (m/s^2) and the quadratic drag coefficient (1/m).
+    dt : float
+        Period, s.
+    substeps : int
+        RK4 steps per period.
+
+    Returns
+    -------
+    inc : torch.Tensor, shape (B, 12)
+        ``x(t + dt) - x(t)``.
+    A : torch.Tensor, shape (B, 12, 12)
+        ``d inc / dx`` (the identity not included).
+    B : torch.Tensor, shape (B, 12, 4)
+        ``d inc / du``.
+    """
+    n = x.shape[0]
+    # Constants as tensors of the state's dtype: the ONNX exporter stores Python floats as float32.
+    h = torch.tensor(dt / substeps, dtype=x.dtype, device=x.device)
+    g = torch.tensor(g, dtype=x.dtype, device=x.device)
+    c_d = torch.tensor(c_d, dtype=x.dtype, device=x.device)
+    eye = torch.eye(16, dtype=x.dtype, device=x.device).expand(n, 16, 16)
+    du = eye[:, 12:]                           # the input is held: its tangent never changes
+    z = torch.zeros_like(x)
+    dz = torch.zeros(n, 12, 16, dtype=x.dtype, device=x.device)
+    for _ in range(substeps):
+        s, ds = x + z, eye[:, :12] + dz
+        k1, d1 = dynamics_tangent_torch(s, u, theta, g, c_d, ds, du)
+        k2, d2 = dynamics_tangent_torch(s + 0.5 * h * k1, u, theta, g, c_d, ds + 0.5 * h * d1, du)
+        k3, d3 = dynamics_tangent_torch(s + 0.5 * h * k2, u, theta, g, c_d, ds + 0.5 * h * d2, du)
+        k4, d4 = dynamics_tangent_torch(s + h * k3, u, theta, g, c_d, ds + h * d3, du)
+        z = z + h * (k1 + 2.0 * (k2 + k3) + k4) / 6.0
+        dz = dz + h * (d1 + 2.0 * (d2 + d3) + d4) / 6.0
+    return z, dz[..., :12], dz[..., 12:]
 
 
 def mixer_torch(theta: torch.Tensor, p: QuadParams) -> torch.Tensor:
@@ -110,3 +221,116 @@ def power_balance(x: torch.Tensor, u: torch.Tensor, theta: torch.Tensor, g: floa
     p_torque = (x[..., 6:9] * u[..., 1:4]).sum(-1)
     p_drag = theta[0] * c_d * (v.abs() ** 3).sum(-1)
     return p_thrust + p_torque - p_drag
+
+
+def rotor_command_torch(u: torch.Tensor, theta: torch.Tensor, consts: dict):
+    """Rotor speeds (..., 4, RU) the rotor layer commands for the wrench ``u`` (..., 4), and where they are unclipped.
+
+    ``n_i^2`` of the allocation ``M(kt, kq)^-1 u`` clipped to ``[1e-9 n_max_sq, n_max_sq]``, as
+    :func:`sim.dynamics_casadi.rotor_command_casadi`. ``consts``: ``mixer_unit`` (the mixer with ``kt = kq = 1``)
+    and its inverse ``mixer_unit_inv``, and ``n_max_sq``, tensors of ``u``'s dtype.
+    """
+    S0_inv, n_max_sq = consts["mixer_unit_inv"], consts["n_max_sq"]
+    scale = torch.stack([theta[4], theta[4], theta[4], theta[5]])          # M = diag(kt, kt, kt, kq) S0
+    n_sq_cmd = (u / scale) @ S0_inv.T
+    lo = n_max_sq * 1e-9
+    free = (n_sq_cmd > lo) & (n_sq_cmd < n_max_sq)
+    return torch.sqrt(torch.clamp(n_sq_cmd, min=lo, max=n_max_sq)), free
+
+
+def lagged_rotor_increment(x: torch.Tensor, n: torch.Tensor, u: torch.Tensor, theta: torch.Tensor,
+                           tau: torch.Tensor, consts: dict, dt: float = DT, substeps: int = 1,
+                           tangent: bool = False):
+    """One period of the rigid body driven by four lagging rotors (the motor-lag model), and optionally its Jacobians.
+
+    The rotor speeds ``n`` follow the rotor command ``c = sqrt(M(kt, kq)^-1 u)`` (each ``n_i^2`` clipped to the
+    rotor limits, as the plant does) through a first-order lag of time constant ``tau``, solved exactly over the
+    period with the command held: ``n(t) = c + (n - c) exp(-t / tau)``. The rigid body is integrated by RK4 with
+    the wrench ``M(kt, kq) n(t)^2`` at each stage's time. Equal to :func:`sim.motor_lag.rotor_trajectory` for the
+    rotors (``tests/test_pinn.py``).
+
+    Parameters
+    ----------
+    x : torch.Tensor, shape (B, 12)
+        Rigid-body state.
+    n : torch.Tensor, shape (B, 4)
+        Rotor speeds at the start of the period, RU.
+    u : torch.Tensor, shape (B, 4)
+        Commanded wrench, N and N m.
+    theta : torch.Tensor, shape (6,)
+        ``(m, Jxx, Jyy, Jzz, kt, kq)``.
+    tau : torch.Tensor, scalar
+        Motor time constant, s.
+    consts : dict
+        ``g`` (m/s^2), ``c_d`` (1/m), ``mixer_unit`` (4, 4) the mixer with ``kt = kq = 1`` (the arm included)
+        and its inverse ``mixer_unit_inv``, ``n_max_sq`` (RU^2): tensors of the state's dtype.
+    dt : float
+        Period, s.
+    substeps : int
+        RK4 steps of the rigid body per period.
+    tangent : bool
+        Also return the Jacobians.
+
+    Returns
+    -------
+    inc_x : torch.Tensor, shape (B, 12)
+    inc_n : torch.Tensor, shape (B, 4)
+        Increments over the period.
+    A : torch.Tensor, shape (B, 16, 16)
+        ``d (inc_x, inc_n) / d (x, n)`` (only with ``tangent``; the identity not included).
+    B : torch.Tensor, shape (B, 16, 4)
+        ``d (inc_x, inc_n) / du`` (only with ``tangent``).
+    """
+    g, c_d, S0 = consts["g"], consts["c_d"], consts["mixer_unit"]
+    c, free = rotor_command_torch(u, theta, consts)
+    scale = torch.stack([theta[4], theta[4], theta[4], theta[5]])
+    S0_inv = consts["mixer_unit_inv"]
+    h = torch.tensor(dt / substeps, dtype=x.dtype, device=x.device)
+    sixth = torch.tensor(1.0 / 6.0, dtype=x.dtype, device=x.device)
+
+    def rotors(t):
+        return torch.exp(-t / tau)
+
+    def wrench(nt):
+        return (nt * nt) @ S0.T * scale
+
+    B_ = x.shape[0]
+    if tangent:
+        k = 16 + 4
+        eye = torch.eye(k, dtype=x.dtype, device=x.device).expand(B_, k, k)
+        dx0, dn0, du = eye[:, :12], eye[:, 12:16], eye[:, 16:]
+        # dc/du = diag(free / (2 c)) S0^-1 diag(1 / scale)
+        dc = torch.where(free, 0.5 / c, torch.zeros_like(c)).unsqueeze(-1) * \
+            torch.matmul(S0_inv / scale, du)                                 # (B, 4, k)
+    z = torch.zeros_like(x)
+    dz = torch.zeros(B_, 12, 20, dtype=x.dtype, device=x.device) if tangent else None
+    for i in range(substeps):
+        t0 = h * i
+        times = (t0, t0 + 0.5 * h, t0 + 0.5 * h, t0 + h)
+        a = [rotors(t) for t in times]
+        ns = [c + (n - c) * ai for ai in a]
+        ws = [wrench(nt) for nt in ns]
+        if tangent:
+            dns = [dc * (1.0 - ai) + dn0 * ai for ai in a]
+            dws = [torch.matmul(S0 * scale.unsqueeze(-1), 2.0 * nt.unsqueeze(-1) * dnt) for nt, dnt in zip(ns, dns)]
+        s = x + z
+        if tangent:
+            ds = dx0 + dz
+            k1, d1 = dynamics_tangent_torch(s, ws[0], theta, g, c_d, ds, dws[0])
+            k2, d2 = dynamics_tangent_torch(s + 0.5 * h * k1, ws[1], theta, g, c_d, ds + 0.5 * h * d1, dws[1])
+            k3, d3 = dynamics_tangent_torch(s + 0.5 * h * k2, ws[2], theta, g, c_d, ds + 0.5 * h * d2, dws[2])
+            k4, d4 = dynamics_tangent_torch(s + h * k3, ws[3], theta, g, c_d, ds + h * d3, dws[3])
+            dz = dz + h * sixth * (d1 + 2.0 * (d2 + d3) + d4)
+        else:
+            k1 = dynamics_torch(s, ws[0], theta, g, c_d)
+            k2 = dynamics_torch(s + 0.5 * h * k1, ws[1], theta, g, c_d)
+            k3 = dynamics_torch(s + 0.5 * h * k2, ws[2], theta, g, c_d)
+            k4 = dynamics_torch(s + h * k3, ws[3], theta, g, c_d)
+        z = z + h * sixth * (k1 + 2.0 * (k2 + k3) + k4)
+    a_end = rotors(h * substeps)
+    inc_n = (c - n) * (1.0 - a_end)
+    if not tangent:
+        return z, inc_n
+    d_inc_n = (dc - dn0) * (1.0 - a_end)
+    J = torch.cat([dz, d_inc_n], dim=1)                                       # (B, 16, 20)
+    return z, inc_n, J[..., :16], J[..., 16:]

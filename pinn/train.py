@@ -48,10 +48,15 @@ import torch
 
 from sim.params import DT, THETA_NAMES, QuadParams
 
-from .models import ALL_ARCHITECTURES, VARIANT_DEFAULTS, build_model
+from .models import ALL_ARCHITECTURES, PHYSICAL, VARIANT_DEFAULTS, build_model
 from .physics import mechanical_energy, power_balance, rk4_increment, rotor_sq_from_wrench
 
 CURRICULUM_HORIZONS = (5, 10, 25, 50)
+#: Motor-lag models: periods at the start of each flight no training window starts in (the rotors' model starts
+#: at the first command's speed; as the lag-aware classical estimator), and the number of past commands from which
+#: a window's starting rotor speeds are computed (exp(-60 dt / tau) < 1e-6 for tau up to 70 ms).
+SETTLE_PERIODS = 20
+ROTOR_HISTORY = 60
 SS_MAX = 0.3
 THETA_BIAS = 0.30  # initial guess: every parameter 30 % above the reference value
 
@@ -166,6 +171,7 @@ def training_stats(ds) -> dict:
     dx = (xn - x).reshape(-1, 12)
     xu = np.concatenate([x, u], axis=-1).reshape(-1, 16)
     y = xn.reshape(-1, 12)
+    n_log = ds.rotor_speed[tr].reshape(-1, 4)
     return {
         "in_mean": feats.mean(0), "in_std": feats.std(0) + 1e-8,
         # for the zoo's absolute-state variant: every state and input, and the next state itself
@@ -175,6 +181,12 @@ def training_stats(ds) -> dict:
         "feat_min": feats.min(0), "feat_max": feats.max(0),
         "n_sq_scale": (ds.rotor_speed[tr] ** 2).reshape(-1, 4).std(0) + 1e-12,
         "rate_max": 1.2 * np.abs(dx).max(0) / DT,
+        # known constants of the physics-plus-network model: gravity (m/s^2) and the drag coefficient (1/m)
+        "physics": np.array([ds.meta["params"]["g"], ds.meta["params"]["c_d"]], dtype=float),
+        # ... with the motor lag: the rotor telemetry's spread and increments (RU), the rotor limit and lever arm
+        "n_mean": n_log.mean(0), "n_std": n_log.std(0) + 1e-8,
+        "n_inc_scale": np.diff(ds.rotor_speed[tr], axis=1).reshape(-1, 4).std(0) + 1e-8,
+        "rotor": np.array([QuadParams(**ds.meta["params"]).n_max_sq, QuadParams(**ds.meta["params"]).lever]),
     }
 
 
@@ -193,13 +205,23 @@ class _TrainData:
         self.n_traj, self.n_steps = self.u.shape[:2]
         self.gen = gen
 
-    def windows(self, count: int, horizon: int):
-        """``count`` random windows: states (count, K+1, 12), inputs and rotor speeds (count, K, 4)."""
+    def windows(self, count: int, horizon: int, history: int = 0):
+        """``count`` random windows: states (count, K+1, 12), inputs and rotor speeds (count, K, 4).
+
+        With ``history`` > 0 the windows start after :data:`SETTLE_PERIODS` and a fourth array holds the
+        ``history`` commands before each window (count, history, 4), the first command repeated before a
+        flight's start (the rotors start at its speed).
+        """
+        lo = SETTLE_PERIODS if history else 0
         ti = torch.randint(0, self.n_traj, (count,), generator=self.gen)
-        si = torch.randint(0, self.n_steps - horizon + 1, (count,), generator=self.gen)
+        si = torch.randint(lo, self.n_steps - horizon + 1, (count,), generator=self.gen)
         idx = si[:, None] + torch.arange(horizon + 1)
         states = self.states[ti[:, None], idx]
-        return states, self.u[ti[:, None], idx[:, :-1]], self.n[ti[:, None], idx[:, :-1]]
+        out = (states, self.u[ti[:, None], idx[:, :-1]], self.n[ti[:, None], idx[:, :-1]])
+        if not history:
+            return out
+        past = torch.clamp(si[:, None] + torch.arange(-history, 0), min=0)
+        return out + (self.u[ti[:, None], past],)
 
 
 @dataclass
@@ -231,10 +253,24 @@ def validation_loss(model, ds, stats) -> float:
     was = model.training
     model.eval()
     with torch.no_grad():
-        r = (model.increment(x, u) - (y - x)) / model.out_scale
+        if getattr(model, "extra_states", ()):
+            # the rotor speeds the model's own lag gives along each flight's commands
+            x = torch.cat([x, torch.as_tensor(model_rotor_speeds(model, ds.u[va]).reshape(-1, 4),
+                                              dtype=torch.float32)], dim=-1)
+        r = (model.increment(x, u)[:, :12] - (y - x[:, :12])) / model.out_scale
         out = float((r * r).mean())
     model.train(was)
     return out
+
+
+def model_rotor_speeds(model, u: np.ndarray) -> np.ndarray:
+    """Rotor speeds (F, K, 4) at the start of each period that a motor-lag model gives along commands ``u`` (F, K, 4),
+    from the first command's speed, with its own theta-hat and tau-hat (:func:`sim.motor_lag.rotor_trajectory`)."""
+    from sim.motor_lag import rotor_trajectory
+
+    theta7 = np.r_[model.theta.detach().double().numpy(), float(model.tau.detach())]
+    p = QuadParams(n_max=float(np.sqrt(float(model.rotor[0]))), d=float(model.rotor[1]) * math.sqrt(2.0))
+    return rotor_trajectory(np.asarray(u, dtype=float), theta7, p)[0][:, :-1]
 
 
 def physics_residual(increment: torch.Tensor, x: torch.Tensor, u: torch.Tensor, theta: torch.Tensor,
@@ -266,6 +302,8 @@ def step_losses(model, states, us, ns, p_ss: float, colloc: torch.Tensor, p: Qua
     -------
     dict of scalar tensors: data, phys, theta, rotor, energy, smooth.
     """
+    if getattr(model, "extra_states", ()):
+        return _lag_step_losses(model, states, us, ns, p_ss, colloc, scales, gen)
     K = us.shape[1]
     s = model.out_scale
     theta = model.theta
@@ -312,7 +350,12 @@ def step_losses(model, states, us, ns, p_ss: float, colloc: torch.Tensor, p: Qua
     else:
         target = inc.detach()
     rp = (target - phys[:n]) / s
-    rn = (torch.cat([inc, inc_c]) - phys.detach()) / s
+    if hasattr(model, "residual"):
+        # Physics plus network: the physics residual is the network's own output, and it trains the network
+        # only (theta-hat, inside the prediction, would otherwise be pulled back toward its current value).
+        rn = torch.cat([model.residual(X, U), model.residual(xc, uc)]) / s
+    else:
+        rn = (torch.cat([inc, inc_c]) - phys.detach()) / s
     out["theta"] = (rp * rp).mean()
     out["phys"] = (rn[:n] * rn[:n]).mean() + (rn[n:] * rn[n:]).mean()
 
@@ -334,6 +377,48 @@ def step_losses(model, states, us, ns, p_ss: float, colloc: torch.Tensor, p: Qua
     else:
         out["smooth"] = zero
     return out
+
+
+def _lag_step_losses(model, states, us, ns, p_ss, colloc, scales, gen) -> dict:
+    """Loss terms of one optimizer step of a motor-lag model (:class:`pinn.models.HybridLag`).
+
+    ``us`` carries the window's commands after its ``ROTOR_HISTORY`` past ones: (W, H + K, 4). The rotor speeds
+    at each window's start are the model's own along those past commands; inside the window they are its
+    predictions (the telemetry is never an input: its noise would bias the parameters, errors in variables).
+    The terms: ``data`` (the rigid-body states, as the other models), ``rotor`` (the rotor telemetry against
+    the predicted rotor speeds, over the spread of the telemetry's increments), ``phys`` (the network residual
+    on the data and on collocation points, which trains the network only); theta-hat and tau-hat are inside the
+    prediction and are identified by ``data`` and ``rotor``.
+    """
+    K = states.shape[1] - 1
+    hist, us = us[:, :-K], us[:, -K:]
+    s = model.out_scale
+    z = torch.cat([states[:, 0], model.rotor_speeds_after(hist)], dim=-1)
+    inputs, preds = [], []
+    for k in range(K):
+        pred = model(z, us[:, k])
+        inputs.append(z)
+        preds.append(pred)
+        if k + 1 < K:
+            nxt = states[:, k + 1]
+            if p_ss > 0:
+                own = torch.rand(nxt.shape[0], 1, generator=gen) < p_ss
+                nxt = torch.where(own, pred[:, :12], nxt)
+            z = torch.cat([nxt, pred[:, 12:]], dim=-1)
+    Z = torch.cat(inputs)
+    P = torch.cat(preds)
+    U = us.transpose(0, 1).reshape(-1, 4)
+    Y = states[:, 1:].transpose(0, 1).reshape(-1, 12)
+    Nlog = ns.transpose(0, 1).reshape(-1, 4)           # telemetry at the end of each period
+    r = (P[:, :12] - Y) / s
+    rn = (P[:, 12:] - Nlog) / scales["n_inc"]
+    zc = torch.zeros(colloc.shape[0], 16)
+    zc[:, 3:12] = colloc[:, :9]
+    zc[:, 12:] = colloc[:, 13:]
+    res = torch.cat([model.residual(Z, U)[:, :12], model.residual(zc, colloc[:, 9:13])[:, :12]]) / s
+    zero = torch.zeros(())
+    return {"data": (r * r).mean(), "rotor": (rn * rn).mean(), "phys": (res * res).mean(), "theta": zero,
+            "energy": zero, "smooth": zero}
 
 
 def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | None = None,
@@ -374,12 +459,18 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
     model = build_model(config.arch, st, theta0, config.hidden, config.layers, config.dropout, config.variant())
     data = _TrainData(ds, gen)
     T = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
+    lag = bool(getattr(model, "extra_states", ()))
     feat_lo, feat_hi = T(st["feat_min"]), T(st["feat_max"])
-    scales = {"n_sq": T(st["n_sq_scale"]), "rate_max": T(st["rate_max"]), "power": ref.m * ref.g * 1.0}
+    if lag:     # collocation points over the rotor telemetry's range too
+        n_log = ds.rotor_speed[ds.split == 0].reshape(-1, 4)
+        feat_lo, feat_hi = torch.cat([feat_lo, T(n_log.min(0))]), torch.cat([feat_hi, T(n_log.max(0))])
+    scales = {"n_sq": T(st["n_sq_scale"]), "rate_max": T(st["rate_max"]), "power": ref.m * ref.g * 1.0,
+              "n_inc": T(st["n_inc_scale"])}
 
-    net_params = [q for n, q in model.named_parameters() if n != "log_theta"]
+    physical = [q for n, q in model.named_parameters() if n in PHYSICAL]
+    net_params = [q for n, q in model.named_parameters() if n not in PHYSICAL]
     opt = torch.optim.Adam([{"params": net_params, "lr": config.lr},
-                            {"params": [model.log_theta], "lr": config.lr_theta}])
+                            {"params": physical, "lr": config.lr_theta}])
     total = config.epochs * config.steps_per_epoch
     warm = int(config.theta_warmup * total)
     # Network: cosine decay to lr / 20. theta-hat: frozen during the warm-up, while the
@@ -407,8 +498,12 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
         p_ss = sampling_probability(e, config.epochs) if config.scheduled_sampling else 0.0
         sums = {"data": 0.0, "phys": 0.0, "theta": 0.0, "rotor": 0.0, "energy": 0.0, "smooth": 0.0}
         for _ in range(config.steps_per_epoch):
-            states, us, ns = data.windows(max(1, config.batch // K), K)
-            f = feat_lo + (feat_hi - feat_lo) * torch.rand(config.n_colloc, 13, generator=gen)
+            if lag:
+                states, us, ns, hist = data.windows(max(1, config.batch // K), K, history=ROTOR_HISTORY)
+                us = torch.cat([hist, us], dim=1)
+            else:
+                states, us, ns = data.windows(max(1, config.batch // K), K)
+            f = feat_lo + (feat_hi - feat_lo) * torch.rand(config.n_colloc, len(feat_lo), generator=gen)
             losses = step_losses(model, states, us, ns, p_ss, f, p, scales, config, gen)
             loss = (losses["data"] + config.lambda_p * (losses["phys"] + losses["theta"])
                     + config.lambda_rotor * losses["rotor"] + config.energy * losses["energy"]
@@ -425,6 +520,11 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
                **{k_: v / config.steps_per_epoch for k_, v in sums.items()},
                "val": validation_loss(model, ds, st), "theta": th.tolist(),
                "theta_err_pct": theta_errors_pct(th, p.theta)}
+        if lag:
+            rec["tau_m"] = float(model.tau.detach())
+            tau_true = float(ds.meta.get("fidelity", {}).get("motor_tau", 0.0))
+            if tau_true > 0:
+                rec["theta_err_pct"]["tau_m"] = 100.0 * (rec["tau_m"] - tau_true) / tau_true
         history.append(rec)
         if e + 1 in checkpoints:
             kept[e + 1] = copy.deepcopy(model).eval()

@@ -89,7 +89,11 @@ def table_six(evaluation: dict) -> str:
                         + [f"{fmt(_worst_inertia(lag['theta_err_pct']), '.2f')} %", ""])
         for m in _models_on(evaluation, key):
             err, sig = m["theta_err_pct"], m.get("err_over_crlb") or {}
-            rows.append(["", "", "", m.get("name", MISSING)] + _entry_cells(err, sig)
+            label = m.get("name", MISSING)
+            if "tau_m" in err:      # a motor-lag model: tau_m beside its name, σ of the lag model's bound
+                label += (f" (motor lag; τ_m {fmt(err['tau_m'], '+.2f')} % ({fmt(sig.get('tau_m'), '.1f')} σ)"
+                          + ("; σ of the lag model's bound)" if m.get("crlb") == "lag" else ")"))
+            rows.append(["", "", "", label] + _entry_cells(err, sig)
                         + [f"{fmt(_worst_inertia(err), '.1f')} %", ""])
     header = (["training data", "flights (70 % train)", "samples with a saturated rotor", "estimator"] + list(THETA_NAMES)
               + ["largest inertia error", "paper's inertia error (its regime)"])
@@ -183,7 +187,53 @@ def mismatch_text(evaluation: dict) -> str:
                    f"do not all come back to the bound (up to {worst_sigma:.1f} σ)")
         lines.append("- **The lag modelled**: with the motor lag in the estimator's model the errors on data with a "
                      f"lag {verdict}. " + "; ".join(parts) + ". Rotor drag and gyroscopic torque stay unmodelled.")
+    form = physics_form_text(evaluation)
+    if form:
+        lines.append(form)
     return "\n".join(lines)
+
+
+#: Architectures whose theta-hat is inside the prediction (physics plus network).
+PHYSICS_FORM = ("hybrid", "hybrid_lag")
+TARGET = ("m",) + INERTIAS
+
+
+def _worst_sigma(m: dict, names=TARGET) -> tuple[float, str] | None:
+    sig = m.get("err_over_crlb") or {}
+    vals = [(sig[n], n) for n in names if n in sig]
+    return max(vals) if vals else None
+
+
+def physics_form_text(evaluation: dict) -> str:
+    """θ̂ inside the prediction: how close the physics-plus-network models come to the bound, beside the others."""
+    models = [m for m in evaluation.get("models", []) if isinstance(m, dict) and m.get("err_over_crlb")]
+    form = [m for m in models if m.get("architecture") in PHYSICS_FORM]
+    if not form:
+        return ""
+    parts = []
+    for m in form:
+        worst = _worst_sigma(m)
+        if worst is None:
+            continue
+        text = (f"{m['name']} ({cell_label(cell_key(m))}): m and the inertias within {worst[0]:.1f} σ "
+                f"(worst {worst[1]})")
+        if "tau_m" in m["err_over_crlb"]:
+            text += (f", τ_m {m['theta_err_pct']['tau_m']:+.2f} % ({m['err_over_crlb']['tau_m']:.1f} σ of the lag "
+                     "model's bound)")
+        parts.append(text)
+    others = [m for m in models if m.get("architecture") not in PHYSICS_FORM and cell_key(m) ==
+              ("small", "nominal", "commanded") and _worst_sigma(m) is not None]
+    worst_other = max(others, key=lambda m: _worst_sigma(m)[0]) if others else None
+    missed = [m["name"] for m in form if (_worst_sigma(m) or (0.0, ""))[0] > MOVED_SIGMA]
+    verdict = (f"every one within {MOVED_SIGMA:g} σ" if not missed else
+               "beyond " + f"{MOVED_SIGMA:g} σ: " + ", ".join(missed))
+    line = ("- **θ̂ inside the prediction** (physics plus network: the nominal equations under θ̂ integrated over "
+            "the period, plus a network residual): " + "; ".join(parts) + f"; {verdict}.")
+    if worst_other is not None:
+        w = _worst_sigma(worst_other)
+        line += (f" The worst model of the four paper architectures on the same data, {worst_other['name']}, is "
+                 f"at {w[0]:.1f} σ ({w[1]}).")
+    return line
 
 
 # ------------------------------------------------------------------ closed loop on the high-fidelity plant
@@ -250,7 +300,35 @@ def _highfi_answer(stats: dict, trained: dict) -> str:
             continue
         out.append(f"- {sc}, {ctrl}: {model} (θ̂ inertias {_theta_text(m)}) {a:.4f} m against {twin} "
                    f"{b:.4f} m ({100 * (a - b) / b:+.0f} %).")
+    out += _against_nominal(stats)
     return ("\n\n" + "\n".join(out)) if out else ""
+
+
+#: The improvement over the nominal equations that counts as a learned model winning (fraction of their RMSE).
+WIN_FRACTION = 0.5
+
+
+def _against_nominal(stats: dict) -> list[str]:
+    """Per scenario and controller: the best learned model against the nominal equations, with the runs' ranges."""
+    out = []
+    for (sc, ctrl, model), s in sorted(stats.items()):
+        if model != "nominal" or s["median"] is None:
+            continue
+        learned = {k[2]: v for k, v in stats.items() if k[:2] == (sc, ctrl) and k[2] not in ("oracle", "nominal")
+                   and v["median"] is not None and not v["crashes"]}
+        if not learned:
+            continue
+        best = min(learned, key=lambda n: learned[n]["median"])
+        b = learned[best]
+        gain = 1.0 - b["median"] / s["median"]
+        apart = b["max"] < s["min"]
+        verdict = ("meets" if gain >= WIN_FRACTION and apart else "misses") + \
+            f" the {100 * WIN_FRACTION:.0f} % goal"
+        out.append(f"- {sc}, {ctrl}: the best learned model, {best}, {b['median']:.4f} m "
+                   f"({b['min']:.4f}–{b['max']:.4f}) against the nominal equations' {s['median']:.4f} m "
+                   f"({s['min']:.4f}–{s['max']:.4f}): {100 * gain:+.0f} % better, ranges "
+                   f"{'apart' if apart else 'overlapping'}; it {verdict}.")
+    return out
 
 
 def _theta_text(m: dict) -> str:

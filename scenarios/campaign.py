@@ -66,7 +66,7 @@ ENSEMBLE_MEMBERS = 10
 HIGHFI_SCENARIOS = {"hover+highfi": 1, "figure8-fast+highfi": 5}
 HIGHFI_CONTROLLERS = ("sqp",)
 HIGHFI_MODELS = ("baseline.onnx", "proposed.onnx", "identification/baseline_highfi.onnx",
-                 "identification/proposed_highfi.onnx")
+                 "identification/proposed_highfi.onnx", "identification/hybrid_lag_highfi.onnx")
 #: Sub-folder of the models folder with the models of the identification study (Tables II and VI: other data
 #: cells, other seeds, a recipe variant); evaluated by the main job beside the shipped models, flown only on the
 #: high-fidelity plant.

@@ -104,3 +104,39 @@ def test_highfi_table_compares_each_model_with_its_nominal_twin(evaluation):
 
 def test_highfi_table_without_runs():
     assert "No run on a `+highfi` scenario" in highfi_table([], {"models": []})
+
+
+def test_physics_form_sentence_reports_each_models_worst_sigma_and_the_miss(evaluation):
+    from reports.identification import physics_form_text
+    assert physics_form_text(evaluation) == ""          # no physics-plus-network model: no sentence
+    lag = _model("hybrid_lag_highfi", "hybrid_lag", "small", "high", "commanded", zero(m=-0.4, Jyy=0.1))
+    lag["theta_err_pct"]["tau_m"] = 0.12
+    lag["err_over_crlb"]["tau_m"] = 1.8
+    evaluation["models"] += [_model("hybrid", "hybrid", "small", "nominal", "commanded", zero(Jzz=0.08)),
+                             _model("proposed", "proposed", "small", "nominal", "commanded", zero(Jxx=0.9)), lag]
+    text = physics_form_text(evaluation)
+    assert "hybrid (small, nominal simulator): m and the inertias within 0.8 σ (worst Jzz)" in text
+    assert "within 4.0 σ (worst m), τ_m +0.12 % (1.8 σ" in text
+    assert "beyond 3 σ: hybrid_lag_highfi" in text
+    assert "proposed, is at 9.0 σ (Jxx)" in text
+    assert text in mismatch_text(evaluation)
+    evaluation["models"].remove(lag)
+    assert "every one within 3 σ" in physics_form_text(evaluation)
+
+
+def test_highfi_answer_puts_the_best_learned_model_against_the_nominal_equations(evaluation):
+    sc = "figure8-fast+highfi"
+    runs = ([_run(sc, "nominal", r, k) for k, r in enumerate((0.038, 0.039, 0.040))]
+            + [_run(sc, "baseline_highfi", r, k) for k, r in enumerate((0.045, 0.035, 0.05))]
+            + [_run(sc, "hybrid_lag_highfi", r, k) for k, r in enumerate((0.027, 0.026, 0.028))])
+    line = next(r for r in highfi_table(runs, evaluation).splitlines() if "the best learned model" in r)
+    # 1 - 0.027 / 0.039 = 31 %: ranges apart, but short of half the nominal RMSE
+    assert "hybrid_lag_highfi, 0.0270 m (0.0260–0.0280) against the nominal equations' 0.0390 m" in line
+    assert "+31 % better, ranges apart; it misses the 50 % goal" in line
+    runs = [r for r in runs if r["model"] != "hybrid_lag_highfi"] + [_run(sc, "hybrid_lag_highfi", r, k)
+                                                                    for k, r in enumerate((0.010, 0.012, 0.039))]
+    line = next(r for r in highfi_table(runs, evaluation).splitlines() if "the best learned model" in r)
+    assert "+69 % better, ranges overlapping; it misses" in line     # the worst member reaches the nominal range
+    runs[-1]["rmse_position_m"] = 0.015
+    line = next(r for r in highfi_table(runs, evaluation).splitlines() if "the best learned model" in r)
+    assert "ranges apart; it meets the 50 % goal" in line
