@@ -283,6 +283,29 @@ def physics_residual(increment: torch.Tensor, x: torch.Tensor, u: torch.Tensor, 
     return (increment - rk4_increment(x, u, theta, p)) / scale
 
 
+def _rollout(model, start, states, us, p_ss: float, gen):
+    """Autoregressive rollout over a window (teacher forcing mixed with the model's own predictions).
+
+    ``start`` (W, 12 + E) is the first input; each next input is the measured rigid-body state, or with
+    probability ``p_ss`` the model's own prediction of it, followed by the model's own extra states. Returns the
+    inputs and predictions, step-major (K W, 12 + E).
+    """
+    K = us.shape[1]
+    inp = start
+    inputs, preds = [], []
+    for k in range(K):
+        pred = model(inp, us[:, k])
+        inputs.append(inp)
+        preds.append(pred)
+        if k + 1 < K:
+            nxt = states[:, k + 1]
+            if p_ss > 0:
+                own = torch.rand(nxt.shape[0], 1, generator=gen) < p_ss
+                nxt = torch.where(own, pred[:, :12], nxt)
+            inp = torch.cat([nxt, pred[:, 12:]], dim=-1)
+    return torch.cat(inputs), torch.cat(preds)
+
+
 def step_losses(model, states, us, ns, p_ss: float, colloc: torch.Tensor, p: QuadParams, scales: dict,
                 config: TrainConfig, gen: torch.Generator) -> dict:
     """Loss terms of one optimizer step (see the module docstring).
@@ -307,21 +330,7 @@ def step_losses(model, states, us, ns, p_ss: float, colloc: torch.Tensor, p: Qua
     K = us.shape[1]
     s = model.out_scale
     theta = model.theta
-    # Autoregressive rollout (teacher forcing mixed with the model's own predictions).
-    inp = states[:, 0]
-    inputs, preds = [], []
-    for k in range(K):
-        pred = model(inp, us[:, k])
-        inputs.append(inp)
-        preds.append(pred)
-        if k + 1 < K:
-            nxt = states[:, k + 1]
-            if p_ss > 0:
-                own = torch.rand(nxt.shape[0], 1, generator=gen) < p_ss
-                nxt = torch.where(own, pred, nxt)
-            inp = nxt
-    X = torch.cat(inputs)                                   # step-major: (K W, 12)
-    P = torch.cat(preds)
+    X, P = _rollout(model, states[:, 0], states, us, p_ss, gen)     # step-major: (K W, 12)
     U = us.transpose(0, 1).reshape(-1, 4)
     Y = states[:, 1:].transpose(0, 1).reshape(-1, 12)
     inc = P - X
@@ -393,20 +402,7 @@ def _lag_step_losses(model, states, us, ns, p_ss, colloc, scales, gen) -> dict:
     K = states.shape[1] - 1
     hist, us = us[:, :-K], us[:, -K:]
     s = model.out_scale
-    z = torch.cat([states[:, 0], model.rotor_speeds_after(hist)], dim=-1)
-    inputs, preds = [], []
-    for k in range(K):
-        pred = model(z, us[:, k])
-        inputs.append(z)
-        preds.append(pred)
-        if k + 1 < K:
-            nxt = states[:, k + 1]
-            if p_ss > 0:
-                own = torch.rand(nxt.shape[0], 1, generator=gen) < p_ss
-                nxt = torch.where(own, pred[:, :12], nxt)
-            z = torch.cat([nxt, pred[:, 12:]], dim=-1)
-    Z = torch.cat(inputs)
-    P = torch.cat(preds)
+    Z, P = _rollout(model, torch.cat([states[:, 0], model.rotor_speeds_after(hist)], dim=-1), states, us, p_ss, gen)
     U = us.transpose(0, 1).reshape(-1, 4)
     Y = states[:, 1:].transpose(0, 1).reshape(-1, 12)
     Nlog = ns.transpose(0, 1).reshape(-1, 4)           # telemetry at the end of each period
