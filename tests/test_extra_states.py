@@ -373,3 +373,14 @@ def test_the_controller_is_told_the_command_sent_averaged_over_the_period_before
     np.testing.assert_allclose(clock.u, hover, rtol=0, atol=0)      # the plant still waits for its delay
     clock.fly_period(Plant(), 1)
     np.testing.assert_allclose(clock.sent, u1, rtol=0, atol=1e-15)
+
+
+def test_evaluation_refuses_extra_states_it_cannot_rebuild_from_a_flight_log(history_file):
+    # A shift register of past inputs is not a motor: `pinnmpc evaluate` cannot rebuild it from the logged data
+    # and says so in one line, naming the file.
+    from pinn.evaluate import model_extra_states
+    from sim.excitation import make_dataset
+    ds = make_dataset("small", 1, 1.0, 0)
+    with pytest.raises(ValueError, match=r"cannot be reconstructed from a flight log") as e:
+        model_extra_states(check_model(history_file), ds)
+    assert str(history_file) in str(e.value) and "\n" not in str(e.value)
