@@ -12,6 +12,7 @@ from .identification import highfi_table, table_six
 from .plants import plants_section, split_by_plant
 from .inputs import load_inputs
 from .summary import summary_text
+from .versus import versus_section
 from .zoo import (NO_STUDY, answer_text, dose_response_figure, max_speed_figure, predictor_table, provenance_text,
                   zoo_table)
 from .tables import (closed_loop_table, ensemble_table, fisher_table, hover_table, ladder_table, provenance_section,
@@ -32,6 +33,7 @@ SECTIONS = (
     "Table VI: identification under model mismatch",
     "Closed-loop results",
     "High-fidelity plant: models trained on its own data",
+    "Learned against nominal on plants with unmodelled physics",
     "Other plants and vehicles",
     "Hover: settled error and gust recovery",
     "Speed ladder: maximum trackable speed",
@@ -109,6 +111,7 @@ def report_markdown(run_dir) -> str:
     body["Closed-loop results"] = closed_loop_table(inp.runs)
     body["High-fidelity plant: models trained on its own data"] = highfi_table(
         inp.runs + members, inp.evaluation)
+    body["Learned against nominal on plants with unmodelled physics"] = versus_section(inp.versus)
     body["Other plants and vehicles"] = plants_section(inp.runs, other_plants)
     body["Hover: settled error and gust recovery"] = hover_table(inp.runs)
     body["Speed ladder: maximum trackable speed"] = ladder_table(inp.runs)

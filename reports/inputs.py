@@ -3,8 +3,9 @@
 Required: ``results.json``, ``evaluation.json``, ``fisher.json`` (a missing or
 malformed one raises :class:`~reports.errors.ReportError` naming the file).
 Optional: ``ablation.json``, ``provenance.json``, ``study.json`` (the zoo
-study, copied by ``pinnmpc run``) and ``traces/<run_id>.npz`` (missing ones
-are reported in the text instead; a malformed ``study.json`` raises).
+study, copied by ``pinnmpc run``), ``versus.json`` (learned against nominal,
+copied likewise) and ``traces/<run_id>.npz`` (missing ones are reported in the
+text instead; a malformed ``study.json`` or ``versus.json`` raises).
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ from .labels import run_key
 RUN_KEYS = ("scenario", "controller", "model")
 #: Keys a study.json must have.
 STUDY_KEYS = ("scenario", "members", "controllers", "ladder", "models", "scores", "oracle_rmse_m")
+#: Keys a versus.json must have.
+VERSUS_KEYS = ("scenario", "controller", "members", "ladder_members", "ladder", "goal", "plants")
 #: Trace arrays the figures use: t (K+1,) s, x and x_ref (K+1, 12), solve_s (K,) s.
 TRACE_KEYS = ("t", "x", "x_ref")
 
@@ -95,6 +98,8 @@ class Inputs:
         ``provenance.json``, None when absent.
     study : dict or None
         ``study.json`` (the zoo's dose-response study), None when absent.
+    versus : dict or None
+        ``versus.json`` (learned models against the nominal equations), None when absent.
     """
 
     run_dir: Path
@@ -105,6 +110,7 @@ class Inputs:
     ablation: dict | None
     provenance: dict | None
     study: dict | None = None
+    versus: dict | None = None
     _traces: dict = field(default_factory=dict, repr=False)
 
     def models_by_name(self) -> dict:
@@ -163,5 +169,10 @@ def load_inputs(run_dir) -> Inputs:
         missing = [k for k in STUDY_KEYS if not isinstance(study, dict) or k not in study]
         if missing:
             raise ReportError(f"'study.json': not the output of pinnmpc study (lacks {', '.join(missing)})")
+    versus = _read_json(d / "versus.json", False)
+    if versus is not None:
+        missing = [k for k in VERSUS_KEYS if not isinstance(versus, dict) or k not in versus]
+        if missing:
+            raise ReportError(f"'versus.json': not the output of pinnmpc versus (lacks {', '.join(missing)})")
     plan = results.get("plan") if isinstance(results.get("plan"), dict) else {}
-    return Inputs(d, runs, plan, evaluation, fisher, ablation, provenance, study)
+    return Inputs(d, runs, plan, evaluation, fisher, ablation, provenance, study, versus)

@@ -8,6 +8,9 @@ Layout of a results folder ``DIR``::
     DIR/ablation.json       Table III (copied from models/ablation.json, produced by ``pinnmpc ablation``)
     DIR/study.json          the zoo's dose-response study (copied from models/zoo/study.json, produced by
                             ``pinnmpc study``; it flies 729 runs, more than the main job's time allows)
+    DIR/versus.json         learned models against the nominal equations on plants with unmodelled physics
+                            (copied from models/versus.json, produced by ``pinnmpc versus``; too long for the main
+                            job as well)
     DIR/results.json        {"plan": ..., "runs": [one result per closed-loop run, as ``fly --json``]}
     DIR/runs/<id>.json      the same results, one file per run
     DIR/traces/<id>.npz     the trace of each run (t, x, x_ref, x_measured, u, u_command, solve_s, ...)
@@ -301,11 +304,12 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
     ablation = Path(models_dir) / "ablation.json"
     if ablation.is_file():
         shutil.copyfile(ablation, out / "ablation.json")
-    study = Path(models_dir) / "zoo" / "study.json"
-    if study.is_file():
-        shutil.copyfile(study, out / "study.json")
-    elif (out / "study.json").is_file():
-        (out / "study.json").unlink()     # a stale copy would be reported as this run's
+    for src, name in ((Path(models_dir) / "zoo" / "study.json", "study.json"),
+                      (Path(models_dir) / "versus.json", "versus.json")):
+        if src.is_file():
+            shutil.copyfile(src, out / name)
+        elif (out / name).is_file():
+            (out / name).unlink()     # a stale copy would be reported as this run's
     where = (f"the Ray cluster at {address}" if address else f"a local Ray instance with {jobs} CPUs") \
         if engine == "ray" else f"{jobs} processes"
     stage(f"closed-loop sweep: {len(specs)} runs on {where}")

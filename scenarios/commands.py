@@ -92,6 +92,29 @@ def register(sub) -> None:
                         "--out (after adding a candidate)")
     p.set_defaults(handler=cmd_study)
 
+    p = sub.add_parser("versus", help="learned against nominal: fly the models trained on plants with unmodelled "
+                                      "physics against the nominal equations, as ensembles",
+                       description="On the high-fidelity plant and on RotorPy (motor lag, aerodynamics), fly the "
+                                   "nominal equations, the models trained on that plant's own data and, where known, "
+                                   "the plant's true equations with the SQP: figure8-fast from --members ensemble "
+                                   "members and the figure-8 speed ladder from --ladder-members per rung. Gives each "
+                                   "model's median RMSE with a bootstrap interval and its improvement over the "
+                                   "nominal equations. Writes OUT/versus.json and a copy MODELS/versus.json, which "
+                                   "the report of pinnmpc run shows. Resumable like run.")
+    p.add_argument("--models", type=Path, default=Path("models"), help="models folder (default models)")
+    p.add_argument("--out", type=Path, default=Path("results/versus"), help="results folder (default results/versus)")
+    p.add_argument("--members", type=int, default=10, help="ensemble members on figure8-fast (default 10)")
+    p.add_argument("--ladder-members", type=int, default=10,
+                   help="ensemble members on every other rung of the speed ladder (default 10)")
+    p.add_argument("--plants", default=None, metavar="LIST",
+                   help="comma-separated plants: highfi, rotorpy (default both; rotorpy needs the rotorpy extra)")
+    p.add_argument("--jobs", type=int, default=None, help="worker processes (default: number of CPUs)")
+    p.add_argument("--engine", choices=ENGINES, default="process")
+    p.add_argument("--address", default=None, metavar="ADDR", help="Ray cluster (with --engine ray)")
+    p.add_argument("--fresh", action="store_true", help="fly every run again instead of reusing saved ones")
+    p.add_argument("--no-publish", action="store_true", help="do not copy versus.json into --models")
+    p.set_defaults(handler=cmd_versus)
+
     p = sub.add_parser("bounds", help="write the CI bounds file from the results of pinnmpc run",
                        description="Write the closed-loop CI bounds (scenarios/bounds.toml) from a results folder of "
                                    "pinnmpc run: the oracle's cases bounded by its measured error, every shipped "
@@ -204,6 +227,26 @@ def cmd_study(args: argparse.Namespace) -> int:
                     vehicle=args.vehicle)
     print(format_study(out))
     print(f"wrote {args.out / 'study.json'}" + ("" if args.no_publish else f" and {args.models / 'study.json'}"))
+    return 0
+
+
+def cmd_versus(args: argparse.Namespace) -> int:
+    """Handler of ``pinnmpc versus``."""
+    import os
+
+    from .versus import format_versus, parse_plants, run_versus
+
+    jobs = args.jobs if args.jobs is not None else (os.cpu_count() or 1)
+    for name, v in (("--jobs", jobs), ("--members", args.members), ("--ladder-members", args.ladder_members)):
+        if v < 1:
+            raise ValueError(f"{name} must be >= 1; found {v}")
+    if args.address is not None and args.engine != "ray":
+        raise ValueError("--address needs --engine ray")
+    out = run_versus(args.models, args.out, args.members, args.ladder_members, parse_plants(args.plants), jobs,
+                     progress=True, publish=not args.no_publish, engine=args.engine, address=args.address,
+                     resume=not args.fresh)
+    print(format_versus(out))
+    print(f"wrote {args.out / 'versus.json'}" + ("" if args.no_publish else f" and {args.models / 'versus.json'}"))
     return 0
 
 

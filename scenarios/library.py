@@ -114,7 +114,8 @@ def _yaw_turn() -> Scenario:
 
 BASE = {s.name: s for s in (_hover(), _figure8("figure8-slow", 6.0), _figure8("figure8-fast", 3.0))}
 LADDER = {f"figure8-{p:.1f}s": p for p in LADDER_PERIODS_S}
-#: Scenarios without variants: the speed ladder and the yaw turn (the random paths are built on demand).
+#: Scenarios without variants: the speed ladder and the yaw turn (the random paths are built on demand). The
+#: ladder's rungs have one: ``+highfi`` (the speed ladder on the high-fidelity plant; not in the main job's list).
 EXTRA = {s.name: s for s in (*(_figure8(n, p) for n, p in LADDER.items()), _yaw_turn())}
 
 
@@ -186,9 +187,11 @@ def get_scenario(name: str, seed: int | None = None) -> Scenario:
         s = _random(int(base[7:]))
     elif base in EXTRA and not suffix:
         s = EXTRA[base]
+    elif base in LADDER and suffix == "highfi":
+        s = _variant(EXTRA[base], suffix)
     elif base in BASE:
         s = _variant(BASE[base], suffix) if suffix else BASE[base]
     else:
         raise ScenarioError(f"unknown scenario {name!r}; choose from {', '.join(scenario_names())}, "
-                            f"or random-<k> for any integer k >= 0")
+                            f"random-<k> for any integer k >= 0, or a rung of the speed ladder with +highfi")
     return s if seed is None else s.with_seed(seed)

@@ -107,3 +107,40 @@ def spearman(x, y) -> float | None:
     if den == 0.0:
         return None
     return float(np.sum(rx * ry) / den)
+
+
+def improvement(reference, values, n_boot: int = 2000, level: float = 0.95, seed: int = 0) -> dict:
+    """How much lower the median of ``values`` is than the median of ``reference``, with a bootstrap interval.
+
+    ``fraction = 1 - median(values) / median(reference)``: 0.5 means half the reference's error, a negative
+    number a larger error. The interval resamples the two groups independently (seeded) and takes percentiles
+    of the fraction; the two medians' own intervals are :func:`bootstrap_ci`'s.
+
+    Parameters
+    ----------
+    reference, values : array_like, shape (n,) and (m,)
+        Finite positive samples, for example the RMSE (m) of each run that did not crash; n, m >= 2.
+
+    Returns
+    -------
+    dict
+        ``fraction`` and ``fraction_ci95`` (low, high); ``apart``: True when the medians' intervals do not
+        overlap.
+    """
+    r = np.asarray(reference, dtype=float).ravel()
+    v = np.asarray(values, dtype=float).ravel()
+    for name, a in (("reference", r), ("values", v)):
+        if a.size < 2 or not np.all(np.isfinite(a)) or np.any(a <= 0):
+            raise ScenarioError(f"{name} must be at least 2 finite positive numbers; found {a.size} of them"
+                                f"{'' if a.size < 2 else ' with some not finite or <= 0'}")
+    if not 0 < level < 1:
+        raise ScenarioError(f"level must be in (0, 1); found {level}")
+    rng = np.random.default_rng(seed)
+    mr = np.median(r[rng.integers(0, r.size, (n_boot, r.size))], axis=1)
+    mv = np.median(v[rng.integers(0, v.size, (n_boot, v.size))], axis=1)
+    boot = 1.0 - mv / mr
+    a = (1 - level) / 2
+    ci_r, ci_v = bootstrap_ci(r, level=level, seed=seed), bootstrap_ci(v, level=level, seed=seed)
+    return {"fraction": float(1.0 - np.median(v) / np.median(r)),
+            "fraction_ci95": [float(np.quantile(boot, a)), float(np.quantile(boot, 1 - a))],
+            "apart": bool(ci_v[1] < ci_r[0] or ci_r[1] < ci_v[0])}

@@ -30,6 +30,7 @@ HEADINGS = (
     "Table VI: identification under model mismatch",
     "Closed-loop results",
     "High-fidelity plant: models trained on its own data",
+    "Learned against nominal on plants with unmodelled physics",
     "Other plants and vehicles",
     "Hover: settled error and gust recovery",
     "Speed ladder: maximum trackable speed",
@@ -366,6 +367,42 @@ def test_a_malformed_study_is_named(results_dir):
         build_report(results_dir)
     (results_dir / "study.json").write_text("{not json")
     with pytest.raises(ReportError, match="study.json"):
+        build_report(results_dir)
+
+
+def _versus() -> dict:
+    ladder = {"rungs": ["figure8-slow", "figure8-fast"], "speeds_mps": {"figure8-slow": 0.76, "figure8-fast": 1.52},
+              "rmse_bound_m": 0.1}
+
+    def row(arch, extra, med, ci, crashes, vs, speed):
+        return {"architecture": arch, "extra_states": extra,
+                "ensemble": {"runs": 10, "crashes": crashes, "median": med, "median_ci95": ci},
+                "versus_nominal": vs, "ladder": {"max_speed": {"speed_mps": speed}}}
+
+    models = {"nominal": row("equations", [], 0.0385, [0.0383, 0.0386], 0, None, 1.52),
+              "lagged": row("hybrid_lag", ["n1", "n2", "n3", "n4"], 0.0275, [0.0272, 0.0277], 0,
+                            {"fraction": 0.286, "fraction_ci95": [0.28, 0.29], "apart": True}, 0.76)}
+    plant = {"label": "a lagging plant", "scenario": "figure8-fast+highfi", "models": models,
+             "verdict": {"best": "lagged", "fraction": 0.286, "fraction_ci95": [0.28, 0.29], "apart": True,
+                         "goal": 0.5, "met": False}}
+    return {"scenario": "figure8-fast", "controller": "sqp", "members": 10, "ladder_members": 10, "ladder": ladder,
+            "goal": 0.5, "plants": {"highfi": plant}, "runs": 40, "wall_time_s": 600.0, "date": "2026-11-24",
+            "command": "pinnmpc versus --members 10"}
+
+
+def test_learned_against_nominal_section_reads_versus_json(results_dir):
+    h = "Learned against nominal on plants with unmodelled physics"
+    assert "pinnmpc versus" in _section(build_report(results_dir).read_text(encoding="utf-8"), h)   # how to make one
+    (results_dir / "versus.json").write_text(json.dumps(_versus()))
+    sec = _section(build_report(results_dir).read_text(encoding="utf-8"), h)
+    rows = [_cells(ln) for ln in sec.splitlines() if ln.startswith("| `")]
+    assert rows[0] == ["`nominal`", "equations", "none", "38.5 (38.3–38.6)", "0/10", "–", "1.52"]
+    assert rows[1] == ["`lagged`", "hybrid_lag", "n1, n2, n3, n4", "27.5 (27.2–27.7)", "0/10",
+                       "+29 % (+28 to +29)", "0.76"]
+    assert "29 % below the nominal equations' RMSE (bootstrap 95 % 28 to 29 %)" in sec
+    assert "the 50 % goal is missed by 21 points" in sec and "40 closed-loop runs in 10 min" in sec
+    (results_dir / "versus.json").write_text(json.dumps({"scenario": "figure8-fast"}))
+    with pytest.raises(ReportError, match="versus.json"):
         build_report(results_dir)
 
 
