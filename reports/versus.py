@@ -6,8 +6,8 @@ from .tables import MISSING, fmt, md_table
 
 #: Shown when the results folder has no versus.json.
 NO_VERSUS = ("No `versus.json` in this folder: `pinnmpc versus` flies the models trained on plants with unmodelled "
-             "physics against the nominal equations (about an hour on two cores) and writes `models/versus.json`, "
-             "which the next `pinnmpc run` copies here.")
+             "physics against the nominal equations (about an hour on two cores) and writes a copy into "
+             "`models/versus/`, which the next `pinnmpc run` copies here.")
 
 
 def _mm_ci(s: dict) -> str:

@@ -9,8 +9,8 @@ Layout of a results folder ``DIR``::
     DIR/study.json          the zoo's dose-response study (copied from models/zoo/study.json, produced by
                             ``pinnmpc study``; it flies 729 runs, more than the main job's time allows)
     DIR/versus.json         learned models against the nominal equations on plants with unmodelled physics
-                            (copied from models/versus.json, produced by ``pinnmpc versus``; too long for the main
-                            job as well)
+                            (copied from models/versus/versus.json, produced by ``pinnmpc versus``; also too
+                            long for the main job)
     DIR/results.json        {"plan": ..., "runs": [one result per closed-loop run, as ``fly --json``]}
     DIR/runs/<id>.json      the same results, one file per run
     DIR/traces/<id>.npz     the trace of each run (t, x, x_ref, x_measured, u, u_command, solve_s, ...)
@@ -305,7 +305,7 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
     if ablation.is_file():
         shutil.copyfile(ablation, out / "ablation.json")
     for src, name in ((Path(models_dir) / "zoo" / "study.json", "study.json"),
-                      (Path(models_dir) / "versus.json", "versus.json")):
+                      (Path(models_dir) / "versus" / "versus.json", "versus.json")):
         if src.is_file():
             shutil.copyfile(src, out / name)
         elif (out / name).is_file():

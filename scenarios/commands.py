@@ -99,7 +99,7 @@ def register(sub) -> None:
                                    "the plant's true equations with the SQP: figure8-fast from --members ensemble "
                                    "members and the figure-8 speed ladder from --ladder-members per rung. Gives each "
                                    "model's median RMSE with a bootstrap interval and its improvement over the "
-                                   "nominal equations. Writes OUT/versus.json and a copy MODELS/versus.json, which "
+                                   "nominal equations. Writes OUT/versus.json and a copy MODELS/versus/versus.json, which "
                                    "the report of pinnmpc run shows. Resumable like run.")
     p.add_argument("--models", type=Path, default=Path("models"), help="models folder (default models)")
     p.add_argument("--out", type=Path, default=Path("results/versus"), help="results folder (default results/versus)")
@@ -112,7 +112,7 @@ def register(sub) -> None:
     p.add_argument("--engine", choices=ENGINES, default="process")
     p.add_argument("--address", default=None, metavar="ADDR", help="Ray cluster (with --engine ray)")
     p.add_argument("--fresh", action="store_true", help="fly every run again instead of reusing saved ones")
-    p.add_argument("--no-publish", action="store_true", help="do not copy versus.json into --models")
+    p.add_argument("--no-publish", action="store_true", help="do not copy versus.json into --models/versus")
     p.set_defaults(handler=cmd_versus)
 
     p = sub.add_parser("bounds", help="write the CI bounds file from the results of pinnmpc run",
@@ -246,7 +246,8 @@ def cmd_versus(args: argparse.Namespace) -> int:
                      progress=True, publish=not args.no_publish, engine=args.engine, address=args.address,
                      resume=not args.fresh)
     print(format_versus(out))
-    print(f"wrote {args.out / 'versus.json'}" + ("" if args.no_publish else f" and {args.models / 'versus.json'}"))
+    print(f"wrote {args.out / 'versus.json'}"
+          + ("" if args.no_publish else f" and {args.models / 'versus' / 'versus.json'}"))
     return 0
 
 

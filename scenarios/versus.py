@@ -15,7 +15,7 @@ speed). For each learned model it gives the improvement over the nominal equatio
 ``1 - median(model) / median(nominal)``, with a bootstrap interval, and whether the two medians' intervals
 are apart; for each plant the best learned model against :data:`WIN_FRACTION`.
 
-It writes ``OUT/versus.json`` and a copy ``MODELS/versus.json`` that the report of ``pinnmpc run`` shows
+It writes ``OUT/versus.json`` and a copy ``MODELS/versus/versus.json`` that the report of ``pinnmpc run`` shows
 (the main job does not fly these runs: about an hour of worker time, and the RotorPy models' data cost minutes
 to regenerate). The runs are a resumable sweep (:func:`scenarios.sweep.sweep`).
 """
@@ -27,6 +27,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from sim.files import write_json
 
 from .errors import ScenarioError
@@ -36,6 +38,8 @@ from .runner import RunSpec, code_version, model_name
 from .stats import improvement, summarize
 from .sweep import sweep
 
+#: Sub-folder of the models folder with the models only this study flies, and where it publishes versus.json.
+VERSUS_DIR = "versus"
 VERSUS_SCENARIO = "figure8-fast"
 VERSUS_CONTROLLER = "sqp"
 #: The goal: the best learned model's median RMSE at most this fraction below the nominal equations' (0.5: half).
@@ -65,13 +69,14 @@ class VersusPlant:
 VERSUS_PLANTS = {
     "highfi": VersusPlant(
         "sim", "+highfi", "our high-fidelity plant (30 ms motor lag, rotor drag, gyroscopic torque)",
-        tuple(f"identification/{a}_highfi.onnx" for a in ("baseline", "modular", "fourier", "proposed", "hybrid",
-                                                          "hybrid_lag")),
+        ("identification/baseline_highfi.onnx", "versus/modular_highfi.onnx", "versus/fourier_highfi.onnx",
+         "identification/proposed_highfi.onnx", "versus/hybrid_highfi.onnx", "identification/hybrid_lag_highfi.onnx",
+         "versus/hybrid_lag_aggressive_highfi.onnx"),
         True),
     "rotorpy": VersusPlant(
         "rotorpy", "", "RotorPy with its motor lag and aerodynamics",
-        tuple(f"rotorpy/{a}_rotorpy.onnx" for a in ("baseline", "modular", "fourier", "proposed", "hybrid",
-                                                    "hybrid_lag")),
+        tuple(f"versus/{a}_rotorpy.onnx" for a in ("baseline", "modular", "fourier", "proposed", "hybrid",
+                                                   "hybrid_lag")),
         False),
 }
 
@@ -147,7 +152,11 @@ def _ladder_row(rungs: dict, speeds: dict) -> dict:
 
 
 def summarize_plant(key: str, models: list[str], results: dict, speeds: dict) -> dict:
-    """One plant's rows and verdict from its flown runs (``results``: run_id -> result)."""
+    """One plant's rows and verdict from its flown runs.
+
+    ``results`` maps any key to a run's result with two more keys: ``_model`` (the model as given in ``models``)
+    and ``_rung`` (None for the ensemble on :data:`VERSUS_SCENARIO`, else the ladder rung's base name).
+    """
     p = VERSUS_PLANTS[key]
     rows = {}
     nominal_vals = None
@@ -155,8 +164,13 @@ def summarize_plant(key: str, models: list[str], results: dict, speeds: dict) ->
         ens = [results[i] for i in sorted(results) if results[i]["_model"] == m and results[i]["_rung"] is None]
         s = summarize(ens)
         facts = _model_facts(RunSpec(p.scenario(VERSUS_SCENARIO), VERSUS_CONTROLLER, m, plant=p.plant))
+        solve = [r["solve_ms"]["median"] for r in ens if isinstance(r.get("solve_ms"), dict)
+                 and r["solve_ms"].get("median") is not None]
         row = {"model": model_name(m), "path": None if m in ("nominal", "oracle") else m, **facts,
-               "ensemble": s, "errors": sum(bool(r.get("error")) for r in ens)}
+               "ensemble": s, "errors": sum(bool(r.get("error")) for r in ens),
+               "members_rmse_m": [None if r.get("crashed") or r.get("error") else r.get("rmse_position_m")
+                                  for r in ens],
+               "solve_ms_median": float(np.median(solve)) if solve else None}
         rungs = {}
         for rung in ladder_names():
             rungs[rung] = ens if rung == VERSUS_SCENARIO else [
@@ -201,7 +215,7 @@ def run_versus(models_dir="models", out_dir="results/versus", members: int = 10,
     plants : list of str, optional
         Keys of :data:`VERSUS_PLANTS` (default all).
     publish : bool
-        Also copy ``versus.json`` into ``models_dir`` (where the report reads it).
+        Also copy ``versus.json`` into ``models_dir/versus`` (where the main job finds it for the report).
     sweep_kwargs
         ``engine``, ``address``, ``resume`` of :func:`scenarios.sweep.sweep`.
     """
@@ -245,7 +259,8 @@ def run_versus(models_dir="models", out_dir="results/versus", members: int = 10,
            "wall_time_s": wall, "date": time.strftime("%Y-%m-%d")}
     path = write_json(Path(out_dir) / "versus.json", out)
     if publish:
-        shutil.copyfile(path, Path(models_dir) / "versus.json")
+        (Path(models_dir) / VERSUS_DIR).mkdir(exist_ok=True)
+        shutil.copyfile(path, Path(models_dir) / VERSUS_DIR / "versus.json")
     return out
 
 

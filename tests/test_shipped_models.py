@@ -16,8 +16,13 @@ NAMES = sorted(MANIFEST)
 #: The identification study's models (models/identification), with their own manifest.
 IDENT = MODELS / "identification"
 IDENT_MANIFEST = json.loads((IDENT / "manifest.json").read_text())
+#: The models only ``pinnmpc versus`` flies (models/versus): the other architectures on the high-fidelity data, and
+#: every architecture on RotorPy's data (its motor lag and aerodynamics).
+VERSUS = MODELS / "versus"
+VERSUS_MANIFEST = json.loads((VERSUS / "manifest.json").read_text())
 #: Every shipped model as (folder, name).
-ALL = [(MODELS, n) for n in NAMES] + [(IDENT, n) for n in sorted(IDENT_MANIFEST)]
+ALL = ([(MODELS, n) for n in NAMES] + [(IDENT, n) for n in sorted(IDENT_MANIFEST)]
+       + [(VERSUS, n) for n in sorted(VERSUS_MANIFEST)])
 IDS = [f"{d.name}/{n}" for d, n in ALL]
 
 TOL = {
@@ -34,6 +39,11 @@ REQUIRED = {"baseline", "modular", "fourier", "proposed", "baseline_aggressive",
 REQUIRED_IDENT = {f"{a}_{c}" for a in ("baseline", "proposed")
                      for c in ("highfi", "aggressive_highfi", "aggressive_realized", "seed1", "seed2")} | {
     "proposed_dropout75", "hybrid", "hybrid_proposed", "hybrid_lag_highfi"}
+#: Learned against nominal: the other architectures on the small high-fidelity data, the lag model on the
+#: aggressive one, every architecture on RotorPy's data.
+ARCHS = ("baseline", "modular", "fourier", "proposed", "hybrid", "hybrid_lag")
+REQUIRED_VERSUS = {"modular_highfi", "fourier_highfi", "hybrid_highfi", "hybrid_lag_aggressive_highfi"} | {
+    f"{a}_rotorpy" for a in ARCHS}
 
 
 def envelope_inputs(n, seed=0):
@@ -58,12 +68,13 @@ def model_inputs(path, n, seed=0):
 
 
 def _manifest(folder):
-    return MANIFEST if folder == MODELS else IDENT_MANIFEST
+    return {MODELS: MANIFEST, IDENT: IDENT_MANIFEST, VERSUS: VERSUS_MANIFEST}[folder]
 
 
 def test_every_required_model_is_shipped():
     assert REQUIRED <= set(NAMES)
     assert REQUIRED_IDENT <= set(IDENT_MANIFEST)
+    assert REQUIRED_VERSUS <= set(VERSUS_MANIFEST)
     for folder, name in ALL:
         for f in _manifest(folder)[name]["files"].values():
             assert (folder / f).is_file(), f
@@ -152,3 +163,27 @@ def test_retraining_an_identification_model_reproduces_it(tmp_path, name):
     for key, old in entry["theta_err_pct"].items():
         now = new["theta_err_pct"][key]
         assert abs(now - old) <= TOL["reproduce_theta"] * abs(old) + 0.01, (key, old, now)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(VERSUS_MANIFEST))
+def test_retraining_a_versus_model_reproduces_it(tmp_path, name):
+    """Retrain a models/versus model (5-20 minutes); RotorPy's dataset first, with the manifest's data command
+    (about 4 minutes)."""
+    from scenarios.cli import main
+
+    entry = VERSUS_MANIFEST[name]
+    args = shlex.split(entry["command"])[1:]
+    if "data_command" in entry:
+        data = shlex.split(entry["data_command"])[1:]
+        data[data.index("--out") + 1] = str(tmp_path / "data.npz")
+        assert main(data) == 0
+        args[args.index("--data") + 1] = str(tmp_path / "data.npz")
+    args[args.index("--out") + 1] = str(tmp_path)
+    assert main(args) == 0
+    new = json.loads((tmp_path / "manifest.json").read_text())[name]
+    assert new["data"]["fingerprint"] == entry["data"]["fingerprint"]
+    for group in ("one_step_mae", "rollout_100_mae"):
+        for key in ("position", "z", "phi", "vz"):
+            old, now = entry["metrics"][group][key], new["metrics"][group][key]
+            assert abs(now - old) <= TOL["reproduce"] * old, (group, key, old, now)

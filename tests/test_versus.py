@@ -129,6 +129,7 @@ def test_plant_rows_and_verdict_from_known_results(tmp_path):
     assert rows["nominal"]["versus_nominal"] is None
     assert abs(rows["a"]["versus_nominal"]["fraction"] - (1 - 0.019 / 0.040)) < TOL["exact"]
     assert rows["c"]["versus_nominal"] is None and rows["c"]["ensemble"]["crashes"] == 1   # a crash disqualifies
+    assert rows["c"]["members_rmse_m"] == [0.001, 0.002, None, 0.001, 0.001]
     assert out["verdict"]["best"] == "a" and out["verdict"]["met"] is True and out["verdict"]["goal"] == WIN_FRACTION
     speeds = ladder_speeds()
     assert rows["a"]["ladder"]["max_speed"]["speed_mps"] == speeds["figure8-2.4s"]      # 2.2 s: a member crashed
