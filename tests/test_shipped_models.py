@@ -144,35 +144,11 @@ def test_retraining_reproduces_the_shipped_metrics(tmp_path):
             assert abs(now - old) <= TOL["reproduce"] * old, (group, key, old, now)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("name", sorted(IDENT_MANIFEST))
-def test_retraining_an_identification_model_reproduces_it(tmp_path, name):
-    """Run a models/identification manifest command into a temporary folder (5-8 minutes each)."""
+def _retrain(entry: dict, name: str, tmp_path) -> dict:
+    """Run a manifest entry's command into ``tmp_path`` (its dataset first when it has a ``data_command``); the
+    new entry, after checking its data fingerprint and metrics against ``entry``."""
     from scenarios.cli import main
 
-    entry = IDENT_MANIFEST[name]
-    args = shlex.split(entry["command"])[1:]
-    args[args.index("--out") + 1] = str(tmp_path)
-    assert main(args) == 0
-    new = json.loads((tmp_path / "manifest.json").read_text())[name]
-    assert new["data"]["fingerprint"] == entry["data"]["fingerprint"]
-    for group in ("one_step_mae", "rollout_100_mae"):
-        for key in ("position", "z", "phi", "vz"):
-            old, now = entry["metrics"][group][key], new["metrics"][group][key]
-            assert abs(now - old) <= TOL["reproduce"] * old, (group, key, old, now)
-    for key, old in entry["theta_err_pct"].items():
-        now = new["theta_err_pct"][key]
-        assert abs(now - old) <= TOL["reproduce_theta"] * abs(old) + 0.01, (key, old, now)
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("name", sorted(VERSUS_MANIFEST))
-def test_retraining_a_versus_model_reproduces_it(tmp_path, name):
-    """Retrain a models/versus model (5-20 minutes); RotorPy's dataset first, with the manifest's data command
-    (about 4 minutes)."""
-    from scenarios.cli import main
-
-    entry = VERSUS_MANIFEST[name]
     args = shlex.split(entry["command"])[1:]
     if "data_command" in entry:
         data = shlex.split(entry["data_command"])[1:]
@@ -187,3 +163,23 @@ def test_retraining_a_versus_model_reproduces_it(tmp_path, name):
         for key in ("position", "z", "phi", "vz"):
             old, now = entry["metrics"][group][key], new["metrics"][group][key]
             assert abs(now - old) <= TOL["reproduce"] * old, (group, key, old, now)
+    return new
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(IDENT_MANIFEST))
+def test_retraining_an_identification_model_reproduces_it(tmp_path, name):
+    """Run a models/identification manifest command into a temporary folder (5-8 minutes each)."""
+    entry = IDENT_MANIFEST[name]
+    new = _retrain(entry, name, tmp_path)
+    for key, old in entry["theta_err_pct"].items():
+        now = new["theta_err_pct"][key]
+        assert abs(now - old) <= TOL["reproduce_theta"] * abs(old) + 0.01, (key, old, now)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(VERSUS_MANIFEST))
+def test_retraining_a_versus_model_reproduces_it(tmp_path, name):
+    """Retrain a models/versus model (5-10 minutes); RotorPy's dataset first, with the manifest's data command
+    (about 4 minutes)."""
+    _retrain(VERSUS_MANIFEST[name], name, tmp_path)
