@@ -16,7 +16,8 @@ the whole state ``z = (x, e)`` and obtain ``e`` in three ways:
 * **in flight**, propagated by the model from the inputs actually applied
   (:class:`ExtraStateTracker`): each period the model's prediction of the
   extra states from the last measured state, the last estimate and the
-  input that was in effect. (A state estimator can replace this later.)
+  input that was in effect; or, with a state estimator
+  (:mod:`mpc.estimator`), the estimate itself.
 
 For the feed-forward fit the rigid-body response to an input is taken with
 the extra states settled at their equilibrium for that input
@@ -138,9 +139,16 @@ class ExtraStateTracker:
             self._pending.append(np.asarray(u, dtype=float).copy())
 
     def full(self, x: np.ndarray, t: float = 0.0) -> np.ndarray:
-        """The full state (nx,) for the rigid-body state ``x`` (12,) measured at time ``t`` (s)."""
+        """The full state (nx,) for the rigid-body state ``x`` (12,) measured at time ``t`` (s).
+
+        A state of the model's full length (nx,), an estimator's, is taken as it is.
+        """
         if not self.active:
             return x
+        if len(x) == self.model.nx:
+            self._pending = []
+            self._z = np.array(x, dtype=float)
+            return self._z.copy()
         if self._z is None:
             e = np.asarray(self._start(x, t), dtype=float).reshape(-1)
         else:

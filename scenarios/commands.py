@@ -12,7 +12,7 @@ from sim.files import write_json
 from .engines import ENGINES
 
 #: Fields printed by ``pinnmpc fly``, in order (names other tools rely on).
-FLY_FIELDS = ("scenario", "controller", "model", "plant", "vehicle", "timing", "rmse_position_m", "max_position_error_m", "crashed",
+FLY_FIELDS = ("scenario", "controller", "model", "plant", "vehicle", "timing", "estimator", "rmse_position_m", "max_position_error_m", "crashed",
               "crash_time_s", "solve_ms", "deadline_misses", "solver_failures", "fallbacks")
 
 
@@ -28,7 +28,7 @@ def _sweep_options(p, published: str, where: str) -> None:
 def register(sub) -> None:
     """Add this package's subcommands to the ``pinnmpc`` parser."""
     from .library import scenario_names
-    from .runner import CONTROLLERS, HORIZON, TIMINGS
+    from .runner import CONTROLLERS, ESTIMATORS, HORIZON, TIMINGS
 
     names = scenario_names()
     p = sub.add_parser("fly", help="fly one closed-loop run and print its metrics",
@@ -47,6 +47,10 @@ def register(sub) -> None:
                    help="ideal: each input applies at once (deterministic, default); realtime: it applies after "
                         "the call's measured wall time, rounded up to 1 ms, and a call that overruns the 10 ms "
                         "period keeps the previous input until it returns")
+    p.add_argument("--estimator", choices=ESTIMATORS, default="none",
+                   help="none: the controller sees the true state (plus the scenario's noise; default); ekf: it "
+                        "sees an extended Kalman filter's estimate from motion capture and an IMU, on its own "
+                        "model, with a disturbance estimate (docs/estimation.md)")
     p.add_argument("--json", metavar="FILE", type=Path, default=None, help="write the result as JSON")
     p.add_argument("--trace", metavar="FILE.npz", type=Path, default=None, help="write the trace arrays")
     p.add_argument("--plot", metavar="FILE.png", type=Path, default=None, help="plot path, height, error, inputs")
@@ -160,12 +164,15 @@ def cmd_fly(args: argparse.Namespace) -> int:
     from .runner import load_run_model
 
     spec = RunSpec(args.scenario, args.controller, args.model, args.seed, args.horizon, args.timing,
-                   plant=args.plant, vehicle=args.vehicle)
+                   plant=args.plant, vehicle=args.vehicle, estimator=args.estimator)
     model = load_run_model(spec)
     require(model, spec.controller)         # the same verdict as pinnmpc check-model prints
     result, trace = fly(spec, progress=sys.stderr.isatty(), model=model)
     for k in FLY_FIELDS:
         print(f"{k:<22}{_fmt(result[k])}")
+    if result.get("estimator_ms") is not None:
+        print(f"{'estimator_ms':<22}{_fmt(result['estimator_ms'])}")
+        print(f"{'nees_mean':<22}{_fmt(result['nees_mean'])}")
     if result["crashed"]:
         print(f"{'crash_reason':<22}{result['crash_reason']}")
     if result["error"]:

@@ -4,6 +4,7 @@ Each part is a small object with one job, and each can be replaced::
 
     plant      sim.plant.Plant           advance(u, duration) -> the true state
     sensor     StateSensor               measure(x) -> what the controller sees
+    estimator  Estimator (optional)      sensors and a filter: the controller sees its estimate instead
     controller a pinn-mpc controller     controller(x_measured, t) -> (u, info); applied(u_mean)
     clock      IdealClock | RealtimeClock when each computed input takes effect
 
@@ -15,6 +16,14 @@ the command that entered the actuators during the period (its time average,
 when it changed mid-way; before any input delay, which is the plant's): a
 controller whose model has actuator or history states carries them with
 it; then the crash test. The loop records everything in a :class:`Trace`.
+
+With an :class:`Estimator` the controller never sees the state: at every
+period boundary the estimator collects what the sensors delivered, and when
+the controller is called the filter catches up (one prediction and update
+per period since its last call) inside the timed call, so the real-time
+clock charges the estimator's time too. The controller gets the estimate
+(with the model's extra states) and, if it can use one, the disturbance
+estimate.
 """
 
 from __future__ import annotations
@@ -54,6 +63,40 @@ class StateSensor:
         if self._std is None:
             return x
         return x + self._std * self.rng.standard_normal(x.shape)
+
+
+class Estimator:
+    """Sensors read through the plant and a filter on the controller's model (:mod:`mpc.estimator`).
+
+    Parameters
+    ----------
+    sensors : sim.sensors.SensorSuite
+        The suite the (sensed) plant feeds.
+    ekf : mpc.estimator.DisturbanceEKF
+    guess : ndarray (12,), optional
+        Where the flight is meant to start (the filter's first velocity).
+    """
+
+    def __init__(self, sensors, ekf, guess=None):
+        self.sensors, self.ekf, self.guess = sensors, ekf, guess
+        self._queue: list = []
+        self._u = None
+        self.last = None
+
+    def collect(self, t: float) -> None:
+        """At a period boundary ``t`` (s): take what the sensors delivered (not timed)."""
+        self._queue.append((t, self.sensors.read(t), self._u))
+
+    def applied(self, u) -> None:
+        """The input (4,) in effect during the period just flown."""
+        self._u = np.array(u, dtype=float)
+
+    def estimate(self):
+        """The estimate now: the filter run through every period collected since the last call."""
+        for t, r, u in self._queue:
+            self.last = self.ekf.step(r, t, u, guess=self.guess)
+        self._queue = []
+        return self.last
 
 
 class IdealClock:
@@ -154,6 +197,14 @@ class Trace:
     solver_failed: np.ndarray  # (K,) bool: a fallback produced the input
     lqr_fallback: np.ndarray  # (K,) bool: the LQR fallback produced it
     steps: int = 0            # periods flown
+    # With an estimator (else None): its output where the controller was called (NaN elsewhere).
+    x_estimate: np.ndarray | None = None      # (K, nx) the model's state as estimated
+    estimate_std: np.ndarray | None = None    # (K, nx + 9) standard deviations of (x, d, gyro bias)
+    disturbance: np.ndarray | None = None     # (K, 6) m/s^2 (NED) and rad/s^2 (body)
+    gyro_bias: np.ndarray | None = None       # (K, 3) estimated, rad/s
+    gyro_bias_true: np.ndarray | None = None  # (K, 3) the IMU's own, rad/s
+    nees: np.ndarray | None = None            # (K,) normalized estimation error squared of the 12 rigid-body states
+    estimator_s: np.ndarray | None = None     # (K,) the filter's time in the call, s
     crash_step: int | None = None
     crash_reason: str | None = None
 
@@ -166,30 +217,69 @@ class Trace:
                    solver_failed=np.zeros(K, dtype=bool), lqr_fallback=np.zeros(K, dtype=bool))
 
 
-def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, progress=None) -> Trace:
+def _estimate_fields(tr: Trace, steps: int, nx: int) -> None:
+    nz = nx + 9
+    tr.x_estimate, tr.estimate_std = np.full((steps, nx), np.nan), np.full((steps, nz), np.nan)
+    tr.disturbance, tr.gyro_bias = np.full((steps, 6), np.nan), np.full((steps, 3), np.nan)
+    tr.gyro_bias_true, tr.nees, tr.estimator_s = np.full((steps, 3), np.nan), np.full(steps, np.nan), \
+        np.full(steps, np.nan)
+
+
+def nees(x_true: np.ndarray, x_est: np.ndarray, P: np.ndarray) -> float:
+    """Normalized estimation error squared of the 12 rigid-body states (angles wrapped)."""
+    e = x_est[:NX] - x_true[:NX]
+    e[3:6] = np.pi - np.mod(np.pi - e[3:6], 2.0 * np.pi)
+    try:
+        return float(e @ np.linalg.solve(P[:NX, :NX], e))
+    except np.linalg.LinAlgError:
+        return float("nan")
+
+
+def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, progress=None,
+             estimator: Estimator | None = None) -> Trace:
     """Fly ``steps`` control periods from the plant's current state; the :class:`Trace`.
 
     ``x_ref`` (steps + 1, 12): the reference at each period boundary (the
     crash test's). ``progress``: an optional wrapper of the period range
-    (for example ``tqdm``). The loop ends early at a crash.
+    (for example ``tqdm``). ``estimator``: the controller sees its estimate
+    (``sensor`` is then unused). The loop ends early at a crash.
     """
     from mpc.controller import collector_paused
 
     tr = Trace.empty(steps)
     tr.x[0] = plant.x
     tell = getattr(controller, "applied", None)
+    disturb = getattr(controller, "set_disturbance", None)
+    if estimator is not None:
+        _estimate_fields(tr, steps, estimator.ekf.nx)
     periods = range(steps) if progress is None else progress(range(steps))
     for k in periods:
         t = k * DT
+        if estimator is not None:
+            estimator.collect(t)
         if clock.idle(k):
-            xm = sensor.measure(plant.x)
-            tr.x_measured[k] = xm
+            if estimator is None:
+                xm = sensor.measure(plant.x)
+                tr.x_measured[k] = xm
             # In real time the garbage collector waits until the call has returned: a collection triggered
             # by the plant's allocations is not the controller's time.
             with collector_paused(clock.realtime):
                 c0 = time.perf_counter()
+                if estimator is not None:
+                    est = estimator.estimate()
+                    xm = est.x
+                    if disturb is not None:
+                        disturb(est.disturbance)
+                c1 = time.perf_counter()
                 u_cmd, info = controller(xm, t)
                 tr.latency_s[k] = time.perf_counter() - c0
+            if estimator is not None:
+                tr.estimator_s[k] = c1 - c0
+                tr.x_measured[k] = xm[:NX]
+                tr.x_estimate[k], tr.estimate_std[k] = xm, est.std
+                tr.disturbance[k], tr.gyro_bias[k] = est.disturbance, est.gyro_bias
+                tr.gyro_bias_true[k] = estimator.sensors.gyro_bias
+                tr.nees[k] = nees(plant.x, xm, est.P)
             tr.called[k] = True
             tr.u_command[k] = u_cmd
             tr.solve_s[k] = info.solve_time_s
@@ -201,6 +291,8 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
         tr.u[k] = clock.fly_period(plant, k)
         if tell is not None:
             tell(clock.sent)
+        if estimator is not None:
+            estimator.applied(clock.sent)
         x = plant.x
         tr.x[k + 1] = x
         tr.steps = k + 1
@@ -211,4 +303,4 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
     return tr
 
 
-__all__ = ["IdealClock", "PERIOD_MS", "RealtimeClock", "StateSensor", "Trace", "fly_loop"]
+__all__ = ["Estimator", "IdealClock", "PERIOD_MS", "RealtimeClock", "StateSensor", "Trace", "fly_loop", "nees"]

@@ -49,6 +49,9 @@ HORIZON = 30
 #: How compute time enters a run: ``ideal`` applies each input at once (deterministic); ``realtime`` applies it
 #: after the call's measured wall time, rounded up to the simulator's 1 ms substep (see :func:`fly`).
 TIMINGS = ("ideal", "realtime")
+#: What the controllers see: ``none``, the true state (plus the scenario's noise); ``ekf``, the estimate of an
+#: extended Kalman filter on their own model from motion capture and an IMU (:mod:`mpc.estimator`).
+ESTIMATORS = ("none", "ekf")
 #: Model names that stand for equations rather than a file: the plant's own equations where they are known, and
 #: the nominal rigid-body equations with the vehicle's values.
 EQUATION_MODELS = ("oracle", "nominal")
@@ -132,6 +135,7 @@ class RunSpec:
     member: int | None = None     # ensemble member (Scenario.member: its seed and a perturbed start); None: none
     plant: str = "sim"            # the plant flown
     vehicle: str | None = None    # vehicle name or file; None: the default vehicle
+    estimator: str = "none"       # "none" (the state, plus the scenario's noise) or "ekf" (sensors and a filter)
 
     def __post_init__(self):
         from sim.vehicle import load_vehicle
@@ -150,6 +154,8 @@ class RunSpec:
             raise ScenarioError(f"controller must be one of {', '.join(CONTROLLERS)}; found {self.controller!r}")
         if self.timing not in TIMINGS:
             raise ScenarioError(f"timing must be one of {', '.join(TIMINGS)}; found {self.timing!r}")
+        if self.estimator not in ESTIMATORS:
+            raise ScenarioError(f"estimator must be one of {', '.join(ESTIMATORS)}; found {self.estimator!r}")
         sc = get_scenario(self.scenario)  # raises for an unknown name or a bad scenario file
         object.__setattr__(self, "_scenario_name", sc.name)
         if sc.high_fidelity and self.plant != "sim":
@@ -190,8 +196,8 @@ class RunSpec:
         """File-name-safe identifier ``<scenario>__<controller>__<model>``.
 
         ``__s<seed>`` is appended for an explicit seed, ``__m<k>`` for ensemble member k, ``__realtime`` for
-        that timing, ``__<plant>`` for a plant other than ``sim`` and ``__<vehicle>`` for a vehicle other than
-        the default.
+        that timing, ``__<plant>`` for a plant other than ``sim``, ``__<vehicle>`` for a vehicle other than
+        the default and ``__ekf`` with the estimator.
         """
         from sim.vehicle import DEFAULT_VEHICLE
 
@@ -204,6 +210,8 @@ class RunSpec:
             base += f"__s{self.seed}"
         if self.member is not None:
             base += f"__m{self.member}"
+        if self.estimator != "none":
+            base += f"__{self.estimator}"
         return base if self.timing == "ideal" else f"{base}__{self.timing}"
 
 
@@ -321,7 +329,7 @@ def make_run_plant(spec: "RunSpec", sc):
                       wind=_wind(sc))
 
 
-def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tuple[dict, dict]:
+def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_config=None) -> tuple[dict, dict]:
     """Fly one closed-loop run; ``(result, trace)``.
 
     Raises only for bad input (unknown names, a model that fails the
@@ -329,7 +337,8 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
 
     ``scenario`` (a :class:`scenarios.library.Scenario`) replaces the named
     scenario's data, for example with a perturbed initial state; ``model`` (a
-    loaded :class:`mpc.models.PredictionModel`) saves loading ``spec.model`` again.
+    loaded :class:`mpc.models.PredictionModel`) saves loading ``spec.model`` again. ``ekf_config`` (an
+    :class:`mpc.estimator.EKFConfig`) replaces the estimator's default tuning.
     """
     from .loop import IdealClock, RealtimeClock, StateSensor, Trace, fly_loop
 
@@ -356,7 +365,7 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
     base = {"run_id": spec.run_id, "scenario": sc.name, "controller": spec.controller,
             "model": spec.model_name, "model_file": None if sha is None else str(spec.model),
             "model_sha256": sha, "seed": sc.seed, "member": spec.member, "horizon": spec.horizon,
-            "timing": spec.timing, "plant": spec.plant, "vehicle": vehicle.name}
+            "timing": spec.timing, "plant": spec.plant, "vehicle": vehicle.name, "estimator": spec.estimator}
     t0 = time.perf_counter()
     realtime = spec.timing == "realtime"
     try:
@@ -368,6 +377,9 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
         error = f"{type(e).__name__}: {e}"
         ctrl = None
     if ctrl is not None:
+        estimator = None
+        if spec.estimator == "ekf":
+            plant, estimator = make_estimator(ctrl, model, plant, sc, X_ref[0], ekf_config)
         plant.reset(x0, rotor_speed=n0)
         sensor = StateSensor(sc.noise, np.random.default_rng([sc.seed, 0x5EED]))
         # Before the first (delayed or computed) command arrives, the vehicle's own hover thrust holds it.
@@ -378,13 +390,15 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
 
             def bar(r):
                 return tqdm(r, desc=spec.run_id, unit="step", leave=False)
-        tr = fly_loop(plant, sensor, ctrl, clock, X_ref, K, progress=bar)
+        tr = fly_loop(plant, sensor, ctrl, clock, X_ref, K, progress=bar, estimator=estimator)
     else:
         tr = Trace.empty(K)
     k_end = tr.steps
     wall = time.perf_counter() - t0
+    # With an estimator, the time charged per call is the filter's plus the controller's.
+    charged_s = tr.solve_s if tr.estimator_s is None else tr.solve_s + np.nan_to_num(tr.estimator_s)
     if error is None:
-        metrics = closed_loop_metrics(tr.x[:k_end + 1], X_ref[:k_end + 1], tr.solve_s[:k_end],
+        metrics = closed_loop_metrics(tr.x[:k_end + 1], X_ref[:k_end + 1], charged_s[:k_end],
                                       tr.solver_failed[:k_end], tr.lqr_fallback[:k_end], tr.crash_step,
                                       tr.crash_reason,
                                       impulse_start_s=None if sc.impulse is None else sc.impulse.start_s,
@@ -403,7 +417,51 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None) -> tup
              "solve_s": tr.solve_s[:k_end], "latency_s": tr.latency_s[:k_end], "called": tr.called[:k_end],
              "iterations": tr.iterations[:k_end], "status": tr.status[:k_end], "solver_failed": failed,
              "lqr_fallback": lqr_fb}
+    if tr.x_estimate is not None:
+        est_ms = 1e3 * tr.estimator_s[:k_end][tr.called[:k_end]]
+        result["estimator_ms"] = {"median": float(np.median(est_ms)), "max": float(np.max(est_ms))} \
+            if est_ms.size else None
+        nees_k = tr.nees[:k_end]
+        result["nees_mean"] = float(np.nanmean(nees_k)) if np.any(np.isfinite(nees_k)) else None
+        for name in ("x_estimate", "estimate_std", "disturbance", "gyro_bias", "gyro_bias_true", "nees",
+                     "estimator_s"):
+            trace[name] = getattr(tr, name)[:k_end]
     return result, trace
+
+
+def estimator_sensors(sc):
+    """The sensors of a run with the estimator: the default lab's, with the scenario's noise where it sets one.
+
+    A scenario with measurement noise (``+noise``) sets the motion capture's position and attitude noise and
+    the gyroscope's white noise to its position, attitude and body-rate standard deviations.
+    """
+    import dataclasses
+
+    from sim.sensors import ImuConfig, MocapConfig, SensorSuite
+
+    mocap, imu = MocapConfig(), ImuConfig()
+    if sc.noise is not None:
+        mocap = dataclasses.replace(mocap, position_std=sc.noise.position, attitude_std=sc.noise.attitude)
+        imu = dataclasses.replace(imu, gyro_std=sc.noise.body_rate)
+    return SensorSuite(mocap=mocap, imu=imu, rng=np.random.default_rng([sc.seed, 0x5E75]))
+
+
+def make_estimator(ctrl, model, plant, sc, guess=None, config=None):
+    """``(sensed plant, Estimator)`` of a run with ``--estimator ekf``: the filter runs on the controller's model.
+
+    ``guess`` (12,): the reference at take-off (the filter's first velocity)."""
+    from mpc.estimator import DisturbanceEKF
+    from sim.sensors import SensedPlant
+
+    from .loop import Estimator
+
+    suite = estimator_sensors(sc)
+    start = getattr(ctrl, "lqr", ctrl).start_extra
+    from mpc.estimator import EKFConfig
+
+    ekf = DisturbanceEKF(model, suite.mocap, suite.imu, config=EKFConfig() if config is None else config,
+                         extra_start=lambda x: start(x, 0.0))
+    return SensedPlant(plant, suite), Estimator(suite, ekf, guess)
 
 
 def save_run(result: dict, trace: dict, out_dir: Path) -> dict:
@@ -457,7 +515,7 @@ def cache_key(spec: RunSpec) -> str:
     ident = {"scenario": sc.to_dict(), "controller": spec.controller, "model": spec.model_name,
              "model_sha256": _sha256(spec.model), "seed": seed, "member": spec.member, "horizon": spec.horizon,
              "timing": spec.timing, "plant": spec.plant, "vehicle": spec.vehicle_data.to_dict(),
-             "code": code_version()}
+             "estimator": spec.estimator, "code": code_version()}
     return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
 
 
