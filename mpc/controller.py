@@ -75,6 +75,12 @@ def check_state(x, name: str = "x", nx: int = NX) -> np.ndarray:
     return x
 
 
+def check_measured(x, model) -> np.ndarray:
+    """The state a controller is handed: the rigid body's (12,), or the model's whole state (nx,) from an estimator."""
+    n = np.size(np.asarray(x, dtype=object))
+    return check_state(x, nx=model.nx if model.n_extra and n == model.nx else NX)
+
+
 class Timer:
     """Context manager measuring wall time in seconds (``.elapsed``)."""
 

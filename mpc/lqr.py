@@ -15,7 +15,7 @@ import numpy as np
 from sim.params import NU, NX
 from sim.rotors import realize
 
-from .controller import ControlInfo, Timer, check_state
+from .controller import ControlInfo, Timer, check_measured
 from .errors import ConfigurationError
 from .feedforward import FeedForward
 from .models import AnalyticModel, PredictionModel
@@ -205,7 +205,7 @@ class LQRController:
 
     def __call__(self, x, t: float):
         """Input (4,) and :class:`ControlInfo` for the measured state ``x`` at time ``t`` (s)."""
-        x = check_state(x)
+        x = check_measured(x, self.model)
         with Timer() as tm:
             tt = np.array([t])
             z = self.tracker.full(x, t)

@@ -33,7 +33,7 @@ from sim.params import NU
 from sim.rotors import mixer_matrix, realize
 
 from .base import MPCBase
-from .controller import ControlInfo, Reference, Timer, check_common_settings, check_state
+from .controller import ControlInfo, Reference, Timer, check_common_settings, check_measured
 from .errors import ConfigurationError
 from .models import PredictionModel
 
@@ -247,7 +247,7 @@ class LTVMPC(MPCBase):
 
     def __call__(self, x, t: float):
         """Input (4,) and :class:`ControlInfo` for the measured state ``x`` at time ``t`` (s)."""
-        x = check_state(x)
+        x = check_measured(x, self.model)
         with Timer() as tm:
             z = self.tracker.full(x, t)     # the measured state, with the model's extra states carried
             ref, u_ref = self._horizon_reference(t)

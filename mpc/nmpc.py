@@ -38,7 +38,7 @@ from sim.params import NU
 from sim.rotors import mixer_matrix, realize
 
 from .base import MPCBase
-from .controller import ControlInfo, Reference, Timer, check_common_settings, check_state
+from .controller import ControlInfo, Reference, Timer, check_common_settings, check_measured, check_state
 from .errors import ConfigurationError
 from .models import AnalyticModel, PredictionModel
 
@@ -278,7 +278,7 @@ class NMPC(MPCBase):
 
     def __call__(self, x, t: float):
         """Input (4,) and :class:`ControlInfo` for the measured state ``x`` at time ``t`` (s)."""
-        x = check_state(x)
+        x = check_measured(x, self.model)
         N = self.N
         with Timer() as tm:
             x = self.tracker.full(x, t)     # the measured state, with the model's extra states carried

@@ -21,6 +21,7 @@ TOL = {
     "bias": 1e-3,           # rad/s: the gyroscope bias after 3 s
     "euler_fd": 1e-6,       # W(eta) against finite differences of the rotation
     "nees_prob": 0.95,      # the chi-square band of the time-averaged NEES
+    "highfi_rmse": 2e-3,    # m: the high-fidelity oracle (rotor speeds estimated) on figure8-fast+highfi
 }
 
 #: Seeded oracle flights of the consistency test.
@@ -89,6 +90,13 @@ def test_the_controller_sees_the_estimate_and_the_clock_charges_the_filter():
     assert np.all(tr["latency_s"][called] >= tr["estimator_s"][called])
     assert r["estimator"] == "ekf" and r["estimator_ms"]["median"] > 0.0
     assert r["run_id"] == "figure8-fast__sqp__oracle__ekf__realtime"
+
+
+def test_a_model_with_actuator_states_flies_on_its_estimate():
+    """The high-fidelity oracle's controllers get its 16-state estimate (rotor speeds included) and track."""
+    r, tr = fly(RunSpec("figure8-fast+highfi", "sqp", "oracle", estimator="ekf"))
+    assert tr["x_estimate"].shape[1] == 16
+    assert not r["crashed"] and r["rmse_position_m"] < TOL["highfi_rmse"], r["rmse_position_m"]
 
 
 def test_euler_rate_matrix_against_finite_differences():
