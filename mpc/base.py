@@ -58,9 +58,24 @@ class MPCBase:
         self.tracker.applied(u)
 
     def _horizon_reference(self, t: float):
-        """Reference states (N + 1, nx) and feed-forward inputs (N, 4) over the horizon from time ``t`` (s)."""
-        times = t + DT * np.arange(self.N + 1)
-        return self.ff.full_states(times), self.ff.inputs(times[:self.N])
+        """Reference states (N + 1, nx) and feed-forward inputs (N, 4) over the horizon from time ``t`` (s)
+        (under the disturbance of :meth:`set_disturbance`, the target the disturbed model can fly)."""
+        return self.ff.horizon(t + DT * np.arange(self.N + 1))
+
+    def set_disturbance(self, d, x=None) -> None:
+        """Offset-free control: a disturbance ``d`` (6,) (estimated acceleration, m/s^2 NED, and angular
+        acceleration, rad/s^2 body; None or zeros: none) enters the prediction and the target from the next call.
+        ``x``: the state whose attitude sets the disturbance's effect on the Euler angles (level if None).
+        See :mod:`mpc.offset_free`."""
+        from .offset_free import disturbance_offset
+
+        off = disturbance_offset(d, x, self.nx)
+        self.ff.set_disturbance(None if off is None else d, off)
+        self._set_offset(off)
+
+    def _set_offset(self, offset) -> None:
+        """Add ``offset`` (nx,) or None to every step of the prediction (each MPC's own)."""
+        raise NotImplementedError
 
     def _success(self) -> None:
         self.failures_in_a_row = 0

@@ -1,13 +1,13 @@
 """State estimation for any contract model: an extended Kalman filter with disturbance states.
 
 The controllers of a flight computer see an estimate, not the state. This
-filter estimates, once per control period, from motion capture and the
-gyroscope (:mod:`sim.sensors`)::
+filter estimates, once per control period, from motion capture and the IMU
+(:mod:`sim.sensors`)::
 
     z = (x, d, b)      x: the model's state (12 rigid-body states and any extra states it declares)
                        d: a disturbance (6,): an acceleration (3, m/s^2, world NED) and an angular
                           acceleration (3, rad/s^2, body FRD), constant over a period
-                       b: the gyroscope's bias (3, rad/s)
+                       b: the gyroscope's bias (3, rad/s) and the accelerometer's (3, m/s^2)
 
 **Prediction** is the model itself, with the input that was in effect
 during the period (what the actuators received)::
@@ -25,9 +25,12 @@ at its own age ``tau`` (its latency plus the time since it was taken): the
 sample is compared with the estimate carried back by ``tau`` (a second-order
 Taylor step with the period's mean acceleration); and with the period's mean
 gyroscope reading, against the body rates at the readings' mean age plus
-the bias. The accelerometer is not used: its reading depends on the period's
-acceleration, which is the disturbance the filter is estimating, and a filter
-that used it would need the previous state as well (it is recorded).
+the bias; and with the period's mean accelerometer reading, turned to the
+world frame and less gravity and the model's own mean acceleration over the
+period: what is left is the disturbance's acceleration plus the
+accelerometer's bias, measured directly (the way a force observer works).
+Motion capture tells the two apart: a disturbance moves the vehicle, a bias
+does not.
 
 The disturbance estimate is what makes a controller offset-free: a constant
 force the model lacks (payload, steady wind, a learned model's bias) is
@@ -45,20 +48,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim.params import DT, NX
+from sim.dynamics import rotation_matrix
+from sim.params import DT, GRAVITY, NX
 from sim.sensors import wrap_angle as wrap
 
 from .errors import ConfigurationError
+from .offset_free import disturbance_matrix, euler_rate_matrix
 
 #: Lengths of the disturbance and bias parts of the filter's state.
 ND, NB = 6, 3
-
-
-def euler_rate_matrix(eta: np.ndarray) -> np.ndarray:
-    """``W(eta)`` (3, 3) with ``d(eta)/dt = W(eta) omega`` for ZYX Euler angles ``eta`` = (phi, theta, psi)."""
-    phi, th = eta[0], eta[1]
-    sp, cp, ct, tt = np.sin(phi), np.cos(phi), np.cos(th), np.tan(th)
-    return np.array([[1.0, sp * tt, cp * tt], [0.0, cp, -sp], [0.0, sp / ct, cp / ct]])
+#: Offsets of the gyroscope and accelerometer biases after the model's state and the disturbance.
+GB, AB = ND, ND + NB
 
 
 @dataclass(frozen=True)
@@ -88,6 +88,7 @@ class EKFConfig:
     init_rate: float = 0.05         # rad/s (besides the gyro bias)
     init_force: float = 2.0         # m/s^2
     init_torque: float = 5.0        # rad/s^2
+    accelerometer: bool = True      # use the accelerometer (the disturbance's acceleration, directly)
 
     def __post_init__(self):
         for name, value in self.__dict__.items():
@@ -102,13 +103,14 @@ class Estimate:
     x: np.ndarray               # (nx,) the model's state
     disturbance: np.ndarray     # (6,) acceleration (m/s^2, NED) and angular acceleration (rad/s^2, body)
     gyro_bias: np.ndarray       # (3,) rad/s
-    P: np.ndarray               # (nx + 9, nx + 9) covariance of (x, d, b)
+    accel_bias: np.ndarray      # (3,) m/s^2
+    P: np.ndarray               # (nx + 12, nx + 12) covariance of (x, d, gyro bias, accelerometer bias)
     solve_time_s: float = 0.0
     measurements: int = 0       # scalar measurements used in this update
 
     @property
     def std(self) -> np.ndarray:
-        """Standard deviations (nx + 9,) of the estimate."""
+        """Standard deviations (nx + 12,) of the estimate."""
         return np.sqrt(np.clip(np.diag(self.P), 0.0, None))
 
 
@@ -125,6 +127,8 @@ class DisturbanceEKF:
     imu : sim.sensors.ImuConfig or None
         The IMU's noise and bias drift; None: no gyroscope.
     config : EKFConfig
+    g : float
+        Gravity, m/s^2 (what the accelerometer reads at rest).
     extra_start : callable, optional
         ``extra_start(x (12,)) -> e (n_extra,)``: the first estimate of the
         extra states (needed for a model that has them; a controller's
@@ -136,12 +140,13 @@ class DisturbanceEKF:
     imu: object = None
     config: EKFConfig = field(default_factory=EKFConfig)
     extra_start: object = None
+    g: float = GRAVITY
 
     def __post_init__(self):
         if self.mocap is None:
             raise ConfigurationError("the estimator needs motion capture (position and attitude); mocap is None")
         nx = self.model.nx
-        self.nx, self.nz = nx, nx + ND + NB
+        self.nx, self.nz = nx, nx + ND + 2 * NB
         c = self.config
         q = np.zeros(self.nz)
         q[0:3], q[3:6], q[6:9], q[9:12] = c.position, c.attitude, c.rate, c.velocity
@@ -149,7 +154,8 @@ class DisturbanceEKF:
             q[NX:nx] = c.extra_rel * self._extra_scale()
         q[nx:nx + 3] = c.force_walk * np.sqrt(DT)
         q[nx + 3:nx + 6] = c.torque_walk * np.sqrt(DT)
-        q[nx + 6:] = 0.0 if self.imu is None else self.imu.gyro_bias_walk * np.sqrt(DT)
+        q[nx + GB:nx + GB + NB] = 0.0 if self.imu is None else self.imu.gyro_bias_walk * np.sqrt(DT)
+        q[nx + AB:] = 0.0 if self.imu is None else self.imu.accel_bias_walk * np.sqrt(DT)
         self.Q = np.diag(q ** 2)
         self.reset()
 
@@ -178,12 +184,7 @@ class DisturbanceEKF:
     # -- the filter ------------------------------------------------------------------------------------------
 
     def _G(self, eta: np.ndarray) -> np.ndarray:
-        G = np.zeros((self.nx, ND))
-        G[0:3, 0:3] = 0.5 * DT * DT * np.eye(3)
-        G[9:12, 0:3] = DT * np.eye(3)
-        G[6:9, 3:6] = DT * np.eye(3)
-        G[3:6, 3:6] = 0.5 * DT * DT * euler_rate_matrix(eta)
-        return G
+        return disturbance_matrix(eta, self.nx)
 
     def _start(self, r, guess=None) -> None:
         c, nx = self.config, self.nx
@@ -204,7 +205,8 @@ class DisturbanceEKF:
         if self.model.n_extra:
             p[NX:nx] = self._extra_scale()
         p[nx:nx + 3], p[nx + 3:nx + 6] = c.init_force, c.init_torque
-        p[nx + 6:] = 0.0 if self.imu is None else max(self.imu.gyro_bias_std, 1e-6)
+        p[nx + GB:nx + GB + NB] = 0.0 if self.imu is None else max(self.imu.gyro_bias_std, 1e-6)
+        p[nx + AB:] = 0.0 if self.imu is None else max(self.imu.accel_bias_std, 1e-6)
         self.z, self.P = z, np.diag(p ** 2)
         self._x_prev = z[:nx].copy()
 
@@ -217,6 +219,7 @@ class DisturbanceEKF:
         F[:nx, :nx] = A[0]
         F[:nx, nx:nx + ND] = G
         self._x_prev = x.copy()
+        self._a_model = (xn[0, 9:12] - x[9:12]) / DT     # the model's mean acceleration, without the disturbance
         z = self.z.copy()
         z[:nx] = xn[0] + G @ d
         self.z = z
@@ -249,11 +252,22 @@ class DisturbanceEKF:
             rate_acc = (x[6:9] - xp[6:9]) / DT
             Hg = np.zeros((3, self.nz))
             Hg[:, 6:9] = np.eye(3)
-            Hg[:, nx + ND:] = np.eye(3)
-            pred = x[6:9] - tau * rate_acc + z[nx + ND:]
+            Hg[:, nx + GB:nx + GB + NB] = np.eye(3)
+            pred = x[6:9] - tau * rate_acc + z[nx + GB:nx + GB + NB]
             rows.append(Hg)
             res.append(r.gyro.mean(axis=0) - pred)
             var.append(np.full(3, self.imu.gyro_std ** 2 / len(r.gyro)))
+        if self.imu is not None and self.config.accelerometer and len(r.accel):
+            # The period's mean specific force, turned to the world frame at the period's middle attitude, plus
+            # gravity, less the model's own mean acceleration: the disturbance's acceleration plus the bias.
+            Rm = rotation_matrix(*(0.5 * (x[3:6] + xp[3:6])))
+            y = Rm @ r.accel.mean(axis=0) + np.array([0.0, 0.0, self.g]) - self._a_model
+            Ha = np.zeros((3, self.nz))
+            Ha[:, nx:nx + 3] = np.eye(3)
+            Ha[:, nx + AB:] = Rm
+            rows.append(Ha)
+            res.append(y - (z[nx:nx + 3] + Rm @ z[nx + AB:]))
+            var.append(np.full(3, self.imu.accel_std ** 2 / len(r.accel)))
         if not rows:
             return 0
         H, y = np.vstack(rows), np.concatenate(res)
@@ -300,7 +314,8 @@ class DisturbanceEKF:
             n = self._update(readings, t)
         nx = self.nx
         return Estimate(x=self.z[:nx].copy(), disturbance=self.z[nx:nx + ND].copy(),
-                        gyro_bias=self.z[nx + ND:].copy(), P=self.P.copy(),
+                        gyro_bias=self.z[nx + GB:nx + GB + NB].copy(), accel_bias=self.z[nx + AB:].copy(),
+                        P=self.P.copy(),
                         solve_time_s=time.perf_counter() - c0, measurements=n)
 
 

@@ -136,6 +136,7 @@ class FeedForward:
         self._states: dict[int, np.ndarray] = {}
         self._inputs: dict[int, np.ndarray] = {}
         self._extras: list[np.ndarray] = []       # the reference's extra states at periods 0, 1, ...
+        self._disturbance = None                  # (d (6,), offset G d (nx,)) or None: see set_disturbance
         self.trim_extra = np.zeros(0)
         #: The model gives its own reference states (full width) along flat trajectories.
         self.model_reference = self.is_flat and model.reference_states(reference, np.zeros(1)) is not None
@@ -240,6 +241,50 @@ class FeedForward:
         else:
             guess = np.tile(self.trim, (len(t), 1))
         return fit_inputs(self.model, x0, x1, guess, self.w, self.u_scale)
+
+    def set_disturbance(self, d, offset) -> None:
+        """Track the reference under a disturbance ``d`` (6,) whose one-period effect is ``offset`` (nx,) = G d.
+
+        None (either): no disturbance. See :mod:`mpc.offset_free`.
+        """
+        self._disturbance = None if d is None or offset is None else \
+            (np.asarray(d, dtype=float).copy(), np.asarray(offset, dtype=float).copy())
+
+    def horizon(self, times) -> tuple[np.ndarray, np.ndarray]:
+        """Target states (K, nx) at ``times`` (K,) on the control grid and inputs (K - 1, 4) between them.
+
+        Without a disturbance these are :meth:`full_states` and :meth:`inputs`
+        (cached). Under one (:meth:`set_disturbance`) they are computed for
+        this call: the flatness map of the trajectory with the acceleration
+        the rotors must make (:class:`mpc.offset_free.ShiftedTrajectory`), and
+        inputs fitted through ``f(x, u) + G d`` from the undisturbed ones;
+        extra states move with their equilibrium under the new inputs.
+        """
+        t = np.asarray(times, dtype=float).ravel()
+        if self._disturbance is None:
+            return self.full_states(t), self.inputs(t[:-1])
+        from .extended import extra_equilibrium, extra_scale
+        from .offset_free import ShiftedTrajectory
+
+        d, off = self._disturbance
+        nominal_x, nominal_u = self.full_states(t), self.inputs(t[:-1])
+        traj = ShiftedTrajectory(self.trajectory, d[:3]) if self.is_flat else None
+        if self.model_reference:
+            X = self.model.reference_states(traj, t)
+            w = np.concatenate([self.w, 1.0 / extra_scale(self.model, self.trim_extra) ** 2])
+            U = _fit(self.model, X[:-1], X[1:] - off, nominal_u, w, self.u_scale,
+                     MODEL_REFERENCE_FIT_ITERATIONS)[0]
+            return X, U
+        X = flat_state(traj.flat(t), self.spec)[0] if traj is not None else self.trajectory(t)
+        U = fit_inputs(self.model, X[:-1], X[1:] - off[:NX], nominal_u, self.w, self.u_scale)
+        if self.model.n_extra:
+            u_all = np.vstack([U, U[-1:]])
+            u_nom = np.vstack([nominal_u, nominal_u[-1:]])
+            e_nom = nominal_x[:, NX:]
+            shift = (extra_equilibrium(self.model, X, u_all, e_nom)
+                     - extra_equilibrium(self.model, nominal_x[:, :NX], u_nom, e_nom))
+            X = np.hstack([X, e_nom + shift])
+        return X, U
 
     def prepare(self, t_end: float, chunk: int = 512) -> None:
         """Fit the feed-forward for every control period from 0 to ``t_end`` (s) ahead of a flight.

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.params import NU, NX
+from sim.params import DT, NU, NX
 from sim.rotors import realize
 
 from .controller import ControlInfo, Timer, check_measured
@@ -193,6 +193,13 @@ class LQRController:
         """The input (4,) in effect during the period just flown (to carry the model's extra states)."""
         self.tracker.applied(u)
 
+    def set_disturbance(self, d, x=None) -> None:
+        """Offset-free control: track the target under the disturbance ``d`` (6,) (see :mod:`mpc.offset_free`)."""
+        from .offset_free import disturbance_offset
+
+        off = disturbance_offset(d, x, self.model.nx)
+        self.ff.set_disturbance(None if off is None else d, off)
+
     def prepare(self, t_end: float, x0=None) -> None:
         """Compute the reference and feed-forward up to ``t_end`` (s) before a flight (``x0`` is not needed)."""
         self.ff.prepare(t_end)
@@ -207,7 +214,7 @@ class LQRController:
         """Input (4,) and :class:`ControlInfo` for the measured state ``x`` at time ``t`` (s)."""
         x = check_measured(x, self.model)
         with Timer() as tm:
-            tt = np.array([t])
             z = self.tracker.full(x, t)
-            u = self.input(z, self.ff.full_states(tt)[0], self.ff.inputs(tt)[0])
+            X, U = self.ff.horizon(np.array([t, t + DT]))
+            u = self.input(z, X[0], U[0])
         return u, ControlInfo(solve_time_s=tm.elapsed, status="lqr")

@@ -113,6 +113,9 @@ class LTVMPC(MPCBase):
         import osqp
 
         self._setup(model, reference, spec, Q, R)
+        from .offset_free import DisturbedModel
+
+        self.model = DisturbedModel(model)     # the prediction: the model plus a disturbance's offset, if any
         self.s = LTVSettings() if settings is None else settings
         N = self.s.horizon
         self.N = N
@@ -134,6 +137,9 @@ class LTVMPC(MPCBase):
         self._plan_u: np.ndarray | None = None
         self._z: np.ndarray | None = None
         self._plan_is_current = False   # the plan was made for the next call's time (a pre-flight plan): no shift
+
+    def _set_offset(self, offset) -> None:
+        self.model.offset = offset
 
     def _linearize(self, X, U):
         """``(f(X, U), A, B)`` from the prediction model, with the Jacobians in :attr:`LTVSettings.jacobians`."""

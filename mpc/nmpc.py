@@ -151,6 +151,7 @@ class NMPC(MPCBase):
     def __init__(self, model: PredictionModel, reference: Reference | None = None,
                  settings: NMPCSettings | None = None, spec=None, Q=None, R=None):
         self._setup(model, reference, spec, Q, R)
+        self._offset: np.ndarray | None = None    # a disturbance's one-period effect (offset-free control)
         self.s = NMPCSettings() if settings is None else settings
         self.N = N = self.s.horizon
         self._build(N)
@@ -194,7 +195,8 @@ class NMPC(MPCBase):
             self._horizon = None
         else:
             self._horizon = F = _Horizon("horizon", self.model, N)
-        Xn = F(X[:, :N], U)
+        off = ca.MX.sym("off", nx)          # a disturbance's one-period effect G d (offset-free control)
+        Xn = F(X[:, :N], U) + ca.repmat(off, 1, N)
         Q, R, P = ca.DM(self.Q), ca.DM(self.R), ca.DM(self.P)
         E = X - ref
         D = U - uref
@@ -206,7 +208,7 @@ class NMPC(MPCBase):
                        ca.vec(ca.mtimes(Minv, U)) / self.spec.n_max_sq)
         self._n_dyn = nx * N + nx
         w = ca.vertcat(ca.vec(Xs), ca.vec(Us))
-        nlp = {"x": w, "f": cost, "g": g, "p": ca.vertcat(x0, ca.vec(ref), ca.vec(uref))}
+        nlp = {"x": w, "f": cost, "g": g, "p": ca.vertcat(x0, ca.vec(ref), ca.vec(uref), off)}
         opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
                 "ipopt.hessian_approximation": self.s.hessian, "ipopt.max_iter": self.s.max_iter,
                 "ipopt.max_cpu_time": self.s.time_limit_s, "ipopt.tol": self.s.tol, "error_on_fail": False}
@@ -271,10 +273,17 @@ class NMPC(MPCBase):
         ref, u_ref = self._horizon_reference(t)
         X0 = X0.copy()
         X0[0] = x
-        sol = self._solver(x0=self._pack(X0, U0), p=np.concatenate([x, ref.ravel(), u_ref.ravel()]),
+        sol = self._solver(x0=self._pack(X0, U0), p=self._parameters(x, ref, u_ref),
                            lbx=self._lbw, ubx=self._ubw, lbg=self._lbg, ubg=self._ubg)
         X, U = self._unpack(np.asarray(sol["x"]).ravel())
         return X, U, self._solver.stats().get("return_status", "unknown")
+
+    def _parameters(self, x, ref, u_ref) -> np.ndarray:
+        off = np.zeros(self.nx) if self._offset is None else self._offset
+        return np.concatenate([x, ref.ravel(), u_ref.ravel(), off])
+
+    def _set_offset(self, offset) -> None:
+        self._offset = offset
 
     def __call__(self, x, t: float):
         """Input (4,) and :class:`ControlInfo` for the measured state ``x`` at time ``t`` (s)."""
@@ -283,7 +292,7 @@ class NMPC(MPCBase):
         with Timer() as tm:
             x = self.tracker.full(x, t)     # the measured state, with the model's extra states carried
             ref, u_ref = self._horizon_reference(t)
-            args = dict(x0=self._guess(x, u_ref), p=np.concatenate([x, ref.ravel(), u_ref.ravel()]),
+            args = dict(x0=self._guess(x, u_ref), p=self._parameters(x, ref, u_ref),
                         lbx=self._lbw, ubx=self._ubw,
                         lbg=self._lbg, ubg=self._ubg)
             if self._lam is not None:

@@ -199,10 +199,12 @@ class Trace:
     steps: int = 0            # periods flown
     # With an estimator (else None): its output where the controller was called (NaN elsewhere).
     x_estimate: np.ndarray | None = None      # (K, nx) the model's state as estimated
-    estimate_std: np.ndarray | None = None    # (K, nx + 9) standard deviations of (x, d, gyro bias)
+    estimate_std: np.ndarray | None = None    # (K, nx + 12) standard deviations of (x, d, gyro and accel. biases)
     disturbance: np.ndarray | None = None     # (K, 6) m/s^2 (NED) and rad/s^2 (body)
     gyro_bias: np.ndarray | None = None       # (K, 3) estimated, rad/s
     gyro_bias_true: np.ndarray | None = None  # (K, 3) the IMU's own, rad/s
+    accel_bias: np.ndarray | None = None      # (K, 3) estimated, m/s^2
+    accel_bias_true: np.ndarray | None = None  # (K, 3) the IMU's own, m/s^2
     nees: np.ndarray | None = None            # (K,) normalized estimation error squared of the 12 rigid-body states
     estimator_s: np.ndarray | None = None     # (K,) the filter's time in the call, s
     crash_step: int | None = None
@@ -217,12 +219,12 @@ class Trace:
                    solver_failed=np.zeros(K, dtype=bool), lqr_fallback=np.zeros(K, dtype=bool))
 
 
-def _estimate_fields(tr: Trace, steps: int, nx: int) -> None:
-    nz = nx + 9
+def _estimate_fields(tr: Trace, steps: int, nx: int, nz: int) -> None:
     tr.x_estimate, tr.estimate_std = np.full((steps, nx), np.nan), np.full((steps, nz), np.nan)
     tr.disturbance, tr.gyro_bias = np.full((steps, 6), np.nan), np.full((steps, 3), np.nan)
     tr.gyro_bias_true, tr.nees, tr.estimator_s = np.full((steps, 3), np.nan), np.full(steps, np.nan), \
         np.full(steps, np.nan)
+    tr.accel_bias, tr.accel_bias_true = np.full((steps, 3), np.nan), np.full((steps, 3), np.nan)
 
 
 def nees(x_true: np.ndarray, x_est: np.ndarray, P: np.ndarray) -> float:
@@ -251,7 +253,7 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
     tell = getattr(controller, "applied", None)
     disturb = getattr(controller, "set_disturbance", None)
     if estimator is not None:
-        _estimate_fields(tr, steps, estimator.ekf.nx)
+        _estimate_fields(tr, steps, estimator.ekf.nx, estimator.ekf.nz)
     periods = range(steps) if progress is None else progress(range(steps))
     for k in periods:
         t = k * DT
@@ -269,7 +271,7 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
                     est = estimator.estimate()
                     xm = est.x
                     if disturb is not None:
-                        disturb(est.disturbance)
+                        disturb(est.disturbance, est.x)
                 c1 = time.perf_counter()
                 u_cmd, info = controller(xm, t)
                 tr.latency_s[k] = time.perf_counter() - c0
@@ -279,6 +281,7 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
                 tr.x_estimate[k], tr.estimate_std[k] = xm, est.std
                 tr.disturbance[k], tr.gyro_bias[k] = est.disturbance, est.gyro_bias
                 tr.gyro_bias_true[k] = estimator.sensors.gyro_bias
+                tr.accel_bias[k], tr.accel_bias_true[k] = est.accel_bias, estimator.sensors.accel_bias
                 tr.nees[k] = nees(plant.x, xm, est.P)
             tr.called[k] = True
             tr.u_command[k] = u_cmd

@@ -423,8 +423,8 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
             if est_ms.size else None
         nees_k = tr.nees[:k_end]
         result["nees_mean"] = float(np.nanmean(nees_k)) if np.any(np.isfinite(nees_k)) else None
-        for name in ("x_estimate", "estimate_std", "disturbance", "gyro_bias", "gyro_bias_true", "nees",
-                     "estimator_s"):
+        for name in ("x_estimate", "estimate_std", "disturbance", "gyro_bias", "gyro_bias_true", "accel_bias",
+                     "accel_bias_true", "nees", "estimator_s"):
             trace[name] = getattr(tr, name)[:k_end]
     return result, trace
 
@@ -460,7 +460,7 @@ def make_estimator(ctrl, model, plant, sc, guess=None, config=None):
     from mpc.estimator import EKFConfig
 
     ekf = DisturbanceEKF(model, suite.mocap, suite.imu, config=EKFConfig() if config is None else config,
-                         extra_start=lambda x: start(x, 0.0))
+                         extra_start=lambda x: start(x, 0.0), g=plant.vehicle.params.g)
     return SensedPlant(plant, suite), Estimator(suite, ekf, guess)
 
 
