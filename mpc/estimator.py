@@ -69,14 +69,19 @@ class EKFConfig:
     disturbance's are random-walk intensities per sqrt(s). Extra states get
     ``extra_rel`` of their scale (:func:`mpc.extended.extra_scale`) per period.
 
-    By default the model's own state has no process noise: whatever the
-    model gets wrong is an acceleration or an angular acceleration, and the
-    disturbance states take it. With the disturbance walks at zero the filter
-    is consistent on the plant its model is exact for (a test measures it).
+    By default the model's own state has almost no process noise: whatever
+    the model gets wrong is mostly an acceleration or an angular
+    acceleration, and the disturbance states take it. The one exception is
+    the attitude: a learned model whose attitude kinematics are a little off
+    (it needs a small body rate to hold a level attitude) cannot put that
+    into a disturbance, and without this allowance its gyroscope-bias
+    estimate takes seconds to absorb it. With the model-error terms and the
+    disturbance walks at zero the filter is consistent on the plant its
+    model is exact for (a test measures it).
     """
 
     position: float = 0.0           # m per period
-    attitude: float = 0.0           # rad per period
+    attitude: float = 1e-4          # rad per period: a learned model's attitude kinematics (not an acceleration)
     rate: float = 0.0               # rad/s per period
     velocity: float = 0.0           # m/s per period
     extra_rel: float = 0.0          # of each extra state's scale, per period

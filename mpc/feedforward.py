@@ -53,6 +53,17 @@ HOVER_STATE[2] = -1.0
 DAMPING = 1e-9
 
 
+#: Where a steady-state target is pinned to the reference: position and yaw.
+TARGET_FIXED_INDEX = np.array([0, 1, 2, 5])
+
+
+def _stationary(f) -> bool:
+    """True when flat outputs ``f`` hold one point with no motion (a hover): the target is a steady state."""
+    moving = (f.vel, f.acc, f.jerk, f.snap)
+    return (all(not np.any(m) for m in moving) and not np.any(f.yaw_rate) and not np.any(f.yaw_acc)
+            and not np.any(np.ptp(f.pos, axis=0)) and not np.ptp(f.yaw))
+
+
 def fit_inputs(model, x0: np.ndarray, x1: np.ndarray, u_guess: np.ndarray, w: np.ndarray, u_scale: np.ndarray,
                iterations: int = FIT_ITERATIONS) -> np.ndarray:
     """Least-squares inputs (K, 4) with ``model.step(x0, u) ~ x1`` in the weighted norm ``w`` (12,).
@@ -137,6 +148,7 @@ class FeedForward:
         self._inputs: dict[int, np.ndarray] = {}
         self._extras: list[np.ndarray] = []       # the reference's extra states at periods 0, 1, ...
         self._disturbance = None                  # (d (6,), offset G d (nx,)) or None: see set_disturbance
+        self._steady = None                       # the last steady-state target (x, u), the next one's first guess
         self.trim_extra = np.zeros(0)
         #: The model gives its own reference states (full width) along flat trajectories.
         self.model_reference = self.is_flat and model.reference_states(reference, np.zeros(1)) is not None
@@ -268,6 +280,10 @@ class FeedForward:
 
         d, off = self._disturbance
         nominal_x, nominal_u = self.full_states(t), self.inputs(t[:-1])
+        if self.is_flat and _stationary(self.trajectory.flat(t)):
+            target = self._steady_target(nominal_x[0], nominal_u[0], d, off)
+            if target is not None:
+                return np.tile(target[0], (len(t), 1)), np.tile(target[1], (len(t) - 1, 1))
         traj = ShiftedTrajectory(self.trajectory, d[:3]) if self.is_flat else None
         if self.model_reference:
             X = self.model.reference_states(traj, t)
@@ -285,6 +301,28 @@ class FeedForward:
                      - extra_equilibrium(self.model, nominal_x[:, :NX], u_nom, e_nom))
             X = np.hstack([X, e_nom + shift])
         return X, U
+
+    def _steady_target(self, x_nominal, u_nominal, d, off):
+        """The model's steady state under ``off`` at the reference's position and yaw, ``(x (nx,), u (4,))``, or None
+        when Newton does not converge (:func:`mpc.offset_free.steady_target`; warm-started from the last one)."""
+        from .extended import extra_scale
+        from .offset_free import ShiftedTrajectory, TARGET_ACCEPT, steady_target
+
+        scale = 1.0 / np.sqrt(self.w)
+        if self.model.n_extra:
+            scale = np.concatenate([scale, extra_scale(self.model, self.trim_extra)])
+        last = self._steady
+        if last is not None and np.array_equal(last[0][TARGET_FIXED_INDEX], x_nominal[TARGET_FIXED_INDEX]):
+            x0, u0 = last
+        else:       # the flatness map under the disturbance's acceleration: attitude and thrust close to the answer
+            x0, u0 = x_nominal.copy(), u_nominal
+            x0[:NX] = flat_state(ShiftedTrajectory(self.trajectory, d[:3]).flat(np.zeros(1)), self.spec)[0][0]
+        x, u, res = steady_target(self.model, x0, u0, off, scale, self.u_scale)
+        if not res < TARGET_ACCEPT:
+            self._steady = None
+            return None
+        self._steady = (x, u)
+        return x, u
 
     def prepare(self, t_end: float, chunk: int = 512) -> None:
         """Fit the feed-forward for every control period from 0 to ``t_end`` (s) ahead of a flight.

@@ -118,4 +118,77 @@ class DisturbedModel:
         return (xn if self.offset is None else xn + self.offset), A, B
 
 
-__all__ = ["DisturbedModel", "ShiftedTrajectory", "disturbance_matrix", "disturbance_offset", "euler_rate_matrix"]
+#: The states a steady-state target holds at the reference: position (NED) and yaw. The rest (attitude, rates,
+#: velocity, extra states) and the inputs are free, so the target problem is square (Pannocchia's rank condition:
+#: as many tracked outputs as inputs).
+TARGET_FIXED = (0, 1, 2, 5)
+#: Newton iterations and stopping test (scaled residual) of :func:`steady_target`.
+TARGET_ITERATIONS = 8
+TARGET_TOL = 1e-9
+#: A target whose scaled residual stays above this is not used (the controllers keep the flatness-map target).
+TARGET_ACCEPT = 1e-4
+#: Levenberg damping of the target's Newton step (scaled units): keeps the step finite if a model's Jacobian is
+#: singular, far below any scale that matters.
+TARGET_DAMPING = 1e-10
+
+
+def steady_target(model, x_guess, u_guess, offset, state_scale, u_scale, iterations: int = TARGET_ITERATIONS):
+    """The steady state of the model under a constant offset that holds the reference's position and yaw.
+
+    Solves ``x = f(x, u) + offset`` for ``(x, u)`` with ``x[TARGET_FIXED]``
+    held at ``x_guess``'s values (Newton's method on the scaled residual,
+    from the guess). This is the target of offset-free MPC: a learned model
+    whose hover is not an equilibrium of its own (it drifts a little, or its
+    attitude must tilt to stand still) is still given a target it can hold,
+    so that the estimate, and the measured position with it, settles on the
+    reference.
+
+    Parameters
+    ----------
+    model : PredictionModel
+    x_guess : ndarray, shape (nx,)
+        The nominal target state (its position and yaw are kept).
+    u_guess : ndarray, shape (4,)
+        The nominal target input (N, N m).
+    offset : ndarray, shape (nx,) or None
+        Added to every step (``G d``).
+    state_scale : ndarray, shape (nx,)
+        Acceptable deviations of the state (residuals are measured in these).
+    u_scale : ndarray, shape (4,)
+        Input scales.
+
+    Returns
+    -------
+    x : ndarray, shape (nx,)
+    u : ndarray, shape (4,)
+    residual : float
+        Largest scaled residual ``|x - f(x, u) - offset| / state_scale`` left.
+    """
+    x = np.array(x_guess, dtype=float).reshape(-1).copy()
+    u = np.array(u_guess, dtype=float).reshape(-1).copy()
+    nx = x.size
+    off = np.zeros(nx) if offset is None else np.asarray(offset, dtype=float).reshape(nx)
+    free = np.setdiff1d(np.arange(nx), TARGET_FIXED)
+    sx = np.asarray(state_scale, dtype=float)
+    zs = np.concatenate([sx[free], np.asarray(u_scale, dtype=float)])      # unknowns' scales
+    eye = np.eye(nx)
+    res = np.inf
+    for i in range(iterations + 1):
+        with np.errstate(all="ignore"):
+            xn, A, B = model.linearize(x[None], u[None])
+        r = (xn[0] + off - x) / sx
+        res = float(np.max(np.abs(r)))
+        if not np.isfinite(res) or res < TARGET_TOL or i == iterations:
+            break
+        J = np.hstack([(A[0] - eye)[:, free], B[0]]) / sx[:, None] * zs[None, :]
+        H = J.T @ J + TARGET_DAMPING * np.eye(J.shape[1])
+        step = -np.linalg.solve(H, J.T @ r) * zs
+        if not np.all(np.isfinite(step)):
+            break
+        x[free] += step[:free.size]
+        u += step[free.size:]
+    return x, u, res
+
+
+__all__ = ["DisturbedModel", "ShiftedTrajectory", "disturbance_matrix", "disturbance_offset", "euler_rate_matrix",
+           "steady_target"]

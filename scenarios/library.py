@@ -22,7 +22,7 @@ Names:
 * ``random-<k>``: a minimum-snap path through seeded random waypoints
   (``k`` seeds the waypoints), bounded speed and acceleration;
 * each of ``hover``, ``figure8-slow`` and ``figure8-fast`` with one variant
-  suffix ``+highfi``, ``+payload``, ``+wind``, ``+noise``, ``+delay``;
+  suffix ``+highfi``, ``+payload``, ``+wind``, ``+steadywind``, ``+noise``, ``+delay``;
 * the path of a scenario file (``*.toml``, :mod:`scenarios.scenario_file`,
   ``docs/scenario-files.md``): a hover point, a minimum-snap path through
   given waypoints, or a table of flat outputs, with the options above::
@@ -132,6 +132,10 @@ def _variant(base: Scenario, suffix: str) -> Scenario:
     if suffix == "wind":
         return dataclasses.replace(base, name=name, wind=WindGusts(flight_duration_s=base.duration_s, seed=base.seed),
                                    description=base.description + "; steady 0.4 m/s^2 wind plus 1.5 m/s^2 gusts")
+    if suffix == "steadywind":
+        return dataclasses.replace(base, name=name, wind=WindGusts(flight_duration_s=base.duration_s, seed=base.seed,
+                                                                   n_gusts=0),
+                                   description=base.description + "; steady 0.4 m/s^2 wind, no gusts")
     if suffix == "noise":
         n = NOISE
         return dataclasses.replace(base, name=name, noise=n,
@@ -145,7 +149,7 @@ def _variant(base: Scenario, suffix: str) -> Scenario:
     raise ScenarioError(f"unknown scenario variant {suffix!r}; choose from {', '.join(VARIANTS)}")
 
 
-VARIANTS = ("highfi", "payload", "wind", "noise", "delay")
+VARIANTS = ("highfi", "payload", "wind", "steadywind", "noise", "delay")
 
 
 def scenario_names() -> list[str]:

@@ -152,14 +152,14 @@ def integrated_autocorrelation_time(x: np.ndarray, cutoff: float = 0.05) -> floa
 def test_the_filter_is_consistent_on_the_plant_its_model_is_exact_for():
     """Time-averaged NEES of the 12 rigid-body states over 20 seeded oracle flights on the nominal plant.
 
-    The flights have no disturbance, so the filter's noise model matches them with its disturbance walks at zero
-    (its default model-error noise is zero already). Consecutive NEES values are correlated: the band is the
+    The flights have no disturbance and the model is exact, so the filter's noise model matches them with its
+    disturbance walks and its model-error noise at zero. Consecutive NEES values are correlated: the band is the
     chi-square band of N K_eff n degrees of freedom, K_eff = K / tau with tau the NEES series' integrated
     autocorrelation time (Bar-Shalom's time-average test with the samples counted honestly).
     """
     from scipy.stats import chi2
 
-    cfg = EKFConfig(force_walk=0.0, torque_walk=0.0)
+    cfg = EKFConfig(force_walk=0.0, torque_walk=0.0, attitude=0.0)
     series = np.array([fly(RunSpec("figure8-fast", "lqr", "oracle", seed=s, estimator="ekf"), ekf_config=cfg)[1]
                        ["nees"] for s in range(NEES_FLIGHTS)])
     n, (N, K) = 12, series.shape

@@ -5,7 +5,8 @@ import pytest
 
 from mpc.errors import ConfigurationError
 from mpc.models import AnalyticModel
-from mpc.offset_free import DisturbedModel, ShiftedTrajectory, disturbance_matrix, disturbance_offset
+from mpc.offset_free import (TARGET_FIXED, DisturbedModel, ShiftedTrajectory, disturbance_matrix, disturbance_offset,
+                              steady_target)
 from mpc.trajectory import Figure8, Hover
 from scenarios.runner import RunSpec, fly, make_controller
 from sim.params import DT
@@ -18,7 +19,12 @@ TOL = {
     "defect": 1e-3,         # the target's one-period defect through f + G d, in the states' scales
     "defect_velocity": 1e-4,  # m/s: the same, velocity
     "settled": 5e-3,        # m: hover+payload with the estimator, settled error (the acceptance bound)
+    "steady": 1e-9,         # the steady-state target's residual, in the states' scales
+    "drift_velocity": 1e-9,  # m/s: the velocity that cancels a model's position drift, -drift / dt
 }
+
+#: The models shipped in models/ (flown offset-free at hover).
+SHIPPED = ("baseline", "baseline_aggressive", "modular", "fourier", "proposed", "proposed_aggressive")
 
 
 def _oracle():
@@ -88,6 +94,17 @@ def test_a_bad_disturbance_gets_one_line():
         disturbance_offset([1.0, 2.0], None, 12)
 
 
+def test_a_steady_wind_leaves_no_offset_with_the_estimator():
+    """hover+steadywind (0.4 m/s^2, no gusts): the estimated disturbance cancels it."""
+    from scenarios.library import get_scenario
+
+    sc = get_scenario("hover+steadywind")
+    np.testing.assert_array_equal(sc.wind(2.0), [0.4, 0.0, 0.0])
+    r, _ = fly(RunSpec("hover+steadywind", "sqp", "oracle", estimator="ekf"))
+    assert not r["crashed"]
+    assert r["settled_error_m"] < TOL["settled"], r["settled_error_m"]
+
+
 @pytest.mark.parametrize("controller", ["lqr", "ltv", "sqp"])
 def test_a_payload_leaves_no_offset_with_the_estimator(controller):
     """hover+payload (20 % more mass than the model knows): 104 mm settled error on the true state, < 5 mm here."""
@@ -101,3 +118,64 @@ def test_a_payload_leaves_no_offset_with_the_estimator_nmpc():
     r, _ = fly(RunSpec("hover+payload", "nmpc", "oracle", estimator="ekf"))
     assert not r["crashed"]
     assert r["settled_error_m"] < TOL["settled"], r["settled_error_m"]
+
+
+def test_the_steady_target_holds_a_drifting_model_still():
+    """A model that drifts 0.2 mm per period north at rest (as a learned model's kinematics may): its steady state at
+    the reference moves south at exactly 0.2 mm / dt. With a roll drift of 0.1 mrad per period as well, the roll rate
+    turns against it. Position and yaw stay where they were; the residual is Newton's."""
+    from mpc.lqr import DEFAULT_STATE_SCALE
+
+    p = load_vehicle(None).params
+    x0 = np.array([0.3, -0.2, -1.0, 0, 0, 0.4, 0, 0, 0, 0, 0, 0])
+    for roll_drift in (0.0, 1e-4):
+        model = DisturbedModel(_oracle())
+        model.offset = np.zeros(12)
+        model.offset[0], model.offset[3] = 2e-4, roll_drift
+        x, u, res = steady_target(model, x0, [p.m * p.g, 0, 0, 0], None, DEFAULT_STATE_SCALE,
+                                  np.array([1, .01, .01, .01]))
+        assert res < TOL["steady"]
+        defect = (model.step(x[None], u[None])[0] - x) / DEFAULT_STATE_SCALE
+        assert np.max(np.abs(defect)) < TOL["steady"]
+        np.testing.assert_array_equal(x[list(TARGET_FIXED)], x0[list(TARGET_FIXED)])
+        if roll_drift == 0.0:
+            # The velocity that carries the position back, -drift / dt north (the yaw of 0.4 does not matter).
+            assert abs(x[9] - (-2e-4 / DT)) < TOL["drift_velocity"], x[9]
+        else:
+            assert x[6] < 0.0, x[6]
+
+
+def test_a_hover_target_is_the_models_steady_state_under_the_disturbance():
+    """Under an estimated disturbance, a hover's target is an equilibrium of the model plus G d, to 1e-9."""
+    model = _oracle()
+    ctrl = make_controller("sqp", model, Hover())
+    ctrl.prepare(1.0)
+    d = np.array([0.4, -0.3, 0.5, 2.0, -1.0, 0.5])
+    ctrl.set_disturbance(d)
+    X, U = ctrl._horizon_reference(0.5)
+    off = disturbance_offset(d, None, 12)
+    defect = (model.step(X[:-1], U) + off - X[1:]) / ctrl.state_scale
+    assert np.max(np.abs(defect)) < TOL["steady"]
+    np.testing.assert_array_equal(X[:, [0, 1, 2, 5]], np.tile([0.0, 0.0, -1.0, 0.0], (len(X), 1)))
+
+
+def _shipped_settle(name, scenario):
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "models" / f"{name}.onnx"
+    r, _ = fly(RunSpec(scenario, "sqp", str(path), estimator="ekf"))
+    assert not r["crashed"]
+    assert r["settled_error_m"] < TOL["settled"], (name, scenario, r["settled_error_m"])
+
+
+@pytest.mark.parametrize("scenario", ["hover+payload", "hover+steadywind"])
+def test_the_shipped_model_with_the_worst_kinematics_settles_offset_free(scenario):
+    """Proposed-aggressive (17 mm settled on hover+payload before its target was the model's own steady state)."""
+    _shipped_settle("proposed_aggressive", scenario)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario", ["hover+payload", "hover+steadywind"])
+@pytest.mark.parametrize("name", [m for m in SHIPPED if m != "proposed_aggressive"])
+def test_every_shipped_model_settles_offset_free(name, scenario):
+    _shipped_settle(name, scenario)

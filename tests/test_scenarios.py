@@ -38,8 +38,8 @@ def test_scenario_names_are_the_designs():
     assert names[:3] == ["hover", "figure8-slow", "figure8-fast"]
     assert names[3:7] == ["figure8-2.7s", "figure8-2.4s", "figure8-2.2s", "figure8-2.0s"]
     assert names[7:11] == ["random-0", "random-1", "random-2", "yaw-turn"]
-    assert len(names) == 11 + 3 * 5
-    for v in ("highfi", "payload", "wind", "noise", "delay"):
+    assert len(names) == 11 + 3 * 6
+    for v in ("highfi", "payload", "wind", "steadywind", "noise", "delay"):
         assert f"figure8-fast+{v}" in names
     assert get_scenario("random-17").path_seed == 17          # any waypoint seed
     with pytest.raises(ScenarioError, match="unknown scenario"):
