@@ -2,7 +2,10 @@
 
 Run ``python -m mpc.bench [--models models] [--controllers nmpc,sqp,ltv,lqr] [--cases hover,figure8-fast]
 [--json FILE]``, or ``python -m mpc.bench --derivatives [--models models] [--json FILE]`` for the cost and
-accuracy of the three ways to get a model's A and B over a 30-stage horizon (:func:`derivative_paths`).
+accuracy of the three ways to get a model's A and B over a 30-stage horizon (:func:`derivative_paths`), or
+``python -m mpc.bench --estimator [--models models] [--json FILE]`` for the state estimator's cost per period:
+the SQP with the estimator flies ``figure8-fast`` in real-time timing with the oracle and every shipped model
+(:func:`estimator_cost`).
 
 For the oracle and each shipped ONNX model, each controller flies a 5 s
 hover (from a 0.3 m offset) and two laps of ``figure8-fast`` (period 3 s,
@@ -194,9 +197,13 @@ def main(argv=None) -> int:
                     "bench_derivatives.json with --derivatives)")
     ap.add_argument("--derivatives", action="store_true",
                     help="only compare the derivative paths (graph, float32 graph, central differences, CasADi import)")
+    ap.add_argument("--estimator", action="store_true",
+                    help="only the state estimator's cost per period: the SQP with it on figure8-fast in real time")
     args = ap.parse_args(argv)
     if args.derivatives:
         return _main_derivatives(args)
+    if args.estimator:
+        return _main_estimator(args)
     args.json = args.json or Path("bench_mpc.json")
     kinds = [k for k in args.controllers.split(",") if k]
     bad = set(kinds) - set(CONTROLLERS)
@@ -249,6 +256,54 @@ def main(argv=None) -> int:
                   + "".join(f"{sp[k]:>12.2f}" for k in (*SPLIT, "python")))
     write_json(args.json, out)
     print(f"wrote {args.json}")
+    return 0
+
+
+def _ms(v) -> dict:
+    v = 1e3 * np.asarray(v, dtype=float)
+    v = v[np.isfinite(v)]
+    return {"median": float(np.median(v)), "p95": float(np.percentile(v, 95)), "max": float(np.max(v))} \
+        if v.size else {"median": None, "p95": None, "max": None}
+
+
+def estimator_cost(model: str, scenario: str = "figure8-fast") -> dict:
+    """The SQP with the state estimator on ``scenario`` in real-time timing with ``model`` ('oracle' or a file).
+
+    Returns the filter's time per period, the controller's and what the clock charged (their sum), ms
+    (median / p95 / max), the deadline misses of the charged time and the position RMSE, m.
+    """
+    from scenarios.runner import RunSpec, fly     # the closed loop with sensors lives with the scenarios
+
+    r, tr = fly(RunSpec(scenario, "sqp", model, timing="realtime", estimator="ekf"))
+    called = np.asarray(tr.get("called", np.ones(len(tr["solve_s"]), dtype=bool)), dtype=bool)
+    est = np.asarray(tr["estimator_s"], dtype=float)[called]
+    ctrl = np.asarray(tr["solve_s"], dtype=float)[called]
+    return {"estimator_ms": _ms(est), "controller_ms": _ms(ctrl), "charged_ms": _ms(est + ctrl),
+            "deadline_misses": r.get("deadline_misses"), "rmse_position_m": r.get("rmse_position_m"),
+            "crashed": r.get("crashed"), "periods": int(called.sum())}
+
+
+def _main_estimator(args) -> int:
+    if not args.models.is_dir():
+        raise SystemExit(f"--models: {str(args.models)!r} is not a folder")
+    models = ["oracle"] + [str(f) for f in model_files(args.models)]
+    out = {"python": platform.python_version(), "cpus": os.cpu_count(), "scenario": "figure8-fast",
+           "controller": "sqp", "timing": "realtime", "models": {}}
+    print("The SQP with the state estimator, figure8-fast, real-time timing; ms per period (median / p95 / max)")
+    print(f"{'model':<22}{'filter':>22}{'controller':>22}{'charged':>22}{'misses':>8}{'RMSE m':>9}")
+    for m in models:
+        name = Path(m).stem if m != "oracle" else m
+        r = estimator_cost(m)
+        out["models"][name] = r
+
+        def f(d):
+            return "–" if d["median"] is None else f"{d['median']:.2f} / {d['p95']:.2f} / {d['max']:.1f}"
+        rmse = r["rmse_position_m"]
+        print(f"{name:<22}{f(r['estimator_ms']):>22}{f(r['controller_ms']):>22}{f(r['charged_ms']):>22}"
+              f"{r['deadline_misses']:>8}{'crashed' if r['crashed'] else format(rmse, '.4f'):>9}", flush=True)
+    path = args.json or Path("bench_estimator.json")
+    write_json(path, out)
+    print(f"wrote {path}")
     return 0
 
 

@@ -149,6 +149,7 @@ class FeedForward:
         self._extras: list[np.ndarray] = []       # the reference's extra states at periods 0, 1, ...
         self._disturbance = None                  # (d (6,), offset G d (nx,)) or None: see set_disturbance
         self._steady = None                       # the last steady-state target (x, u), the next one's first guess
+        self._disturbed_inputs: dict[int, np.ndarray] = {}   # the last disturbed fit's inputs by time (ns)
         self.trim_extra = np.zeros(0)
         #: The model gives its own reference states (full width) along flat trajectories.
         self.model_reference = self.is_flat and model.reference_states(reference, np.zeros(1)) is not None
@@ -261,6 +262,8 @@ class FeedForward:
         """
         self._disturbance = None if d is None or offset is None else \
             (np.asarray(d, dtype=float).copy(), np.asarray(offset, dtype=float).copy())
+        if self._disturbance is None:
+            self._disturbed_inputs = {}
 
     def horizon(self, times) -> tuple[np.ndarray, np.ndarray]:
         """Target states (K, nx) at ``times`` (K,) on the control grid and inputs (K - 1, 4) between them.
@@ -292,7 +295,15 @@ class FeedForward:
                      MODEL_REFERENCE_FIT_ITERATIONS)[0]
             return X, U
         X = flat_state(traj.flat(t), self.spec)[0] if traj is not None else self.trajectory(t)
-        U = fit_inputs(self.model, X[:-1], X[1:] - off[:NX], nominal_u, self.w, self.u_scale)
+        # Warm start from the last call's inputs at the same times (the disturbance moves little in a period): one
+        # Gauss-Newton iteration then does what two do from the undisturbed inputs.
+        keys = self._keys(t[:-1])
+        last = self._disturbed_inputs
+        warm = [int(k) in last for k in keys]
+        guess = np.array([last[int(k)] if w else u for k, w, u in zip(keys, warm, nominal_u)])
+        iterations = 1 if sum(warm) >= len(keys) - 1 else FIT_ITERATIONS
+        U = fit_inputs(self.model, X[:-1], X[1:] - off[:NX], guess, self.w, self.u_scale, iterations)
+        self._disturbed_inputs = {int(k): u for k, u in zip(keys, U)}
         if self.model.n_extra:
             u_all = np.vstack([U, U[-1:]])
             u_nom = np.vstack([nominal_u, nominal_u[-1:]])

@@ -13,8 +13,9 @@ from .plants import plants_section, split_by_plant
 from .inputs import load_inputs
 from .summary import summary_text
 from .versus import versus_section
-from .zoo import (NO_STUDY, answer_text, dose_response_figure, max_speed_figure, predictor_table, provenance_text,
-                  zoo_table)
+from .estimation import estimation_section, split_by_estimator
+from .zoo import (NO_STUDY, answer_text, dose_response_figure, estimator_threshold_section, max_speed_figure,
+                  predictor_table, provenance_text, zoo_table)
 from .tables import (closed_loop_table, ensemble_table, fisher_table, hover_table, ladder_table, provenance_section,
                      realtime_table, solve_time_table, table_one, table_three, table_two)
 
@@ -26,6 +27,7 @@ SECTIONS = (
     "Maximum trackable speed of the zoo",
     "Which open-loop number predicts failure",
     "The model zoo",
+    "Dose-response with the state estimator",
     "Summary",
     "Table I: one-step and 100-step accuracy",
     "Table II: parameter identification and Cramér-Rao bounds",
@@ -35,6 +37,7 @@ SECTIONS = (
     "High-fidelity plant: models trained on its own data",
     "Learned against nominal on plants with unmodelled physics",
     "Other plants and vehicles",
+    "State estimation and offset-free control",
     "Hover: settled error and gust recovery",
     "Speed ladder: maximum trackable speed",
     "Ensembles: crash probability and RMSE with intervals",
@@ -62,7 +65,8 @@ def _clear_figures(run_dir: Path) -> None:
 
 def _zoo_sections(study, d: Path, body: dict) -> None:
     """The report's lead: the zoo study's answer, figures and tables (or how to produce them)."""
-    names = SECTIONS[:4]
+    names = ("Dose-response: open-loop error against closed-loop failure", "Maximum trackable speed of the zoo",
+             "Which open-loop number predicts failure", "The model zoo")
     if study is None:
         for n in names:
             body[n] = NO_STUDY
@@ -98,10 +102,16 @@ def report_markdown(run_dir) -> str:
     # Every section but the real-time one reads the ideal-timing runs (results without a timing are ideal); the
     # ensembles' members have their own section, every other table has one run per case.
     inp.runs = [r for r in every_run if r.get("timing", "ideal") == "ideal"]
+    # Runs with the state estimator have their own section; every other one reads the runs without (or, in a folder
+    # flown with the estimator throughout, those with it).
+    without, estimated = split_by_estimator(inp.runs)
+    if without:
+        inp.runs, every_run = without, split_by_estimator(every_run)[0]
     head = headline_data(inp.runs, inp.models_by_name())
     corr = correlation_text(head)
     body = {}
     _zoo_sections(inp.study, d, body)
+    body["Dose-response with the state estimator"] = estimator_threshold_section(inp.study, inp.study_ekf)
     body["Summary"] = summary_text(inp.runs, corr if head.points else None)
     body["Table I: one-step and 100-step accuracy"] = table_one(inp.evaluation)
     body["Table II: parameter identification and Cramér-Rao bounds"] = (
@@ -113,6 +123,7 @@ def report_markdown(run_dir) -> str:
         inp.runs + members, inp.evaluation)
     body["Learned against nominal on plants with unmodelled physics"] = versus_section(inp.versus)
     body["Other plants and vehicles"] = plants_section(inp.runs, other_plants)
+    body["State estimation and offset-free control"] = estimation_section(without, estimated)
     body["Hover: settled error and gust recovery"] = hover_table(inp.runs)
     body["Speed ladder: maximum trackable speed"] = ladder_table(inp.runs)
     body["Ensembles: crash probability and RMSE with intervals"] = ensemble_table(members)

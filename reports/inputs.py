@@ -100,6 +100,8 @@ class Inputs:
         ``study.json`` (the zoo's dose-response study), None when absent.
     versus : dict or None
         ``versus.json`` (learned models against the nominal equations), None when absent.
+    study_ekf : dict or None
+        ``study_ekf.json`` (the study's ensembles flown with the state estimator), None when absent.
     """
 
     run_dir: Path
@@ -111,6 +113,7 @@ class Inputs:
     provenance: dict | None
     study: dict | None = None
     versus: dict | None = None
+    study_ekf: dict | None = None
     _traces: dict = field(default_factory=dict, repr=False)
 
     def models_by_name(self) -> dict:
@@ -164,15 +167,20 @@ def load_inputs(run_dir) -> Inputs:
     provenance = _read_json(d / "provenance.json", False)
     if provenance is not None and not isinstance(provenance, dict):
         provenance = None
-    study = _read_json(d / "study.json", False)
-    if study is not None:
-        missing = [k for k in STUDY_KEYS if not isinstance(study, dict) or k not in study]
-        if missing:
-            raise ReportError(f"'study.json': not the output of pinnmpc study (lacks {', '.join(missing)})")
+    study, study_ekf = (_read_study(d, name) for name in ("study.json", "study_ekf.json"))
     versus = _read_json(d / "versus.json", False)
     if versus is not None:
         missing = [k for k in VERSUS_KEYS if not isinstance(versus, dict) or k not in versus]
         if missing:
             raise ReportError(f"'versus.json': not the output of pinnmpc versus (lacks {', '.join(missing)})")
     plan = results.get("plan") if isinstance(results.get("plan"), dict) else {}
-    return Inputs(d, runs, plan, evaluation, fisher, ablation, provenance, study, versus)
+    return Inputs(d, runs, plan, evaluation, fisher, ablation, provenance, study, versus, study_ekf)
+
+
+def _read_study(d: Path, name: str) -> dict | None:
+    study = _read_json(d / name, False)
+    if study is not None:
+        missing = [k for k in STUDY_KEYS if not isinstance(study, dict) or k not in study]
+        if missing:
+            raise ReportError(f"'{name}': not the output of pinnmpc study (lacks {', '.join(missing)})")
+    return study

@@ -233,3 +233,74 @@ def max_speed_figure(study: dict, run_dir: Path) -> FigureOut | None:
            f"crash and within {lad['rmse_bound_m']:g} m RMSE, climbing the ladder from the slowest lap (one run per "
            f"lap). Dotted: the laps' mean speeds.")
     return FigureOut(rel, "open-loop error against maximum trackable speed", cap)
+
+
+#: Shown when the results folder has no study flown with the state estimator.
+NO_STUDY_EKF = ("No `study_ekf.json` in this folder: `pinnmpc study --estimator ekf` flies the zoo's ensembles with "
+                "the state estimator (`--select` for some of its models) and writes a copy into `models/zoo/`, "
+                "which the next `pinnmpc run` copies here.")
+
+
+def _crash_cell(e: dict | None) -> str:
+    if not e:
+        return MISSING
+    lo, hi = e["crash_probability_ci95"]
+    return f"{e['crash_probability']:.1f} ({lo:.2f}–{hi:.2f})"
+
+
+def _median_mm(e: dict | None) -> str:
+    return MISSING if not e or e.get("median") is None else f"{1e3 * e['median']:.1f}"
+
+
+def _edges(rows: dict, c: str) -> tuple[float | None, float | None]:
+    """(largest open-loop MAE with no crash at or below it, smallest with every crash at or above it), m."""
+    pts = sorted((_mae(r), r["ensembles"][c]["crash_probability"]) for r in rows.values())
+    safe = None
+    for m, p in pts:
+        if p > 0:
+            break
+        safe = m
+    doomed = None
+    for m, p in reversed(pts):
+        if p < 1:
+            break
+        doomed = m
+    return safe, doomed
+
+
+def estimator_threshold_section(study: dict | None, study_ekf: dict | None) -> str:
+    """The dose-response on the same models without and with the state estimator: crash probabilities (Wilson 95 %)
+    and median RMSE per controller, and where the threshold's edges fall each way."""
+    if study_ekf is None:
+        return NO_STUDY_EKF
+    base = (study or {}).get("models", {})
+    rows = study_ekf["models"]
+    cs = [c for c in study_ekf["controllers"]]
+    header = ["model", "100-step MAE (mm)"]
+    for c in cs:
+        lab = controller_label(c)
+        header += [f"{lab} crash p without", f"{lab} crash p with", f"{lab} RMSE without (mm)",
+                   f"{lab} RMSE with (mm)"]
+    body = []
+    for name, r in sorted(rows.items(), key=lambda kv: _mae(kv[1])):
+        b = base.get(name)
+        line = [name, f"{1e3 * _mae(r):.1f}"]
+        for c in cs:
+            eb = None if b is None else b["ensembles"].get(c)
+            e = r["ensembles"][c]
+            line += [_crash_cell(eb), _crash_cell(e), _median_mm(eb), _median_mm(e)]
+        body.append(line)
+    text = [f"{len(rows)} models of the zoo around the threshold, flown on `{study_ekf['scenario']}` from "
+            f"{study_ekf['members']} ensemble members per controller with the state estimator (the filter's "
+            f"estimate and its disturbance estimate in the controllers' prediction and target), beside the same "
+            f"models without it (the study above). From `{study_ekf.get('command', 'pinnmpc study --estimator ekf')}`"
+            f" ({study_ekf.get('date', 'undated')}). Crash probabilities with Wilson 95 % intervals."]
+    for c in cs:
+        sub = {n: base[n] for n in rows if n in base}
+        s0, d0 = _edges(sub, c) if sub else (None, None)
+        s1, d1 = _edges(rows, c)
+        def mm(v):
+            return MISSING if v is None else f"{1e3 * v:.0f} mm"
+        text.append(f"**{controller_label(c)}.** No crash up to {mm(s0)} of open-loop error without the estimator, "
+                    f"{mm(s1)} with it; every member crashes from {mm(d0)} without, {mm(d1)} with.")
+    return "\n\n".join(text) + "\n\n" + md_table(header, body)

@@ -8,6 +8,8 @@ Layout of a results folder ``DIR``::
     DIR/ablation.json       Table III (copied from models/ablation.json, produced by ``pinnmpc ablation``)
     DIR/study.json          the zoo's dose-response study (copied from models/zoo/study.json, produced by
                             ``pinnmpc study``; it flies 729 runs, more than the main job's time allows)
+    DIR/study_ekf.json      the same study's ensembles flown with the state estimator (models/zoo/study_ekf.json,
+                            ``pinnmpc study --estimator ekf``)
     DIR/versus.json         learned models against the nominal equations on plants with unmodelled physics
                             (copied from models/versus/versus.json, produced by ``pinnmpc versus``; also too
                             long for the main job)
@@ -23,7 +25,9 @@ and on every shipped model, and with the LQR on the oracle; the LTV-MPC on
 the cases of its CI bounds (:data:`LTV_SCENARIOS`); ``figure8-fast`` once
 more with real-time timing, flown by the SQP, the LTV-MPC and the NMPC with
 every model (:data:`REALTIME_SCENARIOS`); the high-fidelity plant's runs
-(:func:`highfi_plan`) and those on other plants (:func:`plant_plan`).
+(:func:`highfi_plan`) and those on other plants (:func:`plant_plan`); and the
+disturbance and noise variants once more with the state estimator
+(:func:`estimator_plan`).
 An IPOPT solve takes 100-200 ms per control period on these 2-core machines
 (600 periods a run), so the NMPC in ideal timing does not fit the main
 job's 10 minutes, not even with the oracle alone; ``full=True`` (``pinnmpc run --full``: every scenario,
@@ -80,6 +84,13 @@ IDENTIFICATION_DIR = "identification"
 PLANT_SCENARIO = "figure8-fast"
 PLANT_CONTROLLER = "sqp"
 PLANT_VEHICLES = ("hummingbird", "crazyflie")
+#: With the state estimator as well: the variants of these kinds (disturbances and sensor noise, which the
+#: estimator is for) flown by ESTIMATOR_CONTROLLER with every model beside their runs without it, and
+#: OFFSET_FREE_SCENARIOS (the hover cases an estimated disturbance should leave without offset) with every model,
+#: without the estimator only with the oracle (every model keeps about the same 0.1 m offset there).
+ESTIMATOR_VARIANTS = ("payload", "wind", "steadywind", "noise")
+ESTIMATOR_CONTROLLER = "sqp"
+OFFSET_FREE_SCENARIOS = ("hover+payload", "hover+steadywind")
 #: Time-dependent provenance fields (excluded when two runs are compared).
 PROVENANCE_TIMING = ("started", "finished", "wall_time_s", "stage_seconds")
 
@@ -149,14 +160,45 @@ def _on(spec: RunSpec, plant: str, vehicle: str | None) -> RunSpec | None:
     return dataclasses.replace(spec, model=model, plant=plant, vehicle=vehicle)
 
 
+def _variant(name: str) -> str | None:
+    return name.split("+", 1)[1] if "+" in name else None
+
+
+def estimator_plan(models: list[str], names: list[str], scenarios_given: bool) -> list[RunSpec]:
+    """The runs flown with the state estimator beside their twins without it (see :data:`ESTIMATOR_VARIANTS`)."""
+    cases = [sc for sc in names if _variant(sc) in ESTIMATOR_VARIANTS]
+    if not scenarios_given:
+        cases += [sc for sc in OFFSET_FREE_SCENARIOS if sc not in cases]
+    specs = [RunSpec(sc, ESTIMATOR_CONTROLLER, m, estimator="ekf") for sc in cases for m in models]
+    if not scenarios_given:       # the oracle without the estimator where the plan has no twin (the others' are alike)
+        specs += [RunSpec(sc, ESTIMATOR_CONTROLLER, models[0]) for sc in OFFSET_FREE_SCENARIOS if sc not in names]
+    return specs
+
+
 def main_plan(models_dir="models", full: bool = False, scenarios: list[str] | None = None, plant: str = "sim",
-              vehicle: str | None = None) -> list[RunSpec]:
+              vehicle: str | None = None, estimator: str | None = None) -> list[RunSpec]:
     """The closed-loop runs of the main job (see the module docstring).
 
     With another ``plant`` or ``vehicle`` the same runs fly there (the oracle becoming the nominal equations
     where the plant has no known equations, without the high-fidelity scenarios), and the runs of
-    :func:`plant_plan` are left out.
+    :func:`plant_plan` are left out. With ``estimator`` (``"none"`` or ``"ekf"``) every run flies with that
+    setting; by default (None) every run flies without an estimator and the disturbance and noise cases with
+    and without (:func:`estimator_plan`).
     """
+    if estimator is not None:
+        from .runner import ESTIMATORS
+
+        if estimator not in ESTIMATORS:
+            raise ScenarioError(f"estimator must be one of {', '.join(ESTIMATORS)}; found {estimator!r}")
+        import dataclasses
+
+        out, seen = [], set()
+        for s in main_plan(models_dir, full, scenarios, plant, vehicle):
+            t = dataclasses.replace(s, estimator=estimator)
+            if t.run_id not in seen:
+                seen.add(t.run_id)
+                out.append(t)
+        return out
     if plant != "sim" or vehicle is not None:
         base = main_plan(models_dir, full, scenarios)
         return [t for t in (_on(s, plant, vehicle) for s in base if s.plant == "sim" and s.vehicle is None)
@@ -180,6 +222,8 @@ def main_plan(models_dir="models", full: bool = False, scenarios: list[str] | No
     if full:
         specs += [RunSpec(sc, c, m, member=k) for sc in names if sc in ENSEMBLE_SCENARIOS
                   for c in ENSEMBLE_CONTROLLERS for m in models for k in range(ENSEMBLE_MEMBERS)]
+    have = {s.run_id for s in specs}
+    specs += [s for s in estimator_plan(models, names, scenarios is not None) if s.run_id not in have]
     if scenarios is None:
         have = {s.run_id for s in specs}
         specs += [s for s in highfi_plan(models_dir) + plant_plan(models_dir) if s.run_id not in have]
@@ -267,7 +311,7 @@ def precompile_job(jobs: int) -> int:
 def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bool = False,
                  progress: bool = True, scenarios: list[str] | None = None, engine: str = "process",
                  address: str | None = None, resume: bool = True, plant: str = "sim",
-                 vehicle: str | None = None) -> dict:
+                 vehicle: str | None = None, estimator: str | None = None) -> dict:
     """Run everything and build the report; returns ``{"results": [...], "report": path}``.
 
     ``engine``, ``address`` and ``resume`` are those of :func:`scenarios.sweep.sweep`: closed-loop runs already
@@ -277,7 +321,7 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
 
     out = Path(out_dir)
     jobs = max(1, os.cpu_count() or 1) if jobs is None else jobs
-    specs = main_plan(models_dir, full, scenarios, plant, vehicle)   # validates names and files before flying
+    specs = main_plan(models_dir, full, scenarios, plant, vehicle, estimator)   # validates names and files first
     if progress and plant == "sim" and vehicle is None and scenarios is None and not rotorpy_available():
         print("RotorPy is not installed: the runs on other plants are left out (pip install -e '.[rotorpy]')",
               file=sys.stderr)
@@ -305,6 +349,7 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
     if ablation.is_file():
         shutil.copyfile(ablation, out / "ablation.json")
     for src, name in ((Path(models_dir) / "zoo" / "study.json", "study.json"),
+                      (Path(models_dir) / "zoo" / "study_ekf.json", "study_ekf.json"),
                       (Path(models_dir) / "versus" / "versus.json", "versus.json")):
         if src.is_file():
             shutil.copyfile(src, out / name)

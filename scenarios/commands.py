@@ -81,6 +81,10 @@ def register(sub) -> None:
                         "and code are reused, so an interrupted run resumes where it stopped")
     add_plant_options(p, "; with another plant or vehicle every run flies there (the oracle becomes the nominal "
                          "equations where the plant has none)")
+    p.add_argument("--estimator", choices=ESTIMATORS, default=None,
+                   help="fly every run with this setting (none: the true state plus noise; ekf: the state "
+                        "estimator's estimate, docs/estimation.md). Default: every run without, and the "
+                        "disturbance and noise cases with the SQP both ways")
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser("study", help="dose-response: fly every zoo model as an ensemble and score the predictors",
@@ -99,6 +103,11 @@ def register(sub) -> None:
     p.add_argument("--score-only", action="store_true",
                    help="fly nothing: recompute the open-loop candidates and their scores of the study already in "
                         "--out (after adding a candidate)")
+    p.add_argument("--estimator", choices=ESTIMATORS, default="none",
+                   help="ekf: fly the ensembles with the state estimator (no speed ladder) and write "
+                        "study_ekf.json beside study.json, for the report's threshold with and without it")
+    p.add_argument("--select", default=None, metavar="NAMES",
+                   help="comma-separated zoo models to fly (default: all)")
     p.set_defaults(handler=cmd_study)
 
     p = sub.add_parser("versus", help="learned against nominal: fly the models trained on plants with unmodelled "
@@ -200,7 +209,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.address is not None and args.engine != "ray":
         raise ValueError("--address needs --engine ray")
     out = run_main_job(args.out, args.models, args.jobs, args.full, progress=True, engine=args.engine,
-                       address=args.address, resume=not args.fresh, plant=args.plant, vehicle=args.vehicle)
+                       address=args.address, resume=not args.fresh, plant=args.plant, vehicle=args.vehicle,
+                       estimator=args.estimator)
     runs = out["results"]
     crashed = [r["run_id"] for r in runs if r.get("crashed")]
     errors = [r["run_id"] for r in runs if r.get("error")]
@@ -220,6 +230,8 @@ def cmd_study(args: argparse.Namespace) -> int:
     from .zoo import format_study, rescore_study, run_study
 
     if args.score_only:
+        if args.estimator != "none" or args.select is not None:
+            raise ValueError("--score-only rescores the study without an estimator; drop --estimator and --select")
         out = rescore_study(args.models, args.out, publish=not args.no_publish)
         print(format_study(out))
         return 0
@@ -231,11 +243,17 @@ def cmd_study(args: argparse.Namespace) -> int:
     if (args.plant != "sim" or args.vehicle is not None) and not args.no_publish and args.models == Path("models/zoo"):
         raise ValueError("a study on another plant or vehicle would replace the shipped zoo's study.json; give "
                          "--no-publish (or another --models folder)")
+    from .zoo import study_file
+
+    select = None if args.select is None else [n.strip() for n in args.select.split(",") if n.strip()]
+    if select is not None and args.estimator == "none" and not args.no_publish:
+        raise ValueError("a study of some models would replace the zoo's study.json; give --no-publish")
     out = run_study(args.models, args.out, args.members, jobs, progress=True, publish=not args.no_publish,
                     engine=args.engine, address=args.address, resume=not args.fresh, plant=args.plant,
-                    vehicle=args.vehicle)
+                    vehicle=args.vehicle, estimator=args.estimator, select=select)
     print(format_study(out))
-    print(f"wrote {args.out / 'study.json'}" + ("" if args.no_publish else f" and {args.models / 'study.json'}"))
+    name = study_file(args.estimator)
+    print(f"wrote {args.out / name}" + ("" if args.no_publish else f" and {args.models / name}"))
     return 0
 
 

@@ -87,11 +87,12 @@ def refused_models(models_dir) -> dict[str, dict]:
 
 
 def study_specs(models: dict[str, dict], members: int = 10, controllers=STUDY_CONTROLLERS, plant: str = "sim",
-                vehicle: str | None = None) -> tuple[RunSpec, list[RunSpec], list[RunSpec]]:
+                vehicle: str | None = None, estimator: str = "none") -> tuple[RunSpec, list[RunSpec], list[RunSpec]]:
     """(oracle reference run, ensemble runs, speed-ladder runs) of the study, on ``plant`` flying ``vehicle``.
 
     The reference run is the oracle's, or on a plant without known equations (``rotorpy``) the nominal
-    equations'.
+    equations', without an estimator (its trace scores the open-loop candidates). With ``estimator``
+    (``"ekf"``) the ensembles fly with the state estimator and there is no ladder (the study of the threshold).
     """
     if isinstance(members, bool) or not isinstance(members, int) or members < 1:
         raise ScenarioError(f"members must be an integer >= 1; found {members!r}")
@@ -99,10 +100,29 @@ def study_specs(models: dict[str, dict], members: int = 10, controllers=STUDY_CO
 
     where = {"plant": plant, "vehicle": vehicle}
     oracle = RunSpec(STUDY_SCENARIO, "sqp", "oracle" if plant in KNOWN_EQUATIONS else "nominal", **where)
-    ens = [RunSpec(STUDY_SCENARIO, c, m["path"], member=k, **where) for m in models.values() for c in controllers
-           for k in range(members)]
-    ladder = [RunSpec(s, LADDER_CONTROLLER, m["path"], **where) for m in models.values() for s in ladder_names()]
+    ens = [RunSpec(STUDY_SCENARIO, c, m["path"], member=k, estimator=estimator, **where) for m in models.values()
+           for c in controllers for k in range(members)]
+    ladder = [] if estimator != "none" else \
+        [RunSpec(s, LADDER_CONTROLLER, m["path"], **where) for m in models.values() for s in ladder_names()]
     return oracle, ens, ladder
+
+
+def study_file(estimator: str = "none") -> str:
+    """Name of a study's JSON file: ``study.json``, or ``study_<estimator>.json`` with a state estimator."""
+    return "study.json" if estimator == "none" else f"study_{estimator}.json"
+
+
+def select_models(models: dict[str, dict], select) -> dict[str, dict]:
+    """The models named in ``select`` (a list of names, or None for all), in the manifest's order."""
+    if select is None:
+        return models
+    unknown = [n for n in select if n not in models]
+    if unknown:
+        raise ScenarioError(f"--select: no model {', '.join(map(repr, unknown))} in the zoo; it has "
+                            f"{', '.join(models)}")
+    if not select:
+        raise ScenarioError("--select names no model")
+    return {n: e for n, e in models.items() if n in select}
 
 
 def closed_loop_kstep_error(model, trace: dict, k: int = KSTEP, every: int = 5) -> float:
@@ -143,7 +163,7 @@ def _candidates(name: str, entry: dict, oracle_trace: dict) -> dict:
 
 def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10, jobs: int = 1,
               controllers=STUDY_CONTROLLERS, progress: bool = True, publish: bool = True, plant: str = "sim",
-              vehicle: str | None = None, **sweep_kwargs) -> dict:
+              vehicle: str | None = None, estimator: str = "none", select=None, **sweep_kwargs) -> dict:
     """Fly the study (a resumable sweep), score the predictors and write ``study.json``.
 
     Parameters
@@ -159,11 +179,20 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
     plant, vehicle
         Where the study flies (:class:`scenarios.runner.RunSpec`); the reference simulator and the default
         vehicle by default.
+    estimator : {"none", "ekf"}
+        With ``"ekf"`` the ensembles fly with the state estimator, without the speed ladder, and the study is
+        written to ``study_ekf.json`` (:func:`study_file`) beside the one without.
+    select : list of str, optional
+        Fly only these models of the zoo (default: all).
     sweep_kwargs
         ``engine``, ``address``, ``resume`` of :func:`scenarios.sweep.sweep`.
     """
-    models = zoo_models(models_dir)
-    oracle, ens, ladder = study_specs(models, members, controllers, plant, vehicle)
+    from .runner import ESTIMATORS
+
+    if estimator not in ESTIMATORS:
+        raise ScenarioError(f"estimator must be one of {', '.join(ESTIMATORS)}; found {estimator!r}")
+    models = select_models(zoo_models(models_dir), select)
+    oracle, ens, ladder = study_specs(models, members, controllers, plant, vehicle, estimator)
     t0 = time.perf_counter()
     results = sweep([oracle, *ens, *ladder], out_dir, jobs=jobs, progress=progress, **sweep_kwargs)
     wall = time.perf_counter() - t0
@@ -183,9 +212,9 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
             row["ensembles"][c] = summarize(runs)
             row["ensembles"][c]["errors"] = sum(bool(r.get("error")) for r in runs)
         lad = [by_id[s.run_id] for s in ladder if s.model == entry["path"]]
-        row["max_speed"] = {"controller": LADDER_CONTROLLER, **max_trackable_speed(lad, ladder_names(), speeds),
-                            "rungs": {r["scenario"]: {"crashed": r.get("crashed"), "rmse_m": r.get("rmse_position_m")}
-                                      for r in lad}}
+        row["max_speed"] = None if not ladder else \
+            {"controller": LADDER_CONTROLLER, **max_trackable_speed(lad, ladder_names(), speeds),
+             "rungs": {r["scenario"]: {"crashed": r.get("crashed"), "rmse_m": r.get("rmse_position_m")} for r in lad}}
         rows[name] = row
     scores = _scores(rows, controllers)
     out = {"scenario": STUDY_SCENARIO, "members": members, "controllers": list(controllers),
@@ -196,12 +225,15 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
            "refused": refused_models(models_dir),
            "runs": len(results), "code_version": code_version(), "plant": plant,
            "vehicle": oracle.vehicle_data.name,
+           "estimator": estimator,
            "command": f"pinnmpc study --models {models_dir} --out {out_dir} --members {members}"
-                      + ("" if plant == "sim" else f" --plant {plant}") + ("" if vehicle is None else f" --vehicle {vehicle}"),
+                      + ("" if plant == "sim" else f" --plant {plant}") + ("" if vehicle is None else f" --vehicle {vehicle}")
+                      + ("" if estimator == "none" else f" --estimator {estimator}")
+                      + ("" if select is None else f" --select {','.join(models)}"),
            "wall_time_s": wall, "date": time.strftime("%Y-%m-%d")}
-    path = write_json(Path(out_dir) / "study.json", out)
+    path = write_json(Path(out_dir) / study_file(estimator), out)
     if publish:
-        shutil.copyfile(path, Path(models_dir) / "study.json")
+        shutil.copyfile(path, Path(models_dir) / study_file(estimator))
     return out
 
 
@@ -273,8 +305,8 @@ def format_study(out: dict) -> str:
             lo, hi = e["crash_probability_ci95"]
             s += f"{e['crash_probability']:>12.2f} ({lo:.2f}-{hi:.2f})"
             s += f"{'-' if e['median'] is None else format(e['median'], '.4f'):>10}"
-        v = r["max_speed"]["speed_mps"]
-        s += f"{'none' if v is None else format(v, '.2f') + ' m/s':>11}"
+        v = (r.get("max_speed") or {}).get("speed_mps")
+        s += f"{'-' if r.get('max_speed') is None else 'none' if v is None else format(v, '.2f') + ' m/s':>11}"
         lines.append(s)
     for c in cs:
         lines.append(f"\npredictors, {c}:")

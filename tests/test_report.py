@@ -23,6 +23,7 @@ HEADINGS = (
     "Maximum trackable speed of the zoo",
     "Which open-loop number predicts failure",
     "The model zoo",
+    "Dose-response with the state estimator",
     "Summary",
     "Table I: one-step and 100-step accuracy",
     "Table II: parameter identification and Cramér-Rao bounds",
@@ -32,6 +33,7 @@ HEADINGS = (
     "High-fidelity plant: models trained on its own data",
     "Learned against nominal on plants with unmodelled physics",
     "Other plants and vehicles",
+    "State estimation and offset-free control",
     "Hover: settled error and gust recovery",
     "Speed ladder: maximum trackable speed",
     "Ensembles: crash probability and RMSE with intervals",
@@ -355,6 +357,31 @@ def test_the_zoo_study_leads_the_report(results_dir):
     assert "Not flown: 1 trained models" in _section(md, HEADINGS[3]) and "stuck (the stuck one" in md
 
 
+def test_the_threshold_with_the_estimator_sits_beside_the_one_without(results_dir):
+    from scenarios.stats import wilson_interval
+
+    heading = "Dose-response with the state estimator"
+    md = build_report(results_dir).read_text(encoding="utf-8")
+    assert "pinnmpc study --estimator ekf" in _section(md, heading)
+    study = _study()
+    (results_dir / "study.json").write_text(json.dumps(study))
+    ekf = _study()
+    ekf["models"] = {n: ekf["models"][n] for n in ("fine", "fair", "poor", "bad")}
+    e = ekf["models"]["poor"]["ensembles"]["ltv"]          # 8 of 10 crash without the estimator, 3 with it
+    e.update(crashes=3, crash_probability=0.3, crash_probability_ci95=list(wilson_interval(3, 10)), median=0.25)
+    ekf["command"] = "pinnmpc study --estimator ekf --select fine,fair,poor,bad"
+    (results_dir / "study_ekf.json").write_text(json.dumps(ekf))
+    text = _section(build_report(results_dir).read_text(encoding="utf-8"), heading)
+    rows = [_cells(ln) for ln in text.splitlines() if ln.startswith("| ")][1:]
+    assert [r[0] for r in rows] == ["fine", "fair", "poor", "bad"]
+    lo, hi = wilson_interval(3, 10)
+    assert rows[2][:6] == ["poor", "70.0", "0.8 (0.49–0.94)", f"0.3 ({lo:.2f}–{hi:.2f})", "500.0", "250.0"]
+    # LTV-MPC: no crash up to 9 mm (fair crashes 2 of 10) both ways; every member crashes from 300 mm without and with.
+    assert "**LTV-MPC.** No crash up to 9 mm of open-loop error without the estimator, 9 mm with it; every member " \
+           "crashes from 300 mm without, 300 mm with." in text
+    assert "4 models of the zoo" in text and "--select fine,fair,poor,bad" in text
+
+
 def test_without_a_study_the_lead_says_how_to_make_one(results_dir):
     md = build_report(results_dir).read_text(encoding="utf-8")
     for h in HEADINGS[:4]:
@@ -435,6 +462,31 @@ def test_runs_on_other_plants_have_their_own_section_and_stay_out_of_the_others(
     # A folder flown on another plant: its own runs are those, ours the others.
     mine, others = split_by_plant(runs, {"plant": "rotorpy"})
     assert {r["model"] for r in mine} == {"nominal", "alpha"} and len(others) == 6
+
+
+def test_runs_with_the_estimator_have_their_own_section_beside_their_twins():
+    from reports.estimation import NO_ESTIMATOR_RUNS, estimation_section, split_by_estimator
+
+    def run(scenario, model, rmse, settled, estimator=None, crashed=False):
+        r = _result(scenario, "sqp", model, rmse, crashed, None)
+        r["settled_error_m"] = settled
+        if estimator:
+            r.update(estimator=estimator, estimator_ms={"median": 0.5432, "max": 1.0}, nees_mean=12.3)
+        return r
+
+    runs = [run("hover+payload", "oracle", 0.1022, 0.1038), run("hover+payload", "oracle", 0.0144, 0.0018, "ekf"),
+            run("hover+payload", "alpha", 0.0156, 0.0023, "ekf"), run("figure8-fast", "alpha", 0.03, None),
+            run("figure8-fast+wind", "alpha", 0.2, None, "ekf", crashed=True)]
+    without, with_est = split_by_estimator(runs)
+    assert len(without) == 2 and len(with_est) == 3
+    text = estimation_section(without, with_est)
+    rows = [[c.strip() for c in line.split("|")[1:-1]] for line in text.splitlines()
+            if line.startswith("| ") and "scenario" not in line]
+    assert rows[0] == ["figure8-fast+wind", "SQP", "alpha", "–", "crashed at 1.23 s (tilt > 80 deg)", "–", "–",
+                       "0.54", "12.3"]
+    assert rows[1] == ["hover+payload", "SQP", "oracle", "102.2", "14.4", "103.8", "1.8", "0.54", "12.3"]
+    assert rows[2][:7] == ["hover+payload", "SQP", "alpha", "–", "15.6", "–", "2.3"]
+    assert estimation_section(without, []) == NO_ESTIMATOR_RUNS
 
 
 def test_realtime_table_says_why_an_ideal_run_is_missing():

@@ -364,6 +364,11 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     specs = [s for s in specs if s.plant == "sim" and s.vehicle is None]
     highfi = [s for s in specs if s.scenario.endswith("+highfi")]
     specs = [s for s in specs if not s.scenario.endswith("+highfi")]
+    from scenarios.campaign import ESTIMATOR_VARIANTS, OFFSET_FREE_SCENARIOS
+
+    n_sim = len(specs)
+    estimated = [s for s in specs if s.estimator != "none"]
+    specs = [s for s in specs if s.estimator == "none" and s.scenario not in OFFSET_FREE_SCENARIOS]
     ideal = [s for s in specs if s.timing == "ideal"]
     nmpc = {(s.scenario, s.model_name) for s in ideal if s.controller == "nmpc"}
     assert nmpc == set()     # IPOPT in ideal timing: --full only (one run is a sixth of the sweep)
@@ -381,6 +386,16 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     assert realtime == {("figure8-fast", c, m) for c in ("sqp", "ltv", "nmpc") for m in models}
     assert {s.scenario for s in main_plan(MODELS, full=True) if s.controller == "nmpc"} == set(scenario_names())
     assert len(models) == 1 + len(list(MODELS.glob("*.jac.onnx")))
+    # With the state estimator: the disturbance and noise variants of the plan with every model (their twins without
+    # it are in the plan), and the offset-free hover cases with every model.
+    cases = {(s.scenario, s.model_name) for s in estimated}
+    variants = {sc for sc, _ in sqp if "+" in sc and sc.split("+", 1)[1] in ESTIMATOR_VARIANTS}
+    assert variants and cases == {(sc, m) for sc in variants | set(OFFSET_FREE_SCENARIOS) for m in models}
+    assert {(s.controller, s.estimator, s.timing) for s in estimated} == {("sqp", "ekf", "ideal")}
+    every_ekf = main_plan(MODELS, estimator="ekf")
+    assert {s.estimator for s in every_ekf} == {"ekf"} and len({s.run_id for s in every_ekf}) == len(every_ekf)
+    with pytest.raises(ScenarioError, match="estimator must be one of none, ekf"):
+        main_plan(MODELS, estimator="kalman")
     # The high-fidelity plant: the oracle (its true equations), the nominal equations, the nominal-trained twins and
     # the models trained on its own data, with ensemble members where the scenario has them, and no run twice.
     from scenarios.campaign import HIGHFI_MODELS, HIGHFI_SCENARIOS
@@ -404,7 +419,7 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     on_rp = main_plan(MODELS, plant="rotorpy")
     assert {s.plant for s in on_rp} == {"rotorpy"} and "oracle" not in {s.model for s in on_rp}
     assert not any("+highfi" in s.scenario for s in on_rp)
-    assert len(on_rp) == len(specs) and len({s.run_id for s in on_rp}) == len(on_rp)
+    assert len(on_rp) == n_sim and len({s.run_id for s in on_rp}) == len(on_rp)
 
 
 def test_perturbed_starts_of_a_well_posed_case_agree():

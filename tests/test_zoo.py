@@ -15,6 +15,7 @@ from pinn.models import VARIANT_DEFAULTS, build_model
 from pinn.train import make_config, train
 from pinn.zoo import RUNS, zoo_names
 from test_pinn import fake_stats as stats   # the same synthetic normalization statistics
+from scenarios.errors import ScenarioError
 from sim import NoiseModel, QuadParams
 
 TOL = {
@@ -236,4 +237,24 @@ def test_the_study_flies_on_the_plant_and_vehicle_it_is_given(tmp_path, capsys):
     assert study_specs(models, 2, ("sqp",))[0].model == "oracle"
     # Publishing a study flown elsewhere over the shipped zoo's study.json is refused before anything flies.
     assert main(["study", "--plant", "rotorpy", "--members", "1", "--out", str(tmp_path / "z")]) == 2
+    assert "--no-publish" in capsys.readouterr().err and not (tmp_path / "z").exists()
+
+
+def test_the_study_with_the_estimator_flies_its_ensembles_with_it_and_selects_models(tmp_path, capsys):
+    from scenarios.cli import main
+    from scenarios.zoo import select_models, study_file, study_specs
+
+    path = str(Path(__file__).resolve().parents[1] / "models" / "baseline.onnx")
+    models = {"a": {"path": path}, "b": {"path": path}, "c": {"path": path}}
+    ref, ens, ladder = study_specs(models, 3, ("sqp", "ltv"), estimator="ekf")
+    assert ref.estimator == "none" and ladder == []       # the reference flight scores the open-loop candidates
+    assert len(ens) == 3 * 3 * 2 and {s.estimator for s in ens} == {"ekf"}
+    assert all(s.run_id.endswith("__ekf") for s in ens)
+    assert len(study_specs(models, 3, ("sqp",))[2]) > 0   # without it, the ladder flies
+    assert list(select_models(models, ["c", "a"])) == ["a", "c"]
+    with pytest.raises(ScenarioError, match="no model 'z' in the zoo"):
+        select_models(models, ["a", "z"])
+    assert (study_file("none"), study_file("ekf")) == ("study.json", "study_ekf.json")
+    # A partial study without the estimator would replace the zoo's study.json: refused before anything flies.
+    assert main(["study", "--select", "baseline_e1", "--out", str(tmp_path / "z")]) == 2
     assert "--no-publish" in capsys.readouterr().err and not (tmp_path / "z").exists()
