@@ -69,21 +69,22 @@ class EKFConfig:
     disturbance's are random-walk intensities per sqrt(s). Extra states get
     ``extra_rel`` of their scale (:func:`mpc.extended.extra_scale`) per period.
 
-    By default the model's own state has almost no process noise: whatever
-    the model gets wrong is mostly an acceleration or an angular
-    acceleration, and the disturbance states take it. The one exception is
-    the attitude: a learned model whose attitude kinematics are a little off
-    (it needs a small body rate to hold a level attitude) cannot put that
-    into a disturbance, and without this allowance its gyroscope-bias
-    estimate takes seconds to absorb it. With the model-error terms and the
-    disturbance walks at zero the filter is consistent on the plant its
-    model is exact for (a test measures it).
+    The model-error terms say how far one period of a learned model may be
+    off, beyond what the disturbance states take (a force and a torque held
+    over the period): a learned model's error changes along a flight, and a
+    filter that believed its prediction exactly would follow the model
+    instead of the sensors (on the zoo's marginal models it crashed every
+    flight). The attitude term also lets a model whose attitude kinematics
+    are slightly off (it needs a small body rate to hold a level attitude)
+    settle at once instead of through the slow gyroscope-bias estimate.
+    With the model-error terms and the disturbance walks at zero the filter
+    is consistent on the plant its model is exact for (a test measures it).
     """
 
-    position: float = 0.0           # m per period
-    attitude: float = 1e-4          # rad per period: a learned model's attitude kinematics (not an acceleration)
-    rate: float = 0.0               # rad/s per period
-    velocity: float = 0.0           # m/s per period
+    position: float = 1e-4          # m per period
+    attitude: float = 1e-4          # rad per period
+    rate: float = 3e-2              # rad/s per period
+    velocity: float = 3e-3          # m/s per period
     extra_rel: float = 0.0          # of each extra state's scale, per period
     force_walk: float = 0.5         # m/s^2 per sqrt(s)
     torque_walk: float = 5.0        # rad/s^2 per sqrt(s)

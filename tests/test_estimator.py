@@ -159,7 +159,7 @@ def test_the_filter_is_consistent_on_the_plant_its_model_is_exact_for():
     """
     from scipy.stats import chi2
 
-    cfg = EKFConfig(force_walk=0.0, torque_walk=0.0, attitude=0.0)
+    cfg = EKFConfig(force_walk=0.0, torque_walk=0.0, position=0.0, attitude=0.0, rate=0.0, velocity=0.0)
     series = np.array([fly(RunSpec("figure8-fast", "lqr", "oracle", seed=s, estimator="ekf"), ekf_config=cfg)[1]
                        ["nees"] for s in range(NEES_FLIGHTS)])
     n, (N, K) = 12, series.shape

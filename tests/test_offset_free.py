@@ -19,6 +19,7 @@ TOL = {
     "defect": 1e-3,         # the target's one-period defect through f + G d, in the states' scales
     "defect_velocity": 1e-4,  # m/s: the same, velocity
     "settled": 5e-3,        # m: hover+payload with the estimator, settled error (the acceptance bound)
+    "figure8_wind": 15e-3,  # m: figure8-fast+wind with the estimator, RMSE (the acceptance bound; 84 mm without)
     "steady": 1e-9,         # the steady-state target's residual, in the states' scales
     "drift_velocity": 1e-9,  # m/s: the velocity that cancels a model's position drift, -drift / dt
 }
@@ -179,3 +180,13 @@ def test_the_shipped_model_with_the_worst_kinematics_settles_offset_free(scenari
 @pytest.mark.parametrize("name", [m for m in SHIPPED if m != "proposed_aggressive"])
 def test_every_shipped_model_settles_offset_free(name, scenario):
     _shipped_settle(name, scenario)
+
+
+def test_the_estimator_takes_most_of_the_gusty_wind_out_of_the_figure8():
+    """figure8-fast+wind, oracle, SQP: 84 mm RMSE on the true state; with the estimator within 15 mm. What is left is
+    the gusts' change over the horizon (a disturbance held constant cannot foresee it: the true wind held the same
+    way flies 14.4 mm)."""
+    r, _ = fly(RunSpec("figure8-fast+wind", "sqp", "oracle", estimator="ekf"))
+    assert not r["crashed"]
+    print(f"figure8-fast+wind with the estimator: {1e3 * r['rmse_position_m']:.2f} mm")
+    assert r["rmse_position_m"] < TOL["figure8_wind"], r["rmse_position_m"]
