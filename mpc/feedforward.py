@@ -149,7 +149,8 @@ class FeedForward:
         self._extras: list[np.ndarray] = []       # the reference's extra states at periods 0, 1, ...
         self._disturbance = None                  # (d (6,), offset G d (nx,)) or None: see set_disturbance
         self._steady = None                       # the last steady-state target (x, u), the next one's first guess
-        self._disturbed_inputs: dict[int, np.ndarray] = {}   # the last disturbed fit's inputs by time (ns)
+        self._disturbed_inputs: dict[int, tuple] = {}   # the last disturbed fit's (input, B) by time (ns)
+        self._nominal_B: dict[int, np.ndarray] = {}         # input Jacobians at the feed-forward, by time (prepare)
         self.trim_extra = np.zeros(0)
         #: The model gives its own reference states (full width) along flat trajectories.
         self.model_reference = self.is_flat and model.reference_states(reference, np.zeros(1)) is not None
@@ -295,15 +296,42 @@ class FeedForward:
                      MODEL_REFERENCE_FIT_ITERATIONS)[0]
             return X, U
         X = flat_state(traj.flat(t), self.spec)[0] if traj is not None else self.trajectory(t)
-        # Warm start from the last call's inputs at the same times (the disturbance moves little in a period): one
-        # Gauss-Newton iteration then does what two do from the undisturbed inputs.
+        # Warm start from the last call's inputs at the same times (the disturbance moves little in a period).
         keys = self._keys(t[:-1])
         last = self._disturbed_inputs
         warm = [int(k) in last for k in keys]
-        guess = np.array([last[int(k)] if w else u for k, w, u in zip(keys, warm, nominal_u)])
-        iterations = 1 if sum(warm) >= len(keys) - 1 else FIT_ITERATIONS
-        U = fit_inputs(self.model, X[:-1], X[1:] - off[:NX], guess, self.w, self.u_scale, iterations)
-        self._disturbed_inputs = {int(k): u for k, u in zip(keys, U)}
+        guess = np.array([last[int(k)][0] if w else u for k, w, u in zip(keys, warm, nominal_u)])
+        if self.model.n_extra or not (any(warm) or self._nominal_B):
+            U = fit_inputs(self.model, X[:-1], X[1:] - off[:NX], guess, self.w, self.u_scale)
+            B = None
+        else:
+            # A chord step: the input Jacobians of the last call at these times (new times' evaluated here), one
+            # model step for the residual. Converges to the same fit over the periods a time spends in the horizon.
+            # (After a skipped period more than one time is new: still this path, so one overrun does not make the
+            # next call slower.)
+            B = np.zeros((len(keys), NX, NU))
+            cold = []
+            for i, (k, w) in enumerate(zip(keys, warm)):
+                b = last[int(k)][1] if w else self._nominal_B.get(int(k))
+                if b is None:
+                    cold.append(i)
+                else:
+                    B[i] = b
+            if cold:
+                with np.errstate(all="ignore"):
+                    B[cold] = self.model.linearize(X[:-1][cold], guess[cold])[2][:, :NX]
+            with np.errstate(all="ignore"):
+                r = self.model.step(X[:-1], guess)[:, :NX] - (X[1:] - off[:NX])
+            BtW = B.transpose(0, 2, 1) * self.w[None, None, :]
+            H = BtW @ B + np.diag(DAMPING / self.u_scale ** 2)[None]
+            U = guess - np.linalg.solve(H, BtW @ r[:, :, None])[:, :, 0]
+            if not np.all(np.isfinite(U)):
+                U = fit_inputs(self.model, X[:-1], X[1:] - off[:NX], guess, self.w, self.u_scale)
+                B = None
+        if B is None and not self.model.n_extra:
+            with np.errstate(all="ignore"):
+                B = self.model.linearize(X[:-1], U)[2][:, :NX]
+        self._disturbed_inputs = {int(k): (u, None if B is None else B[i]) for i, (k, u) in enumerate(zip(keys, U))}
         if self.model.n_extra:
             u_all = np.vstack([U, U[-1:]])
             u_nom = np.vstack([nominal_u, nominal_u[-1:]])
@@ -348,7 +376,14 @@ class FeedForward:
         n = int(np.floor(t_end / self.dt + 1e-9)) + 1
         times = self.dt * np.arange(n)
         for start in range(0, n, chunk):
-            self.inputs(times[start:start + chunk])
+            tt = times[start:start + chunk]
+            u = self.inputs(tt)
+            if self.model.n_extra == 0 and not self.model_reference:
+                # The input Jacobians there: the first step of a disturbed fit in flight (see horizon) needs no
+                # derivatives of its own.
+                with np.errstate(all="ignore"):
+                    B = self.model.linearize(self.states(tt), u)[2][:, :NX]
+                self._nominal_B.update({int(k): b for k, b in zip(self._keys(tt), B) if np.all(np.isfinite(b))})
         if self.model.n_extra and not self.model_reference:    # a model's own reference carries its extra states
             self._extend_extras(n - 1)
 

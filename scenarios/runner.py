@@ -221,7 +221,13 @@ def _sha256(path: str) -> str | None:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing: str = "ideal", vehicle=None):
+#: With the state estimator in real time, the SQP's wall-clock budget (8 ms per period alone) leaves this much of the
+#: period to the filter (its time, median 0.4-0.9 ms, spikes to 2-6 ms, is charged to the same deadline).
+ESTIMATOR_RESERVE_S = 0.003
+
+
+def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing: str = "ideal", vehicle=None,
+                    estimator: str = "none"):
     """The controller ``kind`` (``nmpc``, ``sqp``, ``ltv``, ``lqr``) on prediction ``model`` following ``reference``.
 
     The controller gets the model, the reference and the vehicle's datasheet
@@ -229,7 +235,8 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
     ``vehicle`` (:meth:`mpc.spec.VehicleSpec.from_model`; the default vehicle
     when None), never from the plant. With ``ideal`` timing the SQP runs
     without its wall-clock budget (at most its iteration limit), so that the
-    run is reproducible bit for bit; with ``realtime`` timing the budget applies.
+    run is reproducible bit for bit; with ``realtime`` timing the budget applies, less
+    :data:`ESTIMATOR_RESERVE_S` with a state ``estimator`` (its time counts against the same period).
     """
     from mpc.lqr import LQRController
     from mpc.ltv import LTVMPC, LTVSettings
@@ -244,7 +251,11 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
         if timing == "ideal":
             return SQPMPC(model, reference, SQPSettings(horizon=horizon, time_budget_s=None, cold_start_budget_s=None),
                           spec=spec)
-        return SQPMPC(model, reference, SQPSettings(horizon=horizon), spec=spec)
+        st = SQPSettings(horizon=horizon)
+        if estimator != "none":
+            st = SQPSettings(horizon=horizon, time_budget_s=st.time_budget_s - ESTIMATOR_RESERVE_S,
+                             cold_start_budget_s=st.cold_start_budget_s - ESTIMATOR_RESERVE_S)
+        return SQPMPC(model, reference, st, spec=spec)
     if kind == "ltv":
         return LTVMPC(model, reference, LTVSettings(horizon=horizon), spec=spec)
     if kind == "lqr":
@@ -369,7 +380,7 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
     t0 = time.perf_counter()
     realtime = spec.timing == "realtime"
     try:
-        ctrl = make_controller(spec.controller, model, ref, spec.horizon, spec.timing, vehicle)
+        ctrl = make_controller(spec.controller, model, ref, spec.horizon, spec.timing, vehicle, spec.estimator)
         # The reference is known before take-off: its feed-forward is fitted now, and a controller that plans
         # ahead (the SQP) makes its first plan from the state the vehicle stands in.
         ctrl.prepare(K * DT, x0=x0.copy())
