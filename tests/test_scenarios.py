@@ -387,10 +387,13 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     assert {s.scenario for s in main_plan(MODELS, full=True) if s.controller == "nmpc"} == set(scenario_names())
     assert len(models) == 1 + len(list(MODELS.glob("*.jac.onnx")))
     # With the state estimator: the disturbance and noise variants of the plan with every model (their twins without
-    # it are in the plan), and the offset-free hover cases with every model.
+    # it are in the plan), and the offset-free hover cases with the oracle, both ways.
     cases = {(s.scenario, s.model_name) for s in estimated}
     variants = {sc for sc, _ in sqp if "+" in sc and sc.split("+", 1)[1] in ESTIMATOR_VARIANTS}
-    assert variants and cases == {(sc, m) for sc in variants | set(OFFSET_FREE_SCENARIOS) for m in models}
+    assert variants and cases == ({(sc, m) for sc in variants for m in models}
+                                  | {(sc, "oracle") for sc in OFFSET_FREE_SCENARIOS})
+    hovers = {(s.scenario, s.model_name, s.estimator) for s in main_plan(MODELS) if s.scenario in OFFSET_FREE_SCENARIOS}
+    assert hovers == {(sc, "oracle", e) for sc in OFFSET_FREE_SCENARIOS for e in ("none", "ekf")}
     assert {(s.controller, s.estimator, s.timing) for s in estimated} == {("sqp", "ekf", "ideal")}
     every_ekf = main_plan(MODELS, estimator="ekf")
     assert {s.estimator for s in every_ekf} == {"ekf"} and len({s.run_id for s in every_ekf}) == len(every_ekf)
