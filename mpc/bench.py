@@ -301,10 +301,7 @@ def _main_estimator(args) -> int:
         rmse = r["rmse_position_m"]
         print(f"{name:<22}{f(r['estimator_ms']):>22}{f(r['controller_ms']):>22}{f(r['charged_ms']):>22}"
               f"{r['deadline_misses']:>8}{'crashed' if r['crashed'] else format(rmse, '.4f'):>9}", flush=True)
-    path = args.json or Path("bench_estimator.json")
-    write_json(path, out)
-    print(f"wrote {path}")
-    return 0
+    return _write(args.json or Path("bench_estimator.json"), out)
 
 
 def _main_derivatives(args) -> int:
@@ -321,7 +318,11 @@ def _main_derivatives(args) -> int:
         cas = "refused" if r["casadi_import_us"] is None else f"{r['casadi_import_us']:.0f}"
         print(f"{f.stem:<22}{r['graph_float64_us']:>10.0f}{r['graph_float32_us']:>10.0f}{r['differences_us']:>12.0f}"
               f"{cas:>11}{r['differences_rel_error']:>13.1e}", flush=True)
-    path = args.json or Path("bench_derivatives.json")
+    return _write(args.json or Path("bench_derivatives.json"), out)
+
+
+def _write(path: Path, out: dict) -> int:
+    """Write a benchmark's figures as JSON and say where (the exit status of the command)."""
     write_json(path, out)
     print(f"wrote {path}")
     return 0
