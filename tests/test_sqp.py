@@ -194,7 +194,9 @@ def checked_within(found):
     return within
 
 
+@pytest.mark.slow
 def test_sqp_reaches_ipopts_optimal_objective_with_the_proposed_pinn():
+    """About 1.8 minutes (50 IPOPT solves through the network): in the slow run, beside the oracle's in the default."""
     found = objective_gaps(OnnxModel(PROPOSED))
     within = checked_within(found)
     if within < N_STATES:
