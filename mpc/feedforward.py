@@ -53,10 +53,6 @@ HOVER_STATE[2] = -1.0
 DAMPING = 1e-9
 
 
-#: Where a steady-state target is pinned to the reference: position and yaw.
-TARGET_FIXED_INDEX = np.array([0, 1, 2, 5])
-
-
 def _stationary(f) -> bool:
     """True when flat outputs ``f`` hold one point with no motion (a hover): the target is a steady state."""
     moving = (f.vel, f.acc, f.jerk, f.snap)
@@ -83,6 +79,14 @@ def fit_inputs(model, x0: np.ndarray, x1: np.ndarray, u_guess: np.ndarray, w: np
     return _fit(model, x0, x1, u_guess, w, u_scale, iterations)[0]
 
 
+def _gauss_newton_step(B, r, w, u_scale) -> np.ndarray:
+    """The damped Gauss-Newton input step (K, 4) that cancels residuals ``r`` (K, n) through ``B`` (K, n, 4) in the
+    weighted norm ``w`` (n,)."""
+    BtW = B.transpose(0, 2, 1) * w[None, None, :]
+    H = BtW @ B + np.diag(DAMPING / u_scale ** 2)
+    return -np.linalg.solve(H, BtW @ r[:, :, None])[:, :, 0]
+
+
 def _fit(model, x0, x1, u_guess, w, u_scale, iterations=FIT_ITERATIONS):
     """:func:`fit_inputs` and the model's extra states at rest for the fitted inputs (K, n_extra), or None.
 
@@ -93,7 +97,6 @@ def _fit(model, x0, x1, u_guess, w, u_scale, iterations=FIT_ITERATIONS):
     from .extended import extra_equilibrium, quasi_steady_input_jacobian
 
     u = np.array(u_guess, dtype=float, copy=True)
-    D = np.diag(DAMPING / u_scale ** 2)
     extended = model.n_extra > 0 and x0.shape[1] == NX
     e = None
     for _ in range(iterations):
@@ -108,9 +111,7 @@ def _fit(model, x0, x1, u_guess, w, u_scale, iterations=FIT_ITERATIONS):
         if not (np.all(np.isfinite(r)) and np.all(np.isfinite(B))):
             raise ConfigurationError("the prediction model returned non-finite values along the reference; "
                                      "no feed-forward input can be fitted")
-        BtW = B.transpose(0, 2, 1) * w[None, None, :]
-        H = BtW @ B + D
-        step = -np.linalg.solve(H, (BtW @ r[:, :, None]))[:, :, 0]
+        step = _gauss_newton_step(B, r, w, u_scale)
         u += step
         if np.max(np.abs(step / u_scale)) < STEP_TOL:
             break
@@ -322,9 +323,7 @@ class FeedForward:
                     B[cold] = self.model.linearize(X[:-1][cold], guess[cold])[2][:, :NX]
             with np.errstate(all="ignore"):
                 r = self.model.step(X[:-1], guess)[:, :NX] - (X[1:] - off[:NX])
-            BtW = B.transpose(0, 2, 1) * self.w[None, None, :]
-            H = BtW @ B + np.diag(DAMPING / self.u_scale ** 2)[None]
-            U = guess - np.linalg.solve(H, BtW @ r[:, :, None])[:, :, 0]
+            U = guess + _gauss_newton_step(B, r, self.w, self.u_scale)
             if not np.all(np.isfinite(U)):
                 U = fit_inputs(self.model, X[:-1], X[1:] - off[:NX], guess, self.w, self.u_scale)
                 B = None
@@ -345,13 +344,14 @@ class FeedForward:
         """The model's steady state under ``off`` at the reference's position and yaw, ``(x (nx,), u (4,))``, or None
         when Newton does not converge (:func:`mpc.offset_free.steady_target`; warm-started from the last one)."""
         from .extended import extra_scale
-        from .offset_free import ShiftedTrajectory, TARGET_ACCEPT, steady_target
+        from .offset_free import TARGET_ACCEPT, TARGET_FIXED, ShiftedTrajectory, steady_target
 
         scale = 1.0 / np.sqrt(self.w)
         if self.model.n_extra:
             scale = np.concatenate([scale, extra_scale(self.model, self.trim_extra)])
         last = self._steady
-        if last is not None and np.array_equal(last[0][TARGET_FIXED_INDEX], x_nominal[TARGET_FIXED_INDEX]):
+        fixed = list(TARGET_FIXED)
+        if last is not None and np.array_equal(last[0][fixed], x_nominal[fixed]):
             x0, u0 = last
         else:       # the flatness map under the disturbance's acceleration: attitude and thrust close to the answer
             x0, u0 = x_nominal.copy(), u_nominal

@@ -244,8 +244,7 @@ NO_STUDY_EKF = ("No `study_ekf.json` in this folder: `pinnmpc study --estimator 
 def _crash_cell(e: dict | None) -> str:
     if not e:
         return MISSING
-    lo, hi = e["crash_probability_ci95"]
-    return f"{e['crash_probability']:.1f} ({lo:.2f}–{hi:.2f})"
+    return f"{e['crash_probability']:.1f} ({_ci(e['crash_probability_ci95'])})"
 
 
 def _median_mm(e: dict | None) -> str:
