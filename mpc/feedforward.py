@@ -120,6 +120,15 @@ def _fit(model, x0, x1, u_guess, w, u_scale, iterations=FIT_ITERATIONS):
     return u, e
 
 
+def _lookup(store, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where ``keys`` (K,) sit in a store whose first element is its ascending keys: ``(found (K,) bool, index (K,))``
+    (the index is meaningful where found)."""
+    if store is None or len(store[0]) == 0:
+        return np.zeros(len(keys), dtype=bool), np.zeros(len(keys), dtype=np.intp)
+    at = np.minimum(np.searchsorted(store[0], keys), len(store[0]) - 1)
+    return store[0][at] == keys, at
+
+
 class FeedForward:
     """Reference states and the model's feed-forward inputs along a trajectory.
 
@@ -150,8 +159,10 @@ class FeedForward:
         self._extras: list[np.ndarray] = []       # the reference's extra states at periods 0, 1, ...
         self._disturbance = None                  # (d (6,), offset G d (nx,)) or None: see set_disturbance
         self._steady = None                       # the last steady-state target (x, u), the next one's first guess
-        self._disturbed_inputs: dict[int, tuple] = {}   # the last disturbed fit's (input, B) by time (ns)
-        self._nominal_B: dict[int, np.ndarray] = {}         # input Jacobians at the feed-forward, by time (prepare)
+        # The last disturbed fit: (times (ns, ascending), inputs (K, 4), input Jacobians (K, 12, 4) or None).
+        self._disturbed_inputs: tuple | None = None
+        # Input Jacobians at the feed-forward (from prepare): (times (ns, ascending), B (K, 12, 4)) or None.
+        self._nominal_B: tuple | None = None
         self.trim_extra = np.zeros(0)
         #: The model gives its own reference states (full width) along flat trajectories.
         self.model_reference = self.is_flat and model.reference_states(reference, np.zeros(1)) is not None
@@ -265,7 +276,7 @@ class FeedForward:
         self._disturbance = None if d is None or offset is None else \
             (np.asarray(d, dtype=float).copy(), np.asarray(offset, dtype=float).copy())
         if self._disturbance is None:
-            self._disturbed_inputs = {}
+            self._disturbed_inputs = None
 
     def horizon(self, times) -> tuple[np.ndarray, np.ndarray]:
         """Target states (K, nx) at ``times`` (K,) on the control grid and inputs (K - 1, 4) between them.
@@ -299,26 +310,29 @@ class FeedForward:
         X = flat_state(traj.flat(t), self.spec)[0] if traj is not None else self.trajectory(t)
         # Warm start from the last call's inputs at the same times (the disturbance moves little in a period).
         keys = self._keys(t[:-1])
-        last = self._disturbed_inputs
-        warm = [int(k) in last for k in keys]
-        guess = np.array([last[int(k)][0] if w else u for k, w, u in zip(keys, warm, nominal_u)])
-        if self.model.n_extra or not (any(warm) or self._nominal_B):
+        warm, at = _lookup(self._disturbed_inputs, keys)
+        guess = nominal_u.copy()
+        if np.any(warm):
+            guess[warm] = self._disturbed_inputs[1][at[warm]]
+        chord = self.model.n_extra == 0 and (np.any(warm) or self._nominal_B is not None)
+        if not chord:
             U = fit_inputs(self.model, X[:-1], X[1:] - off[:NX], guess, self.w, self.u_scale)
             B = None
         else:
-            # A chord step: the input Jacobians of the last call at these times (new times' evaluated here), one
-            # model step for the residual. Converges to the same fit over the periods a time spends in the horizon.
-            # (After a skipped period more than one time is new: still this path, so one overrun does not make the
-            # next call slower.)
-            B = np.zeros((len(keys), NX, NU))
-            cold = []
-            for i, (k, w) in enumerate(zip(keys, warm)):
-                b = last[int(k)][1] if w else self._nominal_B.get(int(k))
-                if b is None:
-                    cold.append(i)
-                else:
-                    B[i] = b
-            if cold:
+            # A chord step: the input Jacobians of the last call at these times (or the feed-forward's from prepare;
+            # any time without either evaluated here), one model step for the residual. Converges to the same fit
+            # over the periods a time spends in the horizon. (After a skipped period more than one time is new:
+            # still this path, so one overrun does not make the next call slower.)
+            B = np.empty((len(keys), NX, NU))
+            known = warm & (self._disturbed_inputs is not None and self._disturbed_inputs[2] is not None)
+            if np.any(known):
+                B[known] = self._disturbed_inputs[2][at[known]]
+            nominal, at_n = _lookup(self._nominal_B, keys)
+            use_n = nominal & ~known
+            if np.any(use_n):
+                B[use_n] = self._nominal_B[1][at_n[use_n]]
+            cold = ~(known | use_n)
+            if np.any(cold):
                 with np.errstate(all="ignore"):
                     B[cold] = self.model.linearize(X[:-1][cold], guess[cold])[2][:, :NX]
             with np.errstate(all="ignore"):
@@ -330,7 +344,7 @@ class FeedForward:
         if B is None and not self.model.n_extra:
             with np.errstate(all="ignore"):
                 B = self.model.linearize(X[:-1], U)[2][:, :NX]
-        self._disturbed_inputs = {int(k): (u, None if B is None else B[i]) for i, (k, u) in enumerate(zip(keys, U))}
+        self._disturbed_inputs = (keys, U, B)
         if self.model.n_extra:
             u_all = np.vstack([U, U[-1:]])
             u_nom = np.vstack([nominal_u, nominal_u[-1:]])
@@ -375,6 +389,7 @@ class FeedForward:
             raise ConfigurationError(f"t_end must be a finite time >= 0 s; found {t_end}")
         n = int(np.floor(t_end / self.dt + 1e-9)) + 1
         times = self.dt * np.arange(n)
+        keys, jac = [], []
         for start in range(0, n, chunk):
             tt = times[start:start + chunk]
             u = self.inputs(tt)
@@ -383,7 +398,11 @@ class FeedForward:
                 # derivatives of its own.
                 with np.errstate(all="ignore"):
                     B = self.model.linearize(self.states(tt), u)[2][:, :NX]
-                self._nominal_B.update({int(k): b for k, b in zip(self._keys(tt), B) if np.all(np.isfinite(b))})
+                ok = np.all(np.isfinite(B), axis=(1, 2))
+                keys.append(self._keys(tt)[ok])
+                jac.append(B[ok])
+        if keys:
+            self._nominal_B = (np.concatenate(keys), np.concatenate(jac))
         if self.model.n_extra and not self.model_reference:    # a model's own reference carries its extra states
             self._extend_extras(n - 1)
 

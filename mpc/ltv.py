@@ -24,6 +24,7 @@ fall back to the hover LQR ("lqr_fallback"). Both are counted.
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +40,13 @@ from .models import PredictionModel
 
 #: OSQP's "no time limit" (its default setting), s.
 NO_TIME_LIMIT = 1e10
+#: Status of a period whose plan could not be made before its deadline (:meth:`LTVMPC.set_deadline`).
+DEADLINE_STATUS = "deadline"
+#: Least time OSQP is given before a deadline, s: with less, the period takes its fallback at once.
+MIN_QP_TIME_S = 3e-4
+#: The expected time of a period's first derivatives and QP assembly (for the deadline) is the median of this
+#: many recent periods (one slow period does not make the next ones give up).
+RECENT_PERIODS = 20
 
 
 def csc_in_entry_order(rows, cols, vals, shape):
@@ -126,6 +134,8 @@ class LTVMPC(MPCBase):
         self._sx, self._su = self.state_scale, input_scale(self.spec)   # step sizes are measured in these
         self._build_pattern()
         self._status = osqp.SolverStatus
+        self._deadline: float | None = None
+        self._recent_s = {"derivatives": deque(maxlen=RECENT_PERIODS), "assembly": deque(maxlen=RECENT_PERIODS)}
         self._solver = osqp.OSQP()
         settings_ = dict(verbose=False, warm_starting=True, max_iter=self.s.max_iter, eps_abs=self.s.eps_abs,
                          eps_rel=self.s.eps_rel, polishing=self.s.polish,
@@ -157,6 +167,20 @@ class LTVMPC(MPCBase):
             self._linearize(X[:self.N], U)
             self.model.step(X[:self.N], U)
             self.model.step(X[0], U[0])
+
+    def set_deadline(self, at: float | None) -> None:
+        """The wall-clock time (``time.perf_counter()``, s) by which the next call's input must be out, or None.
+
+        For the next call only (a real-time loop sets it every period). When
+        the period's first derivatives and QP would not fit before it (from
+        their median times over :data:`RECENT_PERIODS` periods), or OSQP
+        stops at the time left, the call returns at once with the fallback of
+        a failed solve (the shifted plan, or the LQR) and the status
+        :data:`DEADLINE_STATUS`. A cold start (no plan to fall back on) ignores
+        the deadline. Without a deadline the period runs to its budget and
+        iteration limit, whatever they take.
+        """
+        self._deadline = None if at is None else float(at)
 
     # ----------------------------------------------------------- QP set-up
     def _xi(self, k):
@@ -285,13 +309,22 @@ class LTVMPC(MPCBase):
         merits, alphas = [], []
         split = {"derivatives": 0.0, "assembly": 0.0, "osqp": 0.0, "line_search": 0.0}
         done, qp_iterations, status, ok_any, converged = 0, 0, "", False, False
-        ls_failures = 0
+        ls_failures = late_steps = 0
+        longest = 0.0    # the longest iteration of this period, s (the first with the period's set-up)
         mu = 0.0
         y_last = None    # the last QP's dynamics multipliers (N, nx)
         every = self._jacobian_every()
         f_next = None    # the model's step along the line search's new iterate (N, nx), when it made one
+        deadline, self._deadline = self._deadline, None    # for this call only
+        if cold:
+            deadline = None     # a cold start makes a plan whatever it takes: its fallback (the LQR) has none
+        expect = {k: float(np.median(v)) if v else 0.0 for k, v in self._recent_s.items()}
         while done < max_it:
             t_it = tm.now()
+            if deadline is not None and done == 0 and \
+                    t_it + expect["derivatives"] + expect["assembly"] + MIN_QP_TIME_S > deadline:
+                status, ok = DEADLINE_STATUS, False      # no plan in time: the fallback's input goes out now
+                break
             # An iteration between Jacobian evaluations keeps A_k, B_k (and OSQP's factorization) and takes only the
             # model's step at the new iterate (from the line search when it made one).
             reuse = done % every != 0
@@ -301,16 +334,29 @@ class LTVMPC(MPCBase):
                 else:
                     fx, A, B = self._linearize(X[:N], U)
             split["derivatives"] += tm.now() - t_it
+            if done == 0:
+                self._recent_s["derivatives"].append(tm.now() - t_it)
             # A reuse iteration's A, B passed this check when they were evaluated (a non-finite one ends the period).
             finite = np.all(np.isfinite(fx)) and (reuse or (np.all(np.isfinite(A)) and np.all(np.isfinite(B))))
             if finite and shifted and done == 0:
                 first_warm = self._close_tail(X, U, fx, first_warm)
+            if finite and deadline is not None:
+                # OSQP gets what is left before the deadline once its problem is assembled; too little for the
+                # period's first QP: no QP (a later iteration is bounded by the budget).
+                qp_left = max(deadline - tm.now() - expect["assembly"], 1e-4)
+                if done == 0 and qp_left < MIN_QP_TIME_S:
+                    status, finite = DEADLINE_STATUS, False
             if finite:
-                if budget is not None:
+                limit = NO_TIME_LIMIT
+                if budget is not None and done > 0:
                     # After the first QP of a period (which must give a plan), one hard QP must not overrun the
                     # budget: OSQP gets the time left.
-                    self._solver.update_settings(time_limit=NO_TIME_LIMIT if done == 0 else
-                                                 max(budget - (tm.now() - tm.start), 1e-4))
+                    limit = max(budget - (tm.now() - tm.start), 1e-4)
+                if deadline is not None:
+                    limit = min(limit, qp_left)
+                if budget is not None or deadline is not None:
+                    self._solver.update_settings(time_limit=limit)
+                assembly_before = split["assembly"]
                 warm = first_warm if done == 0 else None
                 t_h = tm.now()
                 hess = self._hessian_values(X[:N + 1], U, y_last)
@@ -320,8 +366,14 @@ class LTVMPC(MPCBase):
                 status, qp_iterations = res.info.status, qp_iterations + int(res.info.iter)
                 solved = (self._status.OSQP_SOLVED, self._status.OSQP_SOLVED_INACCURATE)
                 ok = res.info.status_val in solved and res.x is not None and np.all(np.isfinite(res.x))
-            else:  # a model that returns NaN/inf along the plan: a failed iteration, OSQP never sees it
+                if done == 0:
+                    self._recent_s["assembly"].append(split["assembly"] - assembly_before)
+                    if not ok and deadline is not None and tm.now() > deadline - MIN_QP_TIME_S:
+                        status = DEADLINE_STATUS    # OSQP stopped at the deadline's time limit
+            elif status != DEADLINE_STATUS:  # a model that returns NaN/inf along the plan: OSQP never sees it
                 status, ok = "non-finite model output", False
+            else:
+                ok = False
             if not ok:
                 break
             done += 1
@@ -330,7 +382,12 @@ class LTVMPC(MPCBase):
             optimal = res.info.status_val == self._status.OSQP_SOLVED
             Xq = res.x[:self.nx_var].reshape(N + 1, self.nx)
             Uq = res.x[self.nx_var:].reshape(N, NU)
-            if line_search:
+            # With a budget, a period whose QP ended past it takes the QP's full step (the real-time iteration)
+            # and stops: no line search (its model steps and any correction's QP) on top of an overrun.
+            late = budget is not None and tm.now() - tm.start > budget
+            if late:
+                late_steps += 1
+            if line_search and not late:
                 t_ls = tm.now()
                 qp_before = split["assembly"] + split["osqp"]   # a correction's QP is counted there, not here
                 mu = max(mu, self._merit_factor * float(np.max(np.abs(y_last))) + 1e-9)
@@ -363,10 +420,11 @@ class LTVMPC(MPCBase):
             if not reuse and (step < tol[0] or defect < tol[1]):
                 converged = True
                 break
-            if budget is not None:
-                per_iteration = (tm.now() - tm.start) / done
-                if tm.now() - tm.start + per_iteration > budget:
-                    break
+            # Another iteration only if one as long as the longest so far still fits the budget (the first one
+            # carries the period's set-up, so the rule errs towards stopping).
+            longest = max(longest, tm.now() - (tm.start if done == 1 else t_it))
+            if late or (budget is not None and tm.now() - tm.start + longest > budget):
+                break
         fallback = None
         if ok_any:
             self._z = np.concatenate([X.ravel(), U.ravel()])
@@ -390,7 +448,7 @@ class LTVMPC(MPCBase):
         if self._reports_sqp:
             iterations = done
             extra.update(qp_iterations=qp_iterations, converged=converged, cold_start=cold,
-                         line_search_failures=ls_failures, time_split_s=split, merit=merits,
+                         line_search_failures=ls_failures, late_full_steps=late_steps, time_split_s=split, merit=merits,
                          step_lengths=alphas)
         return u, dict(status=info_status, iterations=iterations,
                        predicted=None if self._plan_x is None else self._plan_x.copy(), fallback=fallback,

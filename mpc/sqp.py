@@ -19,8 +19,11 @@ quadratic programming:
 4. stop when the QP's full step is below ``step_tol`` (in the acceptable
    deviations of the default weights) or the model's defects along the new
    plan are below ``defect_tol`` (the linearization held), after
-   ``max_sqp_iter`` iterations, or when another iteration would not fit in
-   the time budget.
+   ``max_sqp_iter`` iterations, or when another iteration as long as the
+   longest one so far would not fit in the time budget. A period whose first
+   QP already ended past the budget takes that QP's full step without the
+   line search (the real-time iteration; counted in the info record's
+   ``late_full_steps``).
 
 Step 1 evaluates the model's Jacobians only in the iterations ``0, k, 2k,
 ...`` of a period (``k = jacobian_every``, default 2). An iteration between

@@ -13,7 +13,8 @@ from .engines import ENGINES
 
 #: Fields printed by ``pinnmpc fly``, in order (names other tools rely on).
 FLY_FIELDS = ("scenario", "controller", "model", "plant", "vehicle", "timing", "estimator", "rmse_position_m", "max_position_error_m", "crashed",
-              "crash_time_s", "solve_ms", "deadline_misses", "solver_failures", "fallbacks")
+              "crash_time_s", "solve_ms", "deadline_misses", "deadline_fallbacks", "solver_failures",
+              "fallbacks")
 
 
 def _sweep_options(p, published: str, where: str) -> None:

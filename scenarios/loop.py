@@ -24,6 +24,12 @@ per period since its last call) inside the timed call, so the real-time
 clock charges the estimator's time too. The controller gets the estimate
 (with the model's extra states) and, if it can use one, the disturbance
 estimate.
+
+In real time a controller that can keep a deadline (``set_deadline``: the
+MPCs on OSQP) is told, at the start of each call, that its input must be
+out :data:`DEADLINE_MARGIN_S` before the period ends; the filter's time
+counts against the same deadline. A controller that sees it cannot make a
+plan in time sends its fallback's input instead (status ``"deadline"``).
 """
 
 from __future__ import annotations
@@ -37,6 +43,9 @@ from sim.params import DT, NU, NX, SUBSTEPS
 
 from .metrics import crash_reason
 
+#: In real time, a controller's input must be out this long before the period ends, s: the time its last step
+#: (after its last look at the clock) and the loop's own bookkeeping may take.
+DEADLINE_MARGIN_S = 0.001
 #: The control period and the plant's time resolution, ms (the resolution of real-time latencies).
 PERIOD_MS = int(round(DT * 1e3))
 SUBSTEP_MS = PERIOD_MS // SUBSTEPS
@@ -251,6 +260,8 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
     tr = Trace.empty(steps)
     tr.x[0] = plant.x
     tell = getattr(controller, "applied", None)
+    # In real time, a controller that can keep a deadline (the MPCs on OSQP) is told when its input must be out.
+    set_deadline = getattr(controller, "set_deadline", None) if clock.realtime else None
     disturb = getattr(controller, "set_disturbance", None)
     if estimator is not None:
         _estimate_fields(tr, steps, estimator.ekf.nx, estimator.ekf.nz)
@@ -267,6 +278,8 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
             # by the plant's allocations is not the controller's time.
             with collector_paused(clock.realtime):
                 c0 = time.perf_counter()
+                if set_deadline is not None:
+                    set_deadline(c0 + DT - DEADLINE_MARGIN_S)
                 if estimator is not None:
                     est = estimator.estimate()
                     xm = est.x
@@ -306,4 +319,5 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
     return tr
 
 
-__all__ = ["Estimator", "IdealClock", "PERIOD_MS", "RealtimeClock", "StateSensor", "Trace", "fly_loop", "nees"]
+__all__ = ["DEADLINE_MARGIN_S", "Estimator", "IdealClock", "PERIOD_MS", "RealtimeClock", "StateSensor", "Trace",
+           "fly_loop", "nees"]

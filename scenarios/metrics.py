@@ -36,7 +36,7 @@ RECOVERY_BAND_M = 0.005
 CRASH_TILT_RAD = np.deg2rad(80.0)
 
 #: Fields that measure this machine's wall time; everything else in a result is reproducible exactly.
-TIMING_FIELDS = ("solve_ms", "deadline_misses", "wall_time_s", "preflight_ms")
+TIMING_FIELDS = ("solve_ms", "deadline_misses", "deadline_fallbacks", "wall_time_s", "preflight_ms")
 #: Trace arrays that measure wall time.
 TRACE_TIMING_FIELDS = ("solve_s", "latency_s")
 

@@ -419,7 +419,11 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
     pre = getattr(ctrl, "preflight", None)    # the SQP's plan made before take-off: what it did, and (timing) how long
     preflight = None if pre is None else {"iterations": int(pre.iterations), "status": pre.status}
     failed, lqr_fb = tr.solver_failed[:k_end], tr.lqr_fallback[:k_end]
-    result = {**base, **metrics, "shifted_plan": int(np.sum(failed & ~lqr_fb)),
+    # Real time: periods whose plan could not be made before the deadline (the fallback's input went out).
+    from mpc.ltv import DEADLINE_STATUS
+
+    late = int(np.sum(failed & (tr.status[:k_end] == DEADLINE_STATUS))) if realtime and error is None else None
+    result = {**base, **metrics, "shifted_plan": int(np.sum(failed & ~lqr_fb)), "deadline_fallbacks": late,
               "preflight": preflight, "preflight_ms": None if pre is None else 1e3 * pre.solve_time_s,
               "error": error, "wall_time_s": wall, "scenario_spec": sc.to_dict(), "plant_spec": plant.describe(),
               "vehicle_spec": vehicle.to_dict()}

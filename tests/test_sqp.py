@@ -1,6 +1,7 @@
 """Real-time SQP NMPC: convergence to IPOPT's optimum, the LTV-MPC as its one-iteration case, line search,
 cold start and failure handling."""
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -421,6 +422,52 @@ def test_failures_shift_the_plan_then_fall_back_to_lqr_and_the_next_plan_is_a_co
     model.left = 10
     _, info = sqp(x, 0.05)
     assert info.is_optimal() and info.extra["cold_start"] and sqp.counts["cold_starts"] == 2
+
+
+def test_a_period_past_its_budget_takes_the_qps_full_step_without_a_line_search():
+    """After its first QP a period past its budget stops there with the full step: the same plan, bit for bit, as
+    one full-step iteration with no budget from the same first iterate, and no line search (which, in time, runs)."""
+    model = OnnxModel(PROPOSED)
+    late = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=1e-9, cold_start_budget_s=None))
+    rti = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None, max_sqp_iter=1,
+                                               line_search=False))
+    searched = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None, max_sqp_iter=1))
+    for t, x in sampled_states(6, seed=4):
+        X0, U0 = late._horizon_reference(t)
+        X1, U1, info = late.solve_from(x, t, X0, U0)
+        X2, U2, _ = rti.solve_from(x, t, X0, U0)
+        info3 = searched.solve_from(x, t, X0, U0)[2]
+        assert info.iterations == 1 and info.extra["late_full_steps"] == 1 and info.extra["merit"] == []
+        assert np.array_equal(U1, U2) and np.array_equal(X1, X2)
+        assert len(info3.extra["merit"]) == 1 and info3.extra["late_full_steps"] == 0
+
+
+def test_a_period_that_cannot_plan_before_its_deadline_sends_the_shifted_plan_at_once(nan_jacobians_after):
+    model = nan_jacobians_after(AnalyticModel(), 10 ** 9)     # the oracle, its linearizations counted
+    sqp = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))
+    twin = SQPMPC(AnalyticModel(), FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))
+    x = FIG8_FAST(np.array([0.0]))[0]
+    sim = Simulator(QuadParams())
+    for c in (sqp, twin):
+        c.prepare(1.0, x0=x)
+    for k in range(3):      # a deadline that is met changes nothing
+        sqp.set_deadline(time.perf_counter() + 100.0)
+        u, info = sqp(x, 0.01 * k)
+        assert info.is_optimal() and np.array_equal(u, twin(x, 0.01 * k)[0])
+        x = sim.step(x, u)
+    plan = sqp._plan_u.copy()
+    model.linearizations = 0
+    sqp.set_deadline(time.perf_counter() - 1e-3)     # already past: no derivatives, no QP
+    u, info = sqp(x, 0.03)
+    assert info.status == "deadline" and info.fallback == "shifted_plan" and model.linearizations == 0
+    assert np.array_equal(u, plan[1])
+    _, info = sqp(x, 0.04)                     # the deadline was for that call only
+    assert info.is_optimal() and model.linearizations == 1
+    # A cold start has no plan to fall back on: it plans whatever the deadline.
+    cold = SQPMPC(AnalyticModel(), FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))
+    cold.set_deadline(time.perf_counter() - 1e-3)
+    _, info = cold(FIG8_FAST(np.array([0.0]))[0], 0.0)
+    assert info.is_optimal() and info.extra["cold_start"]
 
 
 def test_two_ideal_runs_are_identical():

@@ -1,13 +1,15 @@
 """Real-time timing: when a computed input takes effect, overruns, what a run records; ideal timing unchanged."""
 
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from mpc.controller import ControlInfo
 from scenarios.errors import ScenarioError
 from scenarios.library import get_scenario
-from scenarios.loop import RealtimeClock
+from scenarios.loop import DEADLINE_MARGIN_S, IdealClock, RealtimeClock, StateSensor, fly_loop
 from scenarios.runner import RunSpec, fly
 from scenarios.sweep import sweep_batches
 from sim import QuadParams, Simulator
@@ -148,3 +150,30 @@ def test_two_ideal_sqp_runs_give_identical_results_but_for_their_timing_fields()
                                                                           if k not in TIMING_FIELDS}
     for k in set(t1) - set(TRACE_TIMING_FIELDS):
         np.testing.assert_array_equal(t1[k], t2[k])
+
+
+class DeadlineRecorder:
+    """A controller that holds hover and records the deadline it is given and when each call starts."""
+
+    def __init__(self):
+        self.deadlines, self.starts = [], []
+
+    def set_deadline(self, at):
+        self.deadlines.append(at)
+
+    def __call__(self, x, t):
+        self.starts.append(time.perf_counter())
+        return HOVER_U.copy(), ControlInfo(solve_time_s=0.0, status="optimal")
+
+
+def test_in_real_time_each_call_is_told_its_deadline_and_in_ideal_timing_none():
+    x_ref = np.tile(hover_state(), (11, 1))
+    rec = DeadlineRecorder()
+    fly_loop(plant_at(hover_state()), StateSensor(None, None), rec, RealtimeClock(HOVER_U), x_ref, 10)
+    assert len(rec.deadlines) == len(rec.starts) == 10
+    ahead = np.array(rec.deadlines) - np.array(rec.starts)
+    # Set just before the call: the period less the margin, less the (tiny) time between the two clock reads.
+    assert np.all(ahead <= DT - DEADLINE_MARGIN_S) and np.all(ahead > DT - DEADLINE_MARGIN_S - 1e-3)
+    ideal = DeadlineRecorder()
+    fly_loop(plant_at(hover_state()), StateSensor(None, None), ideal, IdealClock(HOVER_U), x_ref, 10)
+    assert ideal.deadlines == [] and len(ideal.starts) == 10
