@@ -498,3 +498,18 @@ def test_realtime_table_says_why_an_ideal_run_is_missing():
     assert "| not flown |" in alone and "`--full`" in alone
     both = realtime_table([rt, {**rt, "timing": "ideal", "rmse_position_m": 1e-5}])
     assert "not flown" not in both.lower() and "| 1e-05 |" in both
+
+
+def test_realtime_table_counts_deadline_fallbacks_where_a_run_has_them():
+    from reports.tables import realtime_table
+
+    base = {"scenario": "figure8-fast", "model": "oracle", "timing": "realtime", "rmse_position_m": 0.1,
+            "crashed": False, "solve_ms": {"median": 4.0, "p95": 6.0, "max": 9.5}, "deadline_misses": 0,
+            "skipped_periods": 0, "solver_failures": 7, "fallbacks": 1}
+    table = realtime_table([{**base, "controller": "sqp", "deadline_fallbacks": 4},
+                            {**base, "controller": "nmpc"}])     # the NMPC keeps no deadline: no count
+    lines = table.splitlines()
+    head = [c.strip() for c in lines[-4].strip("|").split("|")]
+    rows = {line.split("|")[2].strip(): [c.strip() for c in line.strip("|").split("|")] for line in lines[-2:]}
+    col = head.index("deadline fallbacks")
+    assert rows["SQP"][col] == "4" and rows["NMPC"][col] == "–"
