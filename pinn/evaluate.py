@@ -290,6 +290,36 @@ def _spec_task(task) -> tuple[dict, list[dict]]:
     return summary, rows
 
 
+#: The code an evaluation depends on besides its models (paths under the project's root): the datasets, the
+#: Fisher bounds and the classical estimator (``sim``), the metrics (``pinn``) and the model contract.
+EVALUATION_CODE = ("sim", "pinn", "mpc/contract.py", "mpc/models.py", "mpc/errors.py")
+
+
+def evaluation_key(folder, extra_specs=()) -> str:
+    """SHA-256 of everything :func:`evaluate_dir` reads: the model files (``*.onnx``, derivative graphs included)
+    of ``folder`` (one or a list), ``extra_specs`` and the source of :data:`EVALUATION_CODE`.
+
+    The evaluation is deterministic, so a result stored with the same key is the one it would compute again.
+    """
+    import hashlib
+
+    import sim
+
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256(sim.__version__.encode())
+    for entry in EVALUATION_CODE:
+        p = root / entry
+        for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
+            h.update(str(f.relative_to(root)).encode())
+            h.update(f.read_bytes())
+    for d in [folder] if isinstance(folder, (str, Path)) else folder:
+        for f in sorted(Path(d).glob("*.onnx")):
+            h.update(f.name.encode())
+            h.update(f.read_bytes())
+    h.update(json.dumps(list(extra_specs), sort_keys=True).encode())
+    return h.hexdigest()
+
+
 def evaluate_dir(folder, data_path=None, progress: bool = False, jobs: int = 1, extra_specs=()) -> dict:
     """Evaluate every model ``*.onnx`` (not ``*.jac.onnx``) in ``folder`` (a folder or a list of folders).
 

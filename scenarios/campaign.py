@@ -4,7 +4,9 @@ Layout of a results folder ``DIR``::
 
     DIR/provenance.json     versions, machine, git commit, model hashes, seeds, command, wall times
     DIR/fisher.json         Fisher information / CRLB table (as ``pinnmpc fisher --json``)
-    DIR/evaluation.json     Tables I and II of the shipped models (as ``pinnmpc evaluate --json``)
+    DIR/evaluation.json     Tables I, II and VI of the shipped models and the identification study's (as
+                            ``pinnmpc evaluate --json``, with the SHA-256 of its inputs); reused from an earlier
+                            run or from models/evaluation.json when models and code are the same
     DIR/ablation.json       Table III (copied from models/ablation.json, produced by ``pinnmpc ablation``)
     DIR/study.json          the zoo's dose-response study (copied from models/zoo/study.json, produced by
                             ``pinnmpc study``; it flies 729 runs, more than the main job's time allows)
@@ -310,6 +312,33 @@ def precompile_job(jobs: int) -> int:
                       + actuated + [lag_sensitivity_function(p, s) for s in (True, False)], jobs)
 
 
+#: A stored evaluation of the shipped models (see :func:`reusable_evaluation`), under the models folder.
+SHIPPED_EVALUATION = "evaluation.json"
+
+
+def reusable_evaluation(out_dir, models_dir, folders) -> tuple[Path, dict] | None:
+    """A stored evaluation of ``folders`` that the main job can reuse: ``(its path, its content)``, or None.
+
+    The evaluation is deterministic: one stored with the key of the same models and code
+    (:func:`pinn.evaluate.evaluation_key`) is what it would compute again. Looked for in ``out_dir`` (an earlier
+    run of the job) and then in ``models_dir`` (:data:`SHIPPED_EVALUATION`, kept current by a test).
+    """
+    from pinn.evaluate import EFFECT_SPECS, evaluation_key
+
+    key = None
+    for path in (Path(out_dir) / "evaluation.json", Path(models_dir) / SHIPPED_EVALUATION):
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        if not isinstance(data, dict) or "inputs_sha256" not in data:
+            continue
+        key = evaluation_key(folders, EFFECT_SPECS) if key is None else key
+        if data["inputs_sha256"] == key:
+            return path, data
+    return None
+
+
 def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bool = False,
                  progress: bool = True, scenarios: list[str] | None = None, engine: str = "process",
                  address: str | None = None, resume: bool = True, plant: str = "sim",
@@ -317,7 +346,8 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
     """Run everything and build the report; returns ``{"results": [...], "report": path}``.
 
     ``engine``, ``address`` and ``resume`` are those of :func:`scenarios.sweep.sweep`: closed-loop runs already
-    saved in ``out_dir`` with the same spec, seed, model file and code are reused unless ``resume`` is False.
+    saved in ``out_dir`` with the same spec, seed, model file and code are reused unless ``resume`` is False, and
+    so is an open-loop evaluation of the same models by the same code (:func:`reusable_evaluation`).
     """
     from reports import build_report
 
@@ -343,10 +373,20 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
     stage("Fisher information and Cramer-Rao bounds")
     from sim.fisher import fisher_table
     write_json(out / "fisher.json", fisher_table(progress=False))
-    stage("open-loop evaluation and identification (Tables I, II, VI; the classical estimator on each dataset)")
-    from pinn.evaluate import EFFECT_SPECS, evaluate_dir
     folders = [models_dir] + ([Path(models_dir) / IDENTIFICATION_DIR] if identification_models(models_dir) else [])
-    write_json(out / "evaluation.json", evaluate_dir(folders, progress=progress, jobs=jobs, extra_specs=EFFECT_SPECS))
+    reused = reusable_evaluation(out, models_dir, folders) if resume else None
+    if reused is None:
+        stage("open-loop evaluation and identification (Tables I, II, VI; the classical estimator on each dataset)")
+        from pinn.evaluate import EFFECT_SPECS, evaluate_dir, evaluation_key
+        result = evaluate_dir(folders, progress=progress, jobs=jobs, extra_specs=EFFECT_SPECS)
+        write_json(out / "evaluation.json", {**result, "inputs_sha256": evaluation_key(folders, EFFECT_SPECS)})
+        prov["evaluation"] = "computed"
+    else:
+        source, result = reused
+        stage(f"open-loop evaluation and identification: reused {source} (same models and code)")
+        if source != out / "evaluation.json":
+            write_json(out / "evaluation.json", result)
+        prov["evaluation"] = f"reused {source}"
     ablation = Path(models_dir) / "ablation.json"
     if ablation.is_file():
         shutil.copyfile(ablation, out / "ablation.json")

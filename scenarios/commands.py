@@ -78,8 +78,10 @@ def register(sub) -> None:
     p.add_argument("--address", default=None, metavar="ADDR",
                    help="Ray cluster to send the runs to, e.g. HEAD:6379 (default: a local Ray instance)")
     p.add_argument("--fresh", action="store_true",
-                   help="fly every run again; by default runs saved in --out with the same spec, seed, model file "
-                        "and code are reused, so an interrupted run resumes where it stopped")
+                   help="fly every run again and evaluate the models again; by default runs saved in --out with "
+                        "the same spec, seed, model file and code are reused, so an interrupted run resumes where "
+                        "it stopped, and so is an evaluation of the same models by the same code (in --out or "
+                        "models/evaluation.json)")
     add_plant_options(p, "; with another plant or vehicle every run flies there (the oracle becomes the nominal "
                          "equations where the plant has none)")
     p.add_argument("--estimator", choices=ESTIMATORS, default=None,
