@@ -290,17 +290,18 @@ def provenance(models_dir) -> dict:
             "command": " ".join(["pinnmpc"] + sys.argv[1:]) if sys.argv else None}
 
 
-def precompile_job(jobs: int) -> int:
+def precompile_job(jobs: int, evaluation: bool = True) -> int:
     """Compile the CasADi functions the job will need (the sensitivities of the Fisher, evaluation and estimator
     stages, the lag-aware estimator's, the oracles' steps and Jacobians), ``jobs`` compilers at a time; those in
-    the cache are skipped.
+    the cache are skipped. Without ``evaluation`` (a stored evaluation is reused), only those of the Fisher stage
+    and the oracles.
 
     Without this they are compiled one after the other where first used, the oracle's by each sweep worker at
     once. Returns how many were compiled.
     """
     from mpc.models import numeric_sources
     from sim.compiled import precompile
-    from sim.fisher import USED_SENSITIVITIES, sensitivity_function
+    from sim.fisher import FISHER_SENSITIVITIES, USED_SENSITIVITIES, sensitivity_function
     from sim.params import QuadParams
 
     from sim.motor_lag import lag_sensitivity_function
@@ -308,8 +309,10 @@ def precompile_job(jobs: int) -> int:
 
     p = QuadParams()
     actuated = list(numeric_sources(p, load_vehicle(None).fidelity))     # the oracle of the +highfi scenarios
-    return precompile([sensitivity_function(p, i, s) for i, s in USED_SENSITIVITIES] + list(numeric_sources(p))
-                      + actuated + [lag_sensitivity_function(p, s) for s in (True, False)], jobs)
+    used = USED_SENSITIVITIES if evaluation else FISHER_SENSITIVITIES
+    lag = [lag_sensitivity_function(p, s) for s in (True, False)] if evaluation else []
+    return precompile([sensitivity_function(p, i, s) for i, s in used] + list(numeric_sources(p)) + actuated + lag,
+                      jobs)
 
 
 #: A stored evaluation of the shipped models (see :func:`reusable_evaluation`), under the models folder.
@@ -368,13 +371,13 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
             print(f"[{time.time() - t_start:6.0f} s] {name}", file=sys.stderr, flush=True)
         stages[name] = time.time()
 
+    folders = [models_dir] + ([Path(models_dir) / IDENTIFICATION_DIR] if identification_models(models_dir) else [])
+    reused = reusable_evaluation(out, models_dir, folders) if resume else None
     stage("compiling the analytic model's derivatives (once per machine)")
-    precompile_job(jobs)
+    precompile_job(jobs, evaluation=reused is None)
     stage("Fisher information and Cramer-Rao bounds")
     from sim.fisher import fisher_table
     write_json(out / "fisher.json", fisher_table(progress=False))
-    folders = [models_dir] + ([Path(models_dir) / IDENTIFICATION_DIR] if identification_models(models_dir) else [])
-    reused = reusable_evaluation(out, models_dir, folders) if resume else None
     if reused is None:
         stage("open-loop evaluation and identification (Tables I, II, VI; the classical estimator on each dataset)")
         from pinn.evaluate import EFFECT_SPECS, evaluate_dir, evaluation_key

@@ -165,6 +165,8 @@ def sensitivity_function(p: QuadParams, inputs: str, state: bool = True) -> ca.F
 
 #: The sensitivities the Fisher table, the evaluation and the classical estimator use: (inputs, state).
 USED_SENSITIVITIES = (("wrench", True), ("motor", True), ("wrench", False))
+#: Those the Fisher table alone uses.
+FISHER_SENSITIVITIES = (("wrench", True), ("motor", True))
 
 
 def _map_eval(f: ca.Function, x: np.ndarray, u: np.ndarray, theta: np.ndarray):
