@@ -15,7 +15,8 @@ scenario with the same controller in the same check:
 (m; the largest error over the last 2 s) or ``rmse_yaw_rad`` (rad). A case
 that crashed in the measured run is written as a known failure: it is flown
 and reported, but it neither passes nor fails the check, so a fix that makes
-it fly is not blocked.
+it fly is not blocked. A run that never flew (its ``error`` set) measured
+nothing: no bounds are written from it.
 
 The file is written by ``pinnmpc bounds DIR`` from the results folder of
 ``pinnmpc run``; :func:`check` compares a new set of results with it and
@@ -180,7 +181,8 @@ def check(bounds: list[Bound], results: list[dict]) -> list[dict]:
         ref = o.get(b.metric) if b.relative else 0.0
         if b.relative and ref is None:
             row["why"] = f"oracle has no {b.metric} ({'crashed' if o.get('crashed') else o.get('error')})"
-            row["ok"] = None if b.known_failure else False
+            # A known failure is exempt from a crash, never from a run that did not fly.
+            row["ok"] = None if b.known_failure and not o.get("error") and not r.get("error") else False
             rows.append(row)
             continue
         row["limit"] = ref + b.tolerance_m
@@ -192,7 +194,7 @@ def check(bounds: list[Bound], results: list[dict]) -> list[dict]:
         if value is None or value > row["limit"]:
             why.append(f"{b.metric} above bound")
         row["why"] = "; ".join(why)
-        row["ok"] = None if b.known_failure else not why
+        row["ok"] = None if b.known_failure and not r.get("error") else not why
         rows.append(row)
     return rows
 
@@ -254,8 +256,14 @@ def generate(results: list[dict], models: list[str], source: str = "") -> str:
         if r is None or o is None:
             raise BoundsError(f"the results have no run of {model} on {scenario} with {controller} "
                               f"(or of the oracle there); run `pinnmpc run` first")
+        for run, who in ((r, model), (o, "the oracle")):
+            if run.get("error") is not None:    # never flew: nothing was measured, so nothing to exempt
+                raise BoundsError(f"the run of {who} on {scenario} with {controller} never flew "
+                                  f"({run['error']}); fix it and fly it again before writing bounds")
         value, ref = r.get(metric), o.get(metric)
-        known = bool(r.get("crashed")) or r.get("error") is not None or value is None
+        if value is None and not r.get("crashed"):
+            raise BoundsError(f"the run of {model} on {scenario} with {controller} has no {metric}")
+        known = bool(r.get("crashed"))
         if model == "oracle":
             if known:
                 raise BoundsError(f"the oracle did not fly {scenario} with {controller}: cannot set a bound")

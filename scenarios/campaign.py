@@ -315,6 +315,31 @@ def precompile_job(jobs: int, evaluation: bool = True) -> int:
                       jobs)
 
 
+def source_key(packages) -> str:
+    """SHA-256 of the project's version and the Python source of ``packages`` (folders under the project's root):
+    the identity of a deterministic stage's result that reads nothing else (the Fisher table: ``("sim",)``)."""
+    import hashlib
+
+    import sim
+
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256(sim.__version__.encode())
+    for pkg in packages:
+        for f in sorted((root / pkg).rglob("*.py")):
+            h.update(str(f.relative_to(root)).encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def _stored_key(path) -> str | None:
+    """The ``inputs_sha256`` a stored JSON result carries, or None (absent, unreadable or without one)."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    return data.get("inputs_sha256") if isinstance(data, dict) else None
+
+
 #: A stored evaluation of the shipped models (see :func:`reusable_evaluation`), under the models folder.
 SHIPPED_EVALUATION = "evaluation.json"
 
@@ -375,9 +400,13 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
     reused = reusable_evaluation(out, models_dir, folders) if resume else None
     stage("compiling the analytic model's derivatives (once per machine)")
     precompile_job(jobs, evaluation=reused is None)
-    stage("Fisher information and Cramer-Rao bounds")
-    from sim.fisher import fisher_table
-    write_json(out / "fisher.json", fisher_table(progress=False))
+    fisher_key = source_key(("sim",))
+    if resume and _stored_key(out / "fisher.json") == fisher_key:
+        stage("Fisher information and Cramer-Rao bounds: reused (same code)")
+    else:
+        stage("Fisher information and Cramer-Rao bounds")
+        from sim.fisher import fisher_table
+        write_json(out / "fisher.json", {**fisher_table(progress=False), "inputs_sha256": fisher_key})
     if reused is None:
         stage("open-loop evaluation and identification (Tables I, II, VI; the classical estimator on each dataset)")
         from pinn.evaluate import EFFECT_SPECS, evaluate_dir, evaluation_key

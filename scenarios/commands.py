@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from sim.cli import add_plant_options
-from sim.files import write_json
+from sim.files import check_writable, write_json, write_npz, write_text
 
 from .engines import ENGINES
 
@@ -29,7 +29,7 @@ def _sweep_options(p, published: str, where: str) -> None:
 def register(sub) -> None:
     """Add this package's subcommands to the ``pinnmpc`` parser."""
     from .library import scenario_names
-    from .runner import CONTROLLERS, ESTIMATORS, HORIZON, TIMINGS
+    from .runner import CONTROLLERS, ESTIMATORS, HORIZON, MAX_HORIZON, TIMINGS
 
     names = scenario_names()
     p = sub.add_parser("fly", help="fly one closed-loop run and print its metrics",
@@ -43,7 +43,8 @@ def register(sub) -> None:
     p.add_argument("--scenario", required=True, metavar="NAME|FILE.toml", help="scenario name (see above) or file")
     add_plant_options(p)
     p.add_argument("--seed", type=int, default=None, help="seed of noise and gusts (default: the scenario's, 0)")
-    p.add_argument("--horizon", type=int, default=HORIZON, help=f"MPC horizon in steps of 10 ms (default {HORIZON})")
+    p.add_argument("--horizon", type=_horizon_arg, default=HORIZON,
+                   help=f"MPC horizon in steps of 10 ms, 1 to {MAX_HORIZON} (default {HORIZON})")
     p.add_argument("--timing", choices=TIMINGS, default="ideal",
                    help="ideal: each input applies at once (deterministic, default); realtime: it applies after "
                         "the call's measured wall time, rounded up to 1 ms, and a call that overruns the 10 ms "
@@ -159,18 +160,29 @@ def _fmt(v) -> str:
     return "null" if v is None else str(v)
 
 
+def _horizon_arg(text: str) -> int:
+    """``--horizon``, checked when the command line is read (before anything is loaded or flown)."""
+    from .runner import check_horizon
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    try:
+        return check_horizon(value, "--horizon")
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def cmd_fly(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc fly``."""
-    import numpy as np
-
     from .runner import RunSpec, fly
 
-    for name in ("json", "trace", "plot"):
-        path = getattr(args, name)
-        if path is not None and path.exists() and path.is_dir():
-            raise ValueError(f"--{name} {str(path)!r} is a folder; give a file name")
     if args.plot is not None and args.plot.suffix.lower() != ".png":
         raise ValueError(f"--plot must name a .png file; found {str(args.plot)!r}")
+    for name in ("json", "trace", "plot"):      # before the flight, not after it
+        if getattr(args, name) is not None:
+            check_writable(getattr(args, name), f"--{name}")
     from mpc.readiness import require
 
     from .runner import load_run_model
@@ -193,8 +205,7 @@ def cmd_fly(args: argparse.Namespace) -> int:
         write_json(args.json, result)
         print(f"wrote {args.json}")
     if args.trace:
-        args.trace.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(args.trace, **trace)
+        write_npz(args.trace, trace)
         print(f"wrote {args.trace}")
     if args.plot:
         from .plot import plot_run
@@ -211,6 +222,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise ValueError(f"--jobs must be >= 1; found {args.jobs}")
     if args.address is not None and args.engine != "ray":
         raise ValueError("--address needs --engine ray")
+    check_writable(args.out, "--out", folder=True)
     out = run_main_job(args.out, args.models, args.jobs, args.full, progress=True, engine=args.engine,
                        address=args.address, resume=not args.fresh, plant=args.plant, vehicle=args.vehicle,
                        estimator=args.estimator)
@@ -248,6 +260,7 @@ def cmd_study(args: argparse.Namespace) -> int:
                          "--no-publish (or another --models folder)")
     from .zoo import study_file
 
+    check_writable(args.out, "--out", folder=True)
     select = None if args.select is None else [n.strip() for n in args.select.split(",") if n.strip()]
     if select is not None and args.estimator == "none" and not args.no_publish:
         raise ValueError("a study of some models would replace the zoo's study.json; give --no-publish")
@@ -272,6 +285,7 @@ def cmd_versus(args: argparse.Namespace) -> int:
             raise ValueError(f"{name} must be >= 1; found {v}")
     if args.address is not None and args.engine != "ray":
         raise ValueError("--address needs --engine ray")
+    check_writable(args.out, "--out", folder=True)
     out = run_versus(args.models, args.out, args.members, args.ladder_members, parse_plants(args.plants), jobs,
                      progress=True, publish=not args.no_publish, engine=args.engine, address=args.address,
                      resume=not args.fresh)
@@ -297,15 +311,27 @@ def cmd_bounds(args: argparse.Namespace) -> int:
     import json
 
     from .bounds import BOUNDS_FILE, generate, load_bounds
+    from .errors import BoundsError
     from .campaign import shipped_models
 
     results = args.dir / "results.json"
     if not results.is_file():
         raise ValueError(f"DIR {str(args.dir)!r} has no results.json; give the results folder of pinnmpc run")
-    runs = json.loads(results.read_text())["runs"]
+    out = check_writable(BOUNDS_FILE if args.out is None else args.out, "--out")
+    try:
+        data = json.loads(results.read_text())
+    except (OSError, ValueError) as e:
+        raise BoundsError(f"{results}: not a readable JSON file ({e})") from e
+    runs = data.get("runs") if isinstance(data, dict) else None
+    if not isinstance(runs, list) or not all(isinstance(r, dict) for r in runs):
+        raise BoundsError(f"{results}: expected an object with a list of runs under \"runs\" (as pinnmpc run "
+                          f"writes it)")
     models = [Path(m).stem for m in shipped_models(args.models)]
-    out = BOUNDS_FILE if args.out is None else args.out
-    out.write_text(generate(runs, models, f"`pinnmpc run` ({args.dir.name}/results.json)"))
+    try:
+        text = generate(runs, models, f"`pinnmpc run` ({args.dir.name}/results.json)")
+    except BoundsError as e:
+        raise BoundsError(f"{results}: {e}") from e
+    write_text(out, text)
     _, bounds = load_bounds(out)
     known = [b for b in bounds if b.known_failure]
     print(f"wrote {out}: {len(bounds)} cases, {len(known)} known failures")

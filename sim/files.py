@@ -1,14 +1,79 @@
-"""Writing the JSON files of every command and benchmark in one way."""
+"""Writing the files of every command and benchmark in one way: checked before the work, written whole or not at all."""
 
 from __future__ import annotations
 
 import json
+import os
+import tempfile
 from pathlib import Path
+
+from .errors import SimInputError
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _replace_from_temp(path: Path, write) -> Path:
+    """Call ``write(file object)`` on a temporary file beside ``path``, then rename it to ``path`` (atomic: a reader
+    sees the old file or the whole new one, never a torn one)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.chmod(tmp, 0o666 & ~_umask())      # as an ordinary new file (mkstemp makes it private)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
 
 
 def write_json(path, obj) -> Path:
     """Write ``obj`` to ``path`` as indented JSON with a final newline, creating the folder; the path."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(obj, indent=2) + "\n")
+    text = (json.dumps(obj, indent=2) + "\n").encode()
+    return _replace_from_temp(path, lambda f: f.write(text))
+
+
+def write_text(path, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` whole or not at all, creating the folder; the path."""
+    data = text.encode()
+    return _replace_from_temp(Path(path), lambda f: f.write(data))
+
+
+def write_npz(path, arrays: dict) -> Path:
+    """Write ``arrays`` to exactly ``path`` as a compressed ``.npz`` (numpy would add ``.npz`` to a name without
+    it), creating the folder; the path."""
+    import numpy as np
+
+    return _replace_from_temp(Path(path), lambda f: np.savez_compressed(f, **arrays))
+
+
+def check_writable(path, option: str, folder: bool = False) -> Path:
+    """Before any work: that ``path`` (a file, or with ``folder`` a folder) can be written, or a
+    :class:`sim.errors.SimInputError` naming ``option`` and why.
+
+    Nothing is created: a probe file is written and removed in the nearest folder that exists (where the
+    missing ones would be made).
+    """
+    path = Path(path)
+    if not folder and path.is_dir():
+        raise SimInputError(f"{option} {str(path)!r} is a folder; give a file name")
+    if folder and path.exists() and not path.is_dir():
+        raise SimInputError(f"{option} {str(path)!r} is a file; give a folder")
+    where = (path if folder else path.parent).absolute()
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    try:
+        if not where.is_dir():
+            raise NotADirectoryError(20, f"{str(where)!r} is a file, so no folder can be made under it")
+        fd, probe = tempfile.mkstemp(dir=where, prefix=".write-probe.")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise SimInputError(f"{option} {str(path)!r} cannot be written: {e.strerror or e}") from e
     return path
