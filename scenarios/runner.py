@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -234,6 +233,34 @@ def _sha256(path: str) -> str | None:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
+def input_files(spec: "RunSpec") -> dict[str, Path]:
+    """The files a run reads, by role: ``model`` (an ONNX file) and ``jacobian`` (its derivative graph, read when it
+    exists: without it the controllers take central differences), ``vehicle`` and ``scenario`` (when given as
+    files). Equation models and shipped names read no file of their own."""
+    from mpc.contract import jacobian_path
+
+    files = {}
+    if spec.model not in EQUATION_MODELS and not spec.model.startswith("analytic:"):
+        files["model"] = Path(spec.model)
+        files["jacobian"] = jacobian_path(spec.model)
+    for role, name in (("vehicle", spec.vehicle), ("scenario", spec.scenario)):
+        if isinstance(name, str) and name.endswith(".toml"):
+            files[role] = Path(name)
+    return files
+
+
+def input_hashes(spec: "RunSpec") -> dict[str, str | None]:
+    """SHA-256 of each of :func:`input_files` now, by role (None: the file is absent, as a model without a
+    derivative graph is)."""
+    out = {}
+    for role, path in input_files(spec).items():
+        try:
+            out[role] = hashlib.sha256(path.read_bytes()).hexdigest()
+        except FileNotFoundError:
+            out[role] = None
+    return out
+
+
 #: With the state estimator in real time, the SQP's wall-clock budget (8 ms per period alone) leaves this much of the
 #: period to the filter (its time, median 0.4-0.9 ms, spikes to 2-6 ms, is charged to the same deadline).
 ESTIMATOR_RESERVE_S = 0.003
@@ -372,6 +399,7 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
         sc = get_scenario(spec.scenario).member(spec.member)
     else:
         sc = get_scenario(spec.scenario, spec.seed)
+    inputs = input_hashes(spec)           # what is flown: taken as the run starts, stored in its result
     if model is None:
         model = load_run_model(spec)      # contract errors raise here, before anything flies
     vehicle = spec.vehicle_data
@@ -385,11 +413,12 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
     own_map = high_fidelity_equations("oracle", spec.plant, sc)
     x0 = start_state(sc, reference_spec(spec.plant, vehicle), X_ref[0] if own_map else None)
     error = None
-    sha = _sha256(spec.model)
+    sha = inputs.get("model")
     base = {"run_id": spec.run_id, "scenario": sc.name, "controller": spec.controller,
             "model": spec.model_name, "model_file": None if sha is None else str(spec.model),
             "model_sha256": sha, "seed": sc.seed, "member": spec.member, "horizon": spec.horizon,
-            "timing": spec.timing, "plant": spec.plant, "vehicle": vehicle.name, "estimator": spec.estimator}
+            "timing": spec.timing, "plant": spec.plant, "vehicle": vehicle.name, "estimator": spec.estimator,
+            "inputs_sha256": inputs}
     t0 = time.perf_counter()
     realtime = spec.timing == "realtime"
     try:
@@ -497,16 +526,16 @@ def save_run(result: dict, trace: dict, out_dir: Path) -> dict:
     out_dir = Path(out_dir)
     (out_dir / "runs").mkdir(parents=True, exist_ok=True)
     (out_dir / "traces").mkdir(parents=True, exist_ok=True)
+    from sim.files import write_npz, write_text
+
     rel = None
     if trace:
         rel = f"traces/{result['run_id']}.npz"
-        np.savez_compressed(out_dir / rel, **trace)
+        write_npz(out_dir / rel, trace)
     result = {**result, "trace": rel}
-    # The JSON is written last and atomically: a run interrupted while saving leaves no result, and is flown again.
-    path = out_dir / "runs" / f"{result['run_id']}.json"
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=2, sort_keys=True) + "\n")
-    os.replace(tmp, path)
+    # Both files are written whole (a temporary file renamed), the JSON last: a run interrupted while saving leaves
+    # no result, and is flown again.
+    write_text(out_dir / "runs" / f"{result['run_id']}.json", json.dumps(result, indent=2, sort_keys=True) + "\n")
     return result
 
 
@@ -537,14 +566,21 @@ def code_version() -> str:
     return _CODE_VERSION
 
 
-def cache_key(spec: RunSpec) -> str:
-    """Identity of a run's result: its spec, its seed, its model file's SHA-256 and the code version."""
+def cache_key(spec: RunSpec, inputs: dict | None = None) -> str:
+    """Identity of a run's result: its spec, its seed, the SHA-256 of every file it reads and the code version.
+
+    ``inputs``: those hashes (:func:`input_hashes`) as a run recorded them when it started flying; None: the
+    files as they are now. A saved result is reused only when the two agree, so a run flown with a file that was
+    replaced since (or replaced during the sweep) is flown again.
+    """
     sc = get_scenario(spec.scenario)
     seed = sc.seed if spec.seed is None else spec.seed
+    inputs = input_hashes(spec) if inputs is None else inputs
     # The model by name and content, not by path: a results folder stays valid when the models move. The vehicle
     # and a scenario file by content too.
     ident = {"scenario": sc.to_dict(), "controller": spec.controller, "model": spec.model_name,
-             "model_sha256": _sha256(spec.model), "seed": seed, "member": spec.member, "horizon": spec.horizon,
+             "model_sha256": inputs.get("model"), "inputs": inputs, "seed": seed, "member": spec.member,
+             "horizon": spec.horizon,
              "timing": spec.timing, "plant": spec.plant, "vehicle": spec.vehicle_data.to_dict(),
              "estimator": spec.estimator, "code": code_version()}
     return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
@@ -558,15 +594,46 @@ def cached_result(spec: RunSpec, out_dir, key: str | None = None) -> dict | None
     failed the contract) is not reused.
     """
     path = Path(out_dir) / "runs" / f"{spec.run_id}.json"
+    if not path.is_file():
+        return None
     try:
         result = json.loads(path.read_text())
-    except (OSError, ValueError):
+        if not isinstance(result, dict):
+            raise ValueError("not a JSON object")
+    except (OSError, ValueError) as e:
+        _say(f"{path}: damaged ({e}); flying {spec.run_id} again")
         return None
     if result.get("cache_key") != (cache_key(spec) if key is None else key) or result.get("error"):
-        return None     # another spec, model or code; or a run that could not start (tried again)
-    if result.get("trace") and not (Path(out_dir) / result["trace"]).is_file():
-        return None
+        return None     # another spec, file or code; or a run that could not start (tried again)
+    if result.get("trace"):
+        why = trace_damage(Path(out_dir) / result["trace"])
+        if why is not None:
+            _say(f"{Path(out_dir) / result['trace']}: {why}; flying {spec.run_id} again")
+            return None
     return result
+
+
+def _say(line: str) -> None:
+    import sys
+
+    print(line, file=sys.stderr, flush=True)
+
+
+def trace_damage(path: Path) -> str | None:
+    """Why the trace file ``path`` cannot be trusted (missing, not a readable ``.npz``, an array that fails its
+    checksum, no ``t`` and ``x``), or None when it reads back whole."""
+    import zipfile
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}     # reading every array checks its CRC
+    except FileNotFoundError:
+        return "missing"
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        return f"damaged ({type(e).__name__}: {e})"
+    if "t" not in arrays or "x" not in arrays or len(arrays["t"]) != len(arrays["x"]):
+        return "damaged (no time and state arrays of one length)"
+    return None
 
 
 def fly_for_sweep(spec: RunSpec) -> tuple[dict, dict]:
@@ -580,7 +647,7 @@ def fly_for_sweep(spec: RunSpec) -> tuple[dict, dict]:
     except Exception as e:  # noqa: BLE001 - a run that cannot fly is recorded and the sweep goes on
         result = {"run_id": spec.run_id, "scenario": spec.scenario_name, "controller": spec.controller,
                   "model": spec.model_name, "plant": spec.plant, "vehicle": spec.vehicle_data.name, **NOT_FLOWN,
-                  "error": f"{type(e).__name__}: {e}"}
+                  "error": f"{type(e).__name__}: {e}", "inputs_sha256": input_hashes(spec)}
         trace = {}
     return result, trace
 

@@ -35,7 +35,9 @@ def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True, e
         cluster at ``address`` or on a local instance.
     resume : bool
         Reuse every saved result under ``out_dir`` whose cache key (spec,
-        seed, model file hash, code version) matches; only the rest is flown.
+        seed, the hashes of the files it read, code version) matches the
+        files as they are now, and whose trace reads back whole; only the
+        rest is flown (a damaged file is said so on stderr).
     on_result : callable, optional
         Called with each new result once it is saved.
 
@@ -72,7 +74,9 @@ def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True, e
             bar.set_postfix_str(f"{len(results)} from the cache")
 
     def done(spec, result, trace):
-        results[spec.run_id] = save_run({**result, "cache_key": keys[spec.run_id]}, trace, out_dir)
+        # Keyed by the files the run read when it started flying (a file replaced during the sweep shows there).
+        key = cache_key(spec, result["inputs_sha256"]) if "inputs_sha256" in result else keys[spec.run_id]
+        results[spec.run_id] = save_run({**result, "cache_key": key}, trace, out_dir)
         if bar:
             bar.update()
         if on_result is not None:

@@ -164,3 +164,81 @@ def test_the_code_version_covers_python_source_not_the_bounds_file(tmp_path, mon
     with open(tmp_path / "mpc" / "ltv.py", "a") as f:
         f.write("\n# a change of code\n")
     assert version() != before
+
+
+# ----------------------------------------------------------------- a cache keyed by what was flown (defects 1, 2, 8)
+
+def copied_model(tmp_path, name="baseline"):
+    d = tmp_path / "models"
+    d.mkdir(exist_ok=True)
+    for suffix in (".onnx", ".jac.onnx"):
+        shutil.copy(ROOT / "models" / f"{name}{suffix}", d / f"baseline{suffix}")
+    return d / "baseline.onnx"
+
+
+def test_the_cache_key_covers_the_derivative_graph(tmp_path):
+    from scenarios.runner import cache_key
+
+    model = copied_model(tmp_path)
+    spec = RunSpec("hover", "lqr", str(model))
+    with_graph = cache_key(spec)
+    jac = model.with_name("baseline.jac.onnx")
+    jac.unlink()                                       # the controllers now take central differences
+    without = cache_key(spec)
+    shutil.copy(ROOT / "models" / "proposed.jac.onnx", jac)
+    assert len({with_graph, without, cache_key(spec)}) == 3
+
+
+def test_a_model_swapped_mid_sweep_leaves_each_result_with_the_hash_of_what_it_flew(tmp_path):
+    """The swap test: after the first run returns, the model file is replaced; every result carries the hash of the
+    file it flew (its RMSE is that file's), and once the original is back a resume flies exactly the others."""
+    from scenarios.runner import fly, input_hashes
+    from scenarios.sweep import sweep
+
+    model = copied_model(tmp_path)
+    specs = [RunSpec(sc, "lqr", str(model)) for sc in ("hover", "hover+noise", "figure8-slow")]
+    original = input_hashes(specs[0])
+    flown = []
+
+    def swap_after_first(result):
+        flown.append(result["run_id"])
+        if len(flown) == 1:
+            copied_model(tmp_path, "proposed")
+
+    out = tmp_path / "out"
+    results = sweep(specs, out, jobs=1, progress=False, on_result=swap_after_first)
+    swapped = input_hashes(specs[0])
+    assert swapped["model"] != original["model"]
+    first = flown[0]
+    for s, r in zip(specs, results):
+        assert r["inputs_sha256"] == (original if s.run_id == first else swapped)
+        if s.run_id != first:                          # flown with the replacement: its numbers are the replacement's
+            assert r["rmse_position_m"] == fly(s)[0]["rmse_position_m"]
+    copied_model(tmp_path, "baseline")                 # the original back
+    (s1, r1), = [(s, r) for s, r in zip(specs, results) if s.run_id == first]
+    assert r1["rmse_position_m"] == fly(s1)[0]["rmse_position_m"]
+    again = []
+    sweep(specs, out, jobs=1, progress=False, on_result=lambda r: again.append(r["run_id"]))
+    assert sorted(again) == sorted(set(flown) - {first})
+
+
+def test_a_torn_trace_is_flown_again_with_a_line_saying_so(tmp_path, capsys):
+    from scenarios.sweep import sweep
+
+    spec = RunSpec("hover", "lqr", "oracle")
+    out = tmp_path / "out"
+    (r,) = sweep([spec], out, jobs=1, progress=False)
+    trace = out / r["trace"]
+    data = trace.read_bytes()
+    trace.write_bytes(data[: len(data) // 2])
+    again = []
+    (r2,) = sweep([spec], out, jobs=1, progress=False, on_result=lambda res: again.append(res["run_id"]))
+    assert again == [spec.run_id] and "flying hover__lqr__oracle again" in capsys.readouterr().err
+    assert r2["rmse_position_m"] == r["rmse_position_m"]
+    with np.load(out / r2["trace"]) as tr:
+        assert tr["x"].shape[0] == tr["t"].shape[0]
+    (runs_json,) = (out / "runs").iterdir()
+    runs_json.write_text('{"run_id": ')          # a torn result: flown again too, not a traceback
+    again.clear()
+    sweep([spec], out, jobs=1, progress=False, on_result=lambda res: again.append(res["run_id"]))
+    assert again == [spec.run_id] and "damaged" in capsys.readouterr().err
