@@ -301,17 +301,9 @@ def evaluation_key(folder, extra_specs=()) -> str:
 
     The evaluation is deterministic, so a result stored with the same key is the one it would compute again.
     """
-    import hashlib
+    from sim.files import source_digest
 
-    import sim
-
-    root = Path(__file__).resolve().parents[1]
-    h = hashlib.sha256(sim.__version__.encode())
-    for entry in EVALUATION_CODE:
-        p = root / entry
-        for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
-            h.update(str(f.relative_to(root)).encode())
-            h.update(f.read_bytes())
+    h = source_digest(EVALUATION_CODE, Path(__file__).resolve().parents[1])
     for d in [folder] if isinstance(folder, (str, Path)) else folder:
         for f in sorted(Path(d).glob("*.onnx")):
             h.update(f.name.encode())

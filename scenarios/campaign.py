@@ -315,29 +315,14 @@ def precompile_job(jobs: int, evaluation: bool = True) -> int:
                       jobs)
 
 
-def source_key(packages) -> str:
-    """SHA-256 of the project's version and the Python source of ``packages`` (folders under the project's root):
-    the identity of a deterministic stage's result that reads nothing else (the Fisher table: ``("sim",)``)."""
-    import hashlib
-
-    import sim
-
-    root = Path(__file__).resolve().parents[1]
-    h = hashlib.sha256(sim.__version__.encode())
-    for pkg in packages:
-        for f in sorted((root / pkg).rglob("*.py")):
-            h.update(str(f.relative_to(root)).encode())
-            h.update(f.read_bytes())
-    return h.hexdigest()
-
-
-def _stored_key(path) -> str | None:
-    """The ``inputs_sha256`` a stored JSON result carries, or None (absent, unreadable or without one)."""
+def _stored(path) -> dict | None:
+    """A stored JSON result that carries the ``inputs_sha256`` it was computed from, or None (absent, unreadable or
+    without one)."""
     try:
         data = json.loads(Path(path).read_text())
     except (OSError, ValueError):
         return None
-    return data.get("inputs_sha256") if isinstance(data, dict) else None
+    return data if isinstance(data, dict) and "inputs_sha256" in data else None
 
 
 #: A stored evaluation of the shipped models (see :func:`reusable_evaluation`), under the models folder.
@@ -355,11 +340,8 @@ def reusable_evaluation(out_dir, models_dir, folders) -> tuple[Path, dict] | Non
 
     key = None
     for path in (Path(out_dir) / "evaluation.json", Path(models_dir) / SHIPPED_EVALUATION):
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, ValueError):
-            continue
-        if not isinstance(data, dict) or "inputs_sha256" not in data:
+        data = _stored(path)
+        if data is None:
             continue
         key = evaluation_key(folders, EFFECT_SPECS) if key is None else key
         if data["inputs_sha256"] == key:
@@ -400,8 +382,11 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
     reused = reusable_evaluation(out, models_dir, folders) if resume else None
     stage("compiling the analytic model's derivatives (once per machine)")
     precompile_job(jobs, evaluation=reused is None)
-    fisher_key = source_key(("sim",))
-    if resume and _stored_key(out / "fisher.json") == fisher_key:
+    from sim.files import source_digest
+
+    fisher_key = source_digest(("sim",)).hexdigest()        # the Fisher table reads nothing but sim/'s code
+    stored_fisher = _stored(out / "fisher.json") if resume else None
+    if stored_fisher is not None and stored_fisher["inputs_sha256"] == fisher_key:
         stage("Fisher information and Cramer-Rao bounds: reused (same code)")
     else:
         stage("Fisher information and Cramer-Rao bounds")

@@ -311,8 +311,8 @@ def cmd_bounds(args: argparse.Namespace) -> int:
     import json
 
     from .bounds import BOUNDS_FILE, generate, load_bounds
-    from .errors import BoundsError
     from .campaign import shipped_models
+    from .errors import BoundsError
 
     results = args.dir / "results.json"
     if not results.is_file():

@@ -553,16 +553,10 @@ def code_version() -> str:
     """
     global _CODE_VERSION
     if _CODE_VERSION is None:
-        import sim
+        from sim.files import source_digest
 
         root = Path(__file__).resolve().parents[1]
-        h = hashlib.sha256(sim.__version__.encode())
-        for pkg in ("sim", "mpc", "scenarios"):
-            for f in sorted((root / pkg).rglob("*")):
-                if f.suffix == ".py" and f.is_file():
-                    h.update(str(f.relative_to(root)).encode())
-                    h.update(f.read_bytes())
-        _CODE_VERSION = h.hexdigest()[:16]
+        _CODE_VERSION = source_digest(("sim", "mpc", "scenarios"), root).hexdigest()[:16]
     return _CODE_VERSION
 
 

@@ -53,6 +53,24 @@ def write_npz(path, arrays: dict) -> Path:
     return _replace_from_temp(Path(path), lambda f: np.savez_compressed(f, **arrays))
 
 
+def source_digest(entries, root=None):
+    """A ``hashlib.sha256`` over the project's version and the Python source of ``entries`` (folders, searched
+    recursively, or single files, under ``root``: the project's root by default), each file's path and bytes in
+    sorted order: the identity of code, for a cache key."""
+    import hashlib
+
+    from . import __version__
+
+    root = Path(__file__).resolve().parents[1] if root is None else Path(root)
+    h = hashlib.sha256(__version__.encode())
+    for entry in entries:
+        p = root / entry
+        for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
+            h.update(str(f.relative_to(root)).encode())
+            h.update(f.read_bytes())
+    return h
+
+
 def check_writable(path, option: str, folder: bool = False) -> Path:
     """Before any work: that ``path`` (a file, or with ``folder`` a folder) can be written, or a
     :class:`sim.errors.SimInputError` naming ``option`` and why.
