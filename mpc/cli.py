@@ -52,6 +52,8 @@ def format_model_info(info, ready=None) -> str:
         for r in ready.values():
             lines.append(f"    {r.controller:<5} " + (f"flies: derivatives by {r.derivatives} ({r.reason})" if r.flies
                                                       else f"cannot fly: {r.reason}"))
+            if r.warning:
+                lines.append(f"          warning: {r.warning}")
     return "\n".join(lines)
 
 
@@ -65,7 +67,8 @@ def cmd_check_model(args: argparse.Namespace) -> int:
     print(format_model_info(model.info, ready))
     if args.json:
         write_json(args.json, {**model.info.to_dict(),
-                               "controllers": {c: {"flies": r.flies, "derivatives": r.derivatives, "reason": r.reason}
+                               "controllers": {c: {"flies": r.flies, "derivatives": r.derivatives, "reason": r.reason,
+                                                   "warning": r.warning}
                                                for c, r in ready.items()}})
         print(f"wrote {args.json}")
     return 0

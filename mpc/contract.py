@@ -327,6 +327,7 @@ def check_model(path) -> ModelInfo:
         _check_output(x_next, (b, nx), dtype, where, "x_next")
         batches.append((x, u, x_next))
 
+    _check_envelope_finite(session, dtype, extra, where)
     jac = jacobian_path(path)
     if jac.exists():
         x, u = _envelope_batch(ENVELOPE_SAMPLES, dtype)
@@ -752,6 +753,28 @@ def _envelope_batch(batch: int, dtype: np.dtype, seed: int = 0) -> tuple[np.ndar
 
 #: Samples of the flight envelope on which a derivative graph is checked (beside the hover-like test batches).
 ENVELOPE_SAMPLES = 32
+#: Samples of the flight envelope on which the model's output must be finite (one batched call).
+ENVELOPE_PROBE_SAMPLES = 1024
+
+
+def _check_envelope_finite(session, dtype: np.dtype, extra: tuple, where: str) -> None:
+    """The model's ``x_next`` must be finite on :data:`ENVELOPE_PROBE_SAMPLES` states and inputs across the flight
+    envelope (:func:`_envelope_batch`), not only near hover: the controllers linearize it wherever a reference and
+    its tracking error take the vehicle (a fast figure-8 tilts it by 0.6 rad)."""
+    x, u = _envelope_batch(ENVELOPE_PROBE_SAMPLES, dtype, seed=2)
+    if extra:              # the extra states (actuators, delays) at zero: a valid start, whatever they model
+        x = np.hstack([x, np.zeros((len(x), len(extra)), dtype=dtype)])
+    (x_next,) = _run(session, x, u, where, ["x_next"])
+    bad = ~np.all(np.isfinite(np.asarray(x_next, dtype=np.float64)), axis=1)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        first = np.abs(x[bad, 3:5]).max(axis=1).min()
+        raise ModelContractError(
+            f"{where}: output 'x_next' is not finite at {int(bad.sum())} of {len(bad)} states across the flight "
+            f"envelope (roll and pitch within 0.8 rad, rates within 3 rad/s, thrust 0.3 to 1.8 times hover), the "
+            f"first at roll {float(x[i, 3]):.2f} rad, pitch {float(x[i, 4]):.2f} rad, thrust "
+            f"{float(u[i, 0]):.3g} N; the smallest tilt among them is {float(first):.3f} rad. The controllers "
+            f"would fail wherever the vehicle goes there")
 
 
 def _check_jacobian(jac: Path, path: Path, model_session, dtype: np.dtype, batches: list, extra: tuple = ()) -> None:

@@ -52,16 +52,26 @@ from mpc.contract import model_files
 from sim.files import write_json
 
 from .errors import ScenarioError
+from .lock import locks_out_dir
 from .library import scenario_names
 from .runner import RunSpec, spec_dict
 from .sweep import sweep
 
-#: Scenarios the LTV-MPC flies in the main job (every scenario with ``full=True``): those of its CI bounds.
-#: The SQP flies every scenario.
+#: Scenarios the SQP flies with every shipped model in the default plan; on the plan's other scenarios it flies the
+#: oracle alone (with ``full=True``, every model everywhere). These are the cases the report's headline, its
+#: disturbance and estimator sections and the CI bounds compare models on; the rest (the speed ladder's middle
+#: rungs, the random paths, the yaw turn, figure8-slow, the other variants) show the controller on the true
+#: equations, and every model with ``--full`` (the zoo study has every model of its own on the ladder).
+EVERY_MODEL_SCENARIOS = ("hover", "figure8-fast", "figure8-fast+payload", "figure8-fast+wind")
+#: Scenarios the LTV-MPC flies in the main job (every scenario with ``full=True``): those of its CI bounds, with
+#: every model on LTV_EVERY_MODEL_SCENARIOS and the oracle alone on the others.
 LTV_SCENARIOS = ("hover", "figure8-slow", "figure8-fast", "figure8-2.0s", "yaw-turn")
-#: Scenarios flown with real-time timing too, by the SQP, the LTV-MPC and the NMPC with every model.
+LTV_EVERY_MODEL_SCENARIOS = ("hover", "figure8-slow", "figure8-fast", "figure8-2.0s")
+#: Scenarios flown with real-time timing too, by REALTIME_CONTROLLERS: the SQP and the LTV-MPC with every model,
+#: the NMPC (which cannot meet the period: every call past the deadline) with the oracle alone unless ``full``.
 REALTIME_SCENARIOS = ("figure8-fast",)
 REALTIME_CONTROLLERS = ("sqp", "ltv", "nmpc")
+REALTIME_EVERY_MODEL = ("sqp", "ltv")
 #: Ensembles of ``full=True``: these scenarios, flown by these controllers with every model from ENSEMBLE_MEMBERS
 #: members each (:meth:`scenarios.library.Scenario.member`). 6 models x 2 controllers x 10 members on figure8-fast
 #: is about 280 worker-seconds, more than the default main job's budget leaves.
@@ -73,6 +83,8 @@ ENSEMBLE_MEMBERS = 10
 #: figure8-fast+highfi and one run on hover+highfi. The models trained on the plant's own data
 #: (``identification/*_highfi``) fly beside their twins trained on the nominal simulator's.
 HIGHFI_SCENARIOS = {"hover+highfi": 1, "figure8-fast+highfi": 5}
+#: Members per model on a high-fidelity scenario without ``full`` (``pinnmpc versus`` flies ten on each plant).
+HIGHFI_DEFAULT_MEMBERS = 1
 HIGHFI_CONTROLLERS = ("sqp",)
 HIGHFI_MODELS = ("baseline.onnx", "proposed.onnx", "identification/baseline_highfi.onnx",
                  "identification/proposed_highfi.onnx", "identification/hybrid_lag_highfi.onnx")
@@ -85,6 +97,9 @@ IDENTIFICATION_DIR = "identification"
 #: nominal equations flying the other shipped vehicles (RotorPy's presets) on our simulator and on RotorPy.
 PLANT_SCENARIO = "figure8-fast"
 PLANT_CONTROLLER = "sqp"
+#: The shipped models flown on the other plants without ``full`` (all of them with it; ``pinnmpc versus`` has every
+#: model trained on RotorPy's data there).
+PLANT_DEFAULT_MODELS = ("baseline.onnx", "proposed.onnx")
 PLANT_VEHICLES = ("hummingbird", "crazyflie")
 #: With the state estimator as well: the variants of these kinds (disturbances and sensor noise, which the
 #: estimator is for) flown by ESTIMATOR_CONTROLLER beside their runs without it, and
@@ -137,11 +152,13 @@ def rotorpy_available() -> bool:
     return importlib.util.find_spec("rotorpy") is not None
 
 
-def plant_plan(models_dir="models") -> list[RunSpec]:
+def plant_plan(models_dir="models", full: bool = False) -> list[RunSpec]:
     """The main job's runs on other plants and vehicles (see :data:`PLANT_SCENARIO`); none without RotorPy."""
     if not rotorpy_available():
         return []
     models = shipped_models(models_dir)
+    if not full:
+        models = [m for m in models if Path(m).name in PLANT_DEFAULT_MODELS]
     sc, c = PLANT_SCENARIO, PLANT_CONTROLLER
     specs = [RunSpec(sc, c, m, plant="rotorpy-ideal") for m in ["oracle", *models]]
     specs += [RunSpec(sc, c, m, plant="rotorpy") for m in ["nominal", *models]]
@@ -211,18 +228,23 @@ def main_plan(models_dir="models", full: bool = False, scenarios: list[str] | No
     names = main_scenarios(full) if scenarios is None else list(scenarios)
     specs = []
     for sc in names:
+        # Scenarios asked for by name fly with every model; so does everything with full.
+        every = full or scenarios is not None or sc in EVERY_MODEL_SCENARIOS
+        ltv = full or sc in LTV_EVERY_MODEL_SCENARIOS or (scenarios is not None and sc in LTV_SCENARIOS)
         for m in models:
             # The NMPC in ideal timing only with full: an IPOPT run costs about 90 s of a core (the oracle on
-            # figure8-fast), a sixth of the default sweep. It flies REALTIME_SCENARIOS with every model.
+            # figure8-fast), a sixth of the default sweep. It flies REALTIME_SCENARIOS in real time.
             if full:
                 specs.append(RunSpec(sc, "nmpc", m))
-            specs.append(RunSpec(sc, "sqp", m))
-            if full or sc in LTV_SCENARIOS:
+            if every or m == "oracle":
+                specs.append(RunSpec(sc, "sqp", m))
+            if ltv or (m == "oracle" and sc in LTV_SCENARIOS):
                 specs.append(RunSpec(sc, "ltv", m))
         specs.append(RunSpec(sc, "lqr", "oracle"))
     for sc in names:
         if sc in REALTIME_SCENARIOS:
-            specs += [RunSpec(sc, c, m, timing="realtime") for c in REALTIME_CONTROLLERS for m in models]
+            specs += [RunSpec(sc, c, m, timing="realtime") for c in REALTIME_CONTROLLERS for m in models
+                      if full or scenarios is not None or c in REALTIME_EVERY_MODEL or m == "oracle"]
     if full:
         specs += [RunSpec(sc, c, m, member=k) for sc in names if sc in ENSEMBLE_SCENARIOS
                   for c in ENSEMBLE_CONTROLLERS for m in models for k in range(ENSEMBLE_MEMBERS)]
@@ -230,17 +252,19 @@ def main_plan(models_dir="models", full: bool = False, scenarios: list[str] | No
     specs += [s for s in estimator_plan(models, names, scenarios is not None) if s.run_id not in have]
     if scenarios is None:
         have = {s.run_id for s in specs}
-        specs += [s for s in highfi_plan(models_dir) + plant_plan(models_dir) if s.run_id not in have]
+        specs += [s for s in highfi_plan(models_dir, full) + plant_plan(models_dir, full) if s.run_id not in have]
     return specs
 
 
-def highfi_plan(models_dir="models") -> list[RunSpec]:
-    """The high-fidelity plant's runs (see :data:`HIGHFI_SCENARIOS`): ensembles where a scenario has members."""
+def highfi_plan(models_dir="models", full: bool = False) -> list[RunSpec]:
+    """The high-fidelity plant's runs (see :data:`HIGHFI_SCENARIOS`): ensembles where a scenario has members
+    (:data:`HIGHFI_DEFAULT_MEMBERS` without ``full``)."""
     d = Path(models_dir)
     # The oracle is the plant's true equations (lag, drag, gyro); the nominal rigid-body equations fly beside it.
     models = ["oracle", "nominal"] + [str(d / m) for m in HIGHFI_MODELS if (d / m).is_file()]
     specs = []
     for sc, members in HIGHFI_SCENARIOS.items():
+        members = members if full else min(members, HIGHFI_DEFAULT_MEMBERS)
         for c in HIGHFI_CONTROLLERS:
             for m in models:
                 if members == 1:
@@ -349,6 +373,7 @@ def reusable_evaluation(out_dir, models_dir, folders) -> tuple[Path, dict] | Non
     return None
 
 
+@locks_out_dir
 def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bool = False,
                  progress: bool = True, scenarios: list[str] | None = None, engine: str = "process",
                  address: str | None = None, resume: bool = True, plant: str = "sim",

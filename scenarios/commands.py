@@ -176,6 +176,7 @@ def _horizon_arg(text: str) -> int:
 
 def cmd_fly(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc fly``."""
+    from .metrics import SETTLE_WINDOW_S
     from .runner import RunSpec, fly
 
     if args.plot is not None and args.plot.suffix.lower() != ".png":
@@ -190,10 +191,17 @@ def cmd_fly(args: argparse.Namespace) -> int:
     spec = RunSpec(args.scenario, args.controller, args.model, args.seed, args.horizon, args.timing,
                    plant=args.plant, vehicle=args.vehicle, estimator=args.estimator)
     model = load_run_model(spec)
-    require(model, spec.controller)         # the same verdict as pinnmpc check-model prints
+    ready = require(model, spec.controller)     # the same verdict as pinnmpc check-model prints
+    if ready.warning:
+        print(f"warning: {spec.controller} with {spec.model_name}: {ready.warning}", file=sys.stderr, flush=True)
     result, trace = fly(spec, progress=sys.stderr.isatty(), model=model)
     for k in FLY_FIELDS:
         print(f"{k:<22}{_fmt(result[k])}")
+        if k == "max_position_error_m" and result["settled_error_m"] is not None:
+            print(f"{'settled_error_m':<22}{_fmt(result['settled_error_m'])}   (largest error over the last "
+                  f"{SETTLE_WINDOW_S:g} s)")
+    if result.get("failure_causes"):
+        print(f"{'failure_causes':<22}" + ", ".join(f"{c} {n}" for c, n in result["failure_causes"].items()))
     if result.get("estimator_ms") is not None:
         print(f"{'estimator_ms':<22}{_fmt(result['estimator_ms'])}")
         print(f"{'nees_mean':<22}{_fmt(result['nees_mean'])}")

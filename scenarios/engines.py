@@ -27,8 +27,10 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 
 from .errors import ScenarioError
+from .pool import RETRIES, run_pool
 
 ENGINES = ("process", "ray")
 
@@ -49,20 +51,32 @@ def worker_init() -> None:
     os.environ.update(WORKER_ENV)
 
 
-def run_batches(batches, done, engine: str = "process", jobs: int = 1, address: str | None = None) -> None:
+def run_batches(batches, done, engine: str = "process", jobs: int = 1, address: str | None = None,
+                failed=None) -> None:
     """Fly ``batches`` (``[(workers, [RunSpec, ...]), ...]`` from :func:`scenarios.sweep.sweep_batches`).
 
     ``done(spec, result, trace)`` is called in this process as each run returns.
+    ``failed(spec, reason)`` is called for a run whose worker died twice while
+    flying it (it was tried on a fresh worker after the first death; a line on
+    stderr says so each time); the sweep goes on with the others.
     An exception raised by ``done`` (or a KeyboardInterrupt) stops the sweep:
     runs not yet returned are cancelled, and whatever was saved stays saved.
     """
+    if failed is None:
+        def failed(spec, reason):
+            raise ScenarioError(f"run {spec.run_id}: {reason}")
     if engine == "ray":
-        _ray(batches, done, jobs, address)
+        _ray(batches, done, jobs, address, failed)
     else:
-        _process(batches, done, jobs)
+        _process(batches, done, jobs, failed)
 
 
-def _process(batches, done, jobs: int) -> None:
+def _said_death(spec, reason: str, retried: bool) -> None:
+    again = "flying it again on a fresh worker" if retried else "recorded as not flown"
+    print(f"run {spec.run_id}: its worker process died ({reason}); {again}", file=sys.stderr, flush=True)
+
+
+def _process(batches, done, jobs: int, failed) -> None:
     from .runner import fly_for_sweep
 
     if jobs == 1:
@@ -70,18 +84,10 @@ def _process(batches, done, jobs: int) -> None:
             for spec in batch:
                 done(spec, *fly_for_sweep(spec))
         return
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
     worker_init()
     for workers, batch in batches:
-        pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=worker_init)
-        try:
-            futs = {pool.submit(fly_for_sweep, s): s for s in batch}
-            for f in as_completed(futs):
-                done(futs[f], *f.result())
-        finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+        run_pool(fly_for_sweep, batch, workers, lambda spec, value: done(spec, *value), failed,
+                 initializer=worker_init, on_death=_said_death)
 
 
 def _fly_in(spec, cwd: str):
@@ -93,7 +99,7 @@ def _fly_in(spec, cwd: str):
     return fly_for_sweep(spec)
 
 
-def _ray(batches, done, jobs: int, address: str | None) -> None:
+def _ray(batches, done, jobs: int, address: str | None, failed) -> None:
     try:
         import ray
     except ImportError as e:
@@ -107,7 +113,18 @@ def _ray(batches, done, jobs: int, address: str | None) -> None:
             where = f"the Ray cluster at {address!r}" if address else "a local Ray instance"
             raise ScenarioError(f"could not start or reach {where}: {type(e).__name__}: {e}") from e
         started = True
-    task = ray.remote(num_cpus=1, max_retries=0)(_fly_in)
+    task = ray.remote(num_cpus=1, max_retries=RETRIES)(_fly_in)   # retried on a fresh worker if its worker dies
+    died = tuple(getattr(ray.exceptions, n) for n in ("WorkerCrashedError", "OutOfMemoryError", "NodeDiedError")
+                 if hasattr(ray.exceptions, n))
+
+    def get(spec, ref):
+        try:
+            result, trace = ray.get(ref)
+        except died as e:
+            failed(spec, f"its Ray worker died {RETRIES + 1} times on it (last: {type(e).__name__})")
+            return
+        done(spec, result, trace)
+
     cwd = os.getcwd()
     pending: dict = {}
     try:
@@ -116,16 +133,14 @@ def _ray(batches, done, jobs: int, address: str | None) -> None:
                 for spec in batch:      # one at a time: a real-time run is charged for its compute
                     ref = task.remote(spec, cwd)
                     pending[ref] = spec
-                    result, trace = ray.get(ref)
+                    get(spec, ref)
                     del pending[ref]
-                    done(spec, result, trace)
                 continue
             pending.update({task.remote(s, cwd): s for s in batch})
             while pending:
                 ready, _ = ray.wait(list(pending), num_returns=1)
                 for ref in ready:
-                    spec = pending.pop(ref)
-                    done(spec, *ray.get(ref))
+                    get(pending.pop(ref), ref)
     finally:
         for ref in pending:
             ray.cancel(ref, force=True)

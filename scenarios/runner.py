@@ -465,7 +465,12 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
     from mpc.ltv import DEADLINE_STATUS
 
     late = int(np.sum(failed & (tr.status[:k_end] == DEADLINE_STATUS))) if realtime and error is None else None
+    causes = {}                            # why the solver failed, most frequent first
+    for status in tr.status[:k_end][failed]:
+        causes[str(status)] = causes.get(str(status), 0) + 1
+    causes = dict(sorted(causes.items(), key=lambda kv: (-kv[1], kv[0])))
     result = {**base, **metrics, "shifted_plan": int(np.sum(failed & ~lqr_fb)), "deadline_fallbacks": late,
+              "failure_causes": causes,
               "preflight": preflight, "preflight_ms": None if pre is None else 1e3 * pre.solve_time_s,
               "error": error, "wall_time_s": wall, "scenario_spec": sc.to_dict(), "plant_spec": plant.describe(),
               "vehicle_spec": vehicle.to_dict()}
@@ -637,13 +642,16 @@ def fly_for_sweep(spec: RunSpec) -> tuple[dict, dict]:
     task); the sweep stamps the result with its :func:`cache_key`.
     """
     try:
-        result, trace = fly(spec)
+        return fly(spec)
     except Exception as e:  # noqa: BLE001 - a run that cannot fly is recorded and the sweep goes on
-        result = {"run_id": spec.run_id, "scenario": spec.scenario_name, "controller": spec.controller,
-                  "model": spec.model_name, "plant": spec.plant, "vehicle": spec.vehicle_data.name, **NOT_FLOWN,
-                  "error": f"{type(e).__name__}: {e}", "inputs_sha256": input_hashes(spec)}
-        trace = {}
-    return result, trace
+        return not_flown(spec, f"{type(e).__name__}: {e}"), {}
+
+
+def not_flown(spec: RunSpec, error: str) -> dict:
+    """The result of a run that did not fly: its metrics null, ``error`` the reason (one line)."""
+    return {"run_id": spec.run_id, "scenario": spec.scenario_name, "controller": spec.controller,
+            "model": spec.model_name, "plant": spec.plant, "vehicle": spec.vehicle_data.name, **NOT_FLOWN,
+            "error": error, "inputs_sha256": input_hashes(spec)}
 
 
 def spec_dict(spec: RunSpec) -> dict:

@@ -13,7 +13,8 @@ from pathlib import Path
 from .engines import ENGINES, run_batches
 from .errors import ScenarioError
 from .library import get_scenario
-from .runner import RunSpec, cache_key, cached_result, save_run
+from .lock import folder_lock
+from .runner import RunSpec, cache_key, cached_result, not_flown, save_run
 
 
 def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True, engine: str = "process",
@@ -57,7 +58,12 @@ def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True, e
     if dup:
         raise ScenarioError(f"duplicate runs in the sweep: {sorted(dup)}")
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    with folder_lock(out_dir):          # one sweep per folder (re-entrant for the command that called this one)
+        return _sweep(specs, out_dir, jobs, progress, engine, address, resume, on_result)
+
+
+def _sweep(specs, out_dir: Path, jobs, progress, engine, address, resume, on_result) -> list[dict]:
+    ids = [s.run_id for s in specs]
     keys = {s.run_id: cache_key(s) for s in specs}   # once per run: it hashes the model file and reads the code
     results: dict[str, dict] = {}
     if resume:
@@ -82,8 +88,11 @@ def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True, e
         if on_result is not None:
             on_result(results[spec.run_id])
 
+    def failed(spec, reason):      # its worker died on every try: recorded as a run that did not fly
+        done(spec, not_flown(spec, f"not flown: {reason}"), {})
+
     try:
-        run_batches(sweep_batches(todo, jobs), done, engine=engine, jobs=jobs, address=address)
+        run_batches(sweep_batches(todo, jobs), done, engine=engine, jobs=jobs, address=address, failed=failed)
     finally:
         if bar:
             bar.close()

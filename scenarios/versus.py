@@ -32,6 +32,7 @@ import numpy as np
 from sim.files import write_json
 
 from .errors import ScenarioError
+from .lock import locks_out_dir
 from .library import ladder_names, ladder_speeds
 from .metrics import LADDER_RMSE_BOUND_M, max_trackable_speed
 from .runner import RunSpec, code_version, model_name
@@ -200,6 +201,7 @@ def summarize_plant(key: str, models: list[str], results: dict, speeds: dict) ->
             "verdict": verdict}
 
 
+@locks_out_dir
 def run_versus(models_dir="models", out_dir="results/versus", members: int = 10, ladder_members: int = 10,
                plants=None, jobs: int = 1, progress: bool = True, publish: bool = True, **sweep_kwargs) -> dict:
     """Fly the study (a resumable sweep) and write ``versus.json`` (see the module docstring).

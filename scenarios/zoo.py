@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
 import time
 from pathlib import Path
 
@@ -30,6 +31,7 @@ import numpy as np
 from sim.files import write_json
 
 from .errors import ScenarioError
+from .lock import locks_out_dir
 from .library import ladder_names, ladder_speeds
 from .metrics import LADDER_RMSE_BOUND_M, max_trackable_speed
 from .predictors import hover_chordal_distance, jacobian_error, score_candidates
@@ -54,13 +56,22 @@ CANDIDATES = {
 }
 
 
-def zoo_models(models_dir) -> dict[str, dict]:
-    """``{name: manifest entry}`` of the zoo in ``models_dir`` (its manifest.json), in manifest order."""
+def zoo_models(models_dir, progress: bool = False) -> dict[str, dict]:
+    """``{name: manifest entry}`` of the zoo in ``models_dir`` (its manifest.json), in manifest order.
+
+    A folder without a ``manifest.json`` is a study of its own model files (:func:`manifest_of_files`): every
+    ``*.onnx`` in it (not ``*.jac.onnx``), by name, with the open-loop errors the study's predictors need measured
+    on the zoo's test data.
+    """
     d = Path(models_dir)
+    if not d.is_dir():
+        raise ScenarioError(f"models folder {str(d)!r} does not exist")
+    if not (d / "manifest.json").exists():
+        return manifest_of_files(d, progress)
     try:
         manifest = json.loads((d / "manifest.json").read_text())
     except (OSError, ValueError) as e:
-        raise ScenarioError(f"{d}: needs the manifest.json written by pinnmpc zoo ({e})") from e
+        raise ScenarioError(f"{d / 'manifest.json'}: not a readable manifest ({e})") from e
     out = {}
     for name, entry in manifest.items():
         path = d / entry.get("files", {}).get("onnx", f"{name}.onnx")
@@ -69,6 +80,39 @@ def zoo_models(models_dir) -> dict[str, dict]:
         out[name] = {**entry, "path": str(path)}
     if not out:
         raise ScenarioError(f"{d}: the manifest lists no model")
+    return out
+
+
+def manifest_of_files(models_dir, progress: bool = False) -> dict[str, dict]:
+    """Manifest entries for the model files of a folder that has no manifest: ``{name: entry}``, sorted by name.
+
+    Each model passes the contract check (a defect is an error naming the file) and is evaluated open loop on the
+    zoo's test data (:data:`pinn.zoo.TEST_DATA`, generated in a few seconds): its one-step and 100-step position
+    errors are the entry's ``metrics``, as ``pinnmpc zoo`` records them when it trains a model (the same numbers:
+    onnxruntime on the exported file agrees with the training run's torch to 1e-15 m).
+    """
+    from mpc.contract import ModelContractError, check_model, model_files
+    from pinn.evaluate import evaluate_model, regenerate
+    from pinn.zoo import TEST_DATA
+
+    d = Path(models_dir)
+    files = model_files(d)
+    if not files:
+        raise ScenarioError(f"{d}: no manifest.json and no .onnx model to study")
+    if progress:
+        print(f"{d} has no manifest.json: evaluating its {len(files)} models open loop on the zoo's test data "
+              f"(the study's predictors need their one-step and 100-step errors)", file=sys.stderr, flush=True)
+    ds = regenerate(TEST_DATA)
+    out = {}
+    for f in files:
+        try:
+            info = check_model(f)
+        except ModelContractError as e:
+            raise ScenarioError(str(e)) from e
+        r = evaluate_model(f, ds=ds, info=info)
+        out[f.stem] = {"files": {"onnx": f.name}, "architecture": info.architecture, "why": "a model of your own",
+                       "test_data": TEST_DATA, "path": str(f),
+                       "metrics": {"one_step_mae": r["one_step"], "rollout_100_mae": r["rollout_100"]}}
     return out
 
 
@@ -161,6 +205,7 @@ def _candidates(name: str, entry: dict, oracle_trace: dict) -> dict:
             "hover_chordal_distance": hover_chordal_distance(model)}
 
 
+@locks_out_dir
 def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10, jobs: int = 1,
               controllers=STUDY_CONTROLLERS, progress: bool = True, publish: bool = True, plant: str = "sim",
               vehicle: str | None = None, estimator: str = "none", select=None, **sweep_kwargs) -> dict:
@@ -191,7 +236,7 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
 
     if estimator not in ESTIMATORS:
         raise ScenarioError(f"estimator must be one of {', '.join(ESTIMATORS)}; found {estimator!r}")
-    models = select_models(zoo_models(models_dir), select)
+    models = select_models(zoo_models(models_dir, progress), select)
     oracle, ens, ladder = study_specs(models, members, controllers, plant, vehicle, estimator)
     t0 = time.perf_counter()
     results = sweep([oracle, *ens, *ladder], out_dir, jobs=jobs, progress=progress, **sweep_kwargs)

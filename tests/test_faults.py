@@ -242,3 +242,346 @@ def test_a_torn_trace_is_flown_again_with_a_line_saying_so(tmp_path, capsys):
     again.clear()
     sweep([spec], out, jobs=1, progress=False, on_result=lambda res: again.append(res["run_id"]))
     assert again == [spec.run_id] and "damaged" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------- workers that die (defect 3), orphans (defect 4)
+
+#: Seconds a dead parent's workers may outlive it (they watch for it every half second; Linux kills them at once).
+ORPHAN_WAIT_S = 5.0
+#: Seconds any one process-level test may take before it is called hung.
+PROCESS_TIMEOUT_S = 90.0
+
+MARKERS_ENV = "PINNMPC_TEST_MARKERS"
+
+
+def fly_or_die(spec):
+    """A sweep's unit of work that kills its own worker: always on ``hover+noise``, once on ``figure8-slow`` (a
+    marker file in the folder named by the environment says it already did)."""
+    import os
+    import signal
+
+    marker = Path(os.environ[MARKERS_ENV]) / f"{spec.run_id}.died"
+    if spec.scenario == "hover+noise" or (spec.scenario == "figure8-slow" and not marker.exists()):
+        marker.write_text("died once")
+        os.kill(os.getpid(), signal.SIGKILL)
+    return runner.fly_for_sweep(spec)             # in the worker: the real one
+
+
+def test_a_dead_worker_is_replaced_and_a_run_that_kills_it_twice_is_recorded_not_flown(tmp_path, monkeypatch,
+                                                                                        capsys):
+    from scenarios.sweep import sweep
+
+    specs = [RunSpec(sc, "lqr", "oracle") for sc in ("hover", "figure8-slow", "hover+noise", "figure8-fast")]
+    monkeypatch.setattr(runner, "fly_for_sweep", fly_or_die)
+    monkeypatch.setenv(MARKERS_ENV, str(tmp_path))
+    out = tmp_path / "out"
+    results = {r["run_id"]: r for r in sweep(specs, out, jobs=2, progress=False)}
+    err = capsys.readouterr().err
+    monkeypatch.undo()
+    dead = results["hover+noise__lqr__oracle"]
+    assert dead["error"] == "not flown: its worker process died 2 times on it (last: killed by SIGKILL)"
+    assert dead["rmse_position_m"] is None and dead["trace"] is None
+    assert err.count("run figure8-slow__lqr__oracle: its worker process died (killed by SIGKILL); flying it again") == 1
+    assert "run hover+noise__lqr__oracle: its worker process died (killed by SIGKILL); recorded as not flown" in err
+    for s in specs:
+        if s.scenario != "hover+noise":
+            assert results[s.run_id]["error"] is None
+            assert results[s.run_id]["rmse_position_m"] == runner.fly(s)[0]["rmse_position_m"]
+    again = []                                  # the run that did not fly is flown by the next resume, alone
+    sweep(specs, out, jobs=1, progress=False, on_result=lambda r: again.append(r["run_id"]))
+    assert again == ["hover+noise__lqr__oracle"]
+
+
+def children(pid: int) -> list[int]:
+    """Live (not zombie) processes whose parent is ``pid`` (Linux ``/proc``)."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                fields = (d / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid and fields[0] != "Z":
+                out.append(int(d.name))
+    return out
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+SLOW_SWEEP = """
+import sys
+from scenarios.runner import RunSpec
+from scenarios.sweep import sweep
+if __name__ == "__main__":
+    sweep([RunSpec("figure8-slow", "sqp", "oracle", seed=s) for s in range(6)], sys.argv[1], jobs=2, progress=False)
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table from /proc")
+def test_killing_a_sweep_with_sigkill_leaves_no_worker_alive(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "sweep.py"
+    script.write_text(SLOW_SWEEP)
+    parent = subprocess.Popen([sys.executable, str(script), str(tmp_path / "out")], cwd=ROOT)
+    try:
+        t0 = time.monotonic()
+        kids = []
+        while time.monotonic() - t0 < PROCESS_TIMEOUT_S:
+            kids = children(parent.pid)
+            workers = [k for k in kids if b"spawn_main" in Path(f"/proc/{k}/cmdline").read_bytes()]
+            if len(workers) == 2:
+                break
+            time.sleep(0.1)
+        assert len(workers) == 2, f"the sweep never started its two workers: {kids}"
+        time.sleep(1.0)                             # they are flying now
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait(10)
+        t_kill = time.monotonic()
+        while any(alive(k) for k in kids) and time.monotonic() - t_kill < ORPHAN_WAIT_S:
+            time.sleep(0.1)
+        left = [k for k in kids if alive(k)]
+        assert not left, f"{len(left)} of the killed sweep's {len(kids)} processes alive after {ORPHAN_WAIT_S} s"
+    finally:
+        for k in children(parent.pid) + [parent.pid]:
+            try:
+                os.kill(k, signal.SIGKILL)
+            except OSError:
+                pass
+
+
+def test_a_sweep_survives_three_random_kills_of_its_workers_with_identical_results(tmp_path, monkeypatch, capsys):
+    """The stress run: a worker is SIGKILLed three times, at random moments (seeded), while the sweep flies; it
+    ends with the results of an undisturbed sweep, timing aside, and no process of it left."""
+    import os
+    import random
+    import signal
+    import threading
+    import time
+
+    import scenarios.pool as pool
+    from scenarios.metrics import TIMING_FIELDS
+    from scenarios.sweep import sweep
+
+    specs = [RunSpec(sc, c, "oracle", seed=s) for sc in ("hover", "figure8-slow", "figure8-fast")
+             for c in ("lqr", "ltv") for s in (0, 1)]
+    calm = sweep(specs, tmp_path / "calm", jobs=2, progress=False)
+    monkeypatch.setattr(pool, "RETRIES", 3)         # a run may be hit more than once by chance: kills are random
+    rng = random.Random(29)
+    kills, stop = [], threading.Event()
+    me = os.getpid()
+
+    def killer():
+        while len(kills) < 3 and not stop.wait(rng.uniform(0.5, 2.0)):
+            workers = [k for k in children(me) if b"spawn_main" in Path(f"/proc/{k}/cmdline").read_bytes()]
+            if workers:
+                victim = rng.choice(sorted(workers))
+                os.kill(victim, signal.SIGKILL)
+                kills.append(victim)
+
+    thread = threading.Thread(target=killer, daemon=True)
+    thread.start()
+    t0 = time.monotonic()
+    stormy = sweep(specs, tmp_path / "stormy", jobs=2, progress=False)
+    stop.set()
+    thread.join(5)
+    assert len(kills) == 3, f"only {len(kills)} kills landed in {time.monotonic() - t0:.1f} s"
+    assert capsys.readouterr().err.count("its worker process died (killed by SIGKILL)") == 3
+    drop = set(TIMING_FIELDS) | {"trace", "cache_key"}
+    for a, b in zip(calm, stormy):
+        assert {k: v for k, v in a.items() if k not in drop} == {k: v for k, v in b.items() if k not in drop}
+    time.sleep(1.0)
+    assert not [k for k in children(me) if b"spawn_main" in Path(f"/proc/{k}/cmdline").read_bytes()]
+
+
+# ----------------------------------------------------------------- one sweep per folder (defect 7)
+
+HOLD_LOCK = """
+import sys, time
+from scenarios.lock import folder_lock
+with folder_lock(sys.argv[1]):
+    print("held", flush=True)
+    time.sleep(60)
+"""
+
+
+def test_a_second_sweep_on_a_folder_in_use_stops_with_a_line_naming_the_holder(tmp_path, capsys, no_flight):
+    import subprocess
+    import sys
+
+    from scenarios.lock import FolderInUseError
+    from scenarios.sweep import sweep
+
+    out = tmp_path / "out"
+    holder = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(out)], stdout=subprocess.PIPE, text=True,
+                              cwd=ROOT)
+    try:
+        assert holder.stdout.readline() == "held\n"
+        for command in (["run"], ["study"], ["versus"]):
+            rc = main(command + ["--out", str(out)])
+            err = capsys.readouterr().err
+            assert rc == 2 and len(err.strip().splitlines()) == 1, err
+            assert f"is in use by process {holder.pid} on " in err and "`-c " in err
+        with pytest.raises(FolderInUseError, match=f"process {holder.pid} "):
+            sweep([RunSpec("hover", "lqr", "oracle")], out, progress=False)
+        holder.kill()                               # SIGKILL: the lock goes with its holder, the file stays behind
+        holder.wait(10)
+    finally:
+        holder.kill()
+        holder.wait(10)
+    from scenarios.lock import LOCK_NAME, folder_lock
+
+    assert (out / LOCK_NAME).is_file()
+    with folder_lock(out):                          # free again
+        pass
+    assert not (out / LOCK_NAME).exists()
+
+
+# ----------------------------------------------------------------- check-model over the envelope, fly's causes (13)
+
+#: Roll beyond which the broken model returns NaN, rad (a fast figure-8 reaches 0.58 rad).
+NAN_BEYOND_ROLL = 0.3
+
+
+def nan_beyond_roll(tmp_path, limit=NAN_BEYOND_ROLL, source="baseline"):
+    """A shipped model (no derivative graph) whose ``x_next`` is NaN wherever ``|roll| > limit``."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    m = onnx.load(str(ROOT / "models" / f"{source}.onnx"))
+    g = m.graph
+    (out,) = g.output
+    inner = out.name + "_inner"
+    for node in g.node:
+        node.output[:] = [inner if o == out.name else o for o in node.output]
+    consts = [helper.make_tensor("nb_lo", TensorProto.INT64, [1], [3]),
+              helper.make_tensor("nb_hi", TensorProto.INT64, [1], [4]),
+              helper.make_tensor("nb_ax", TensorProto.INT64, [1], [1]),
+              helper.make_tensor("nb_lim", TensorProto.DOUBLE, [], [limit]),
+              helper.make_tensor("nb_nan", TensorProto.DOUBLE, [], [float("nan")]),
+              helper.make_tensor("nb_zero", TensorProto.DOUBLE, [], [0.0])]
+    g.initializer.extend(consts)
+    g.node.extend([helper.make_node("Slice", ["x", "nb_lo", "nb_hi", "nb_ax"], ["nb_roll"]),
+                   helper.make_node("Abs", ["nb_roll"], ["nb_abs"]),
+                   helper.make_node("Greater", ["nb_abs", "nb_lim"], ["nb_far"]),
+                   helper.make_node("Where", ["nb_far", "nb_nan", "nb_zero"], ["nb_add"]),
+                   helper.make_node("Add", [inner, "nb_add"], [out.name])])
+    path = tmp_path / f"{source}_nan.onnx"
+    onnx.save(m, str(path))
+    return path
+
+
+def test_check_model_finds_a_model_that_is_not_finite_away_from_hover(tmp_path, capsys):
+    from mpc.contract import ModelContractError, check_model
+
+    broken = nan_beyond_roll(tmp_path)
+    with pytest.raises(ModelContractError, match="not finite at .* states across the flight envelope"):
+        check_model(broken)
+    assert main(["check-model", str(broken)]) == 2
+    err = capsys.readouterr().err
+    assert "flight envelope" in err and "Traceback" not in err
+    # The smallest tilt named is beyond the model's limit and close to it (1024 samples over +-0.8 rad).
+    tilt = float(err.split("smallest tilt among them is ")[1].split(" rad")[0])
+    assert NAN_BEYOND_ROLL <= tilt < NAN_BEYOND_ROLL + 0.05
+    check_model(nan_beyond_roll(tmp_path, limit=10.0))   # the same graph, NaN beyond any flight: valid
+
+
+def test_check_model_and_fly_warn_of_a_float32_model_under_the_nmpc(tmp_path, capsys):
+    import onnx
+    from onnx import TensorProto, helper
+
+    from mpc.readiness import FLOAT32_NMPC_WARNING
+
+    # A float32 model: the float64 baseline between two casts.
+    m = onnx.load(str(ROOT / "models" / "baseline.onnx"))
+    g = m.graph
+    (out,) = g.output
+    for node in g.node:
+        node.input[:] = [f"{i}_64" if i in ("x", "u") else i for i in node.input]
+        node.output[:] = [f"{out.name}_64" if o == out.name else o for o in node.output]
+    g.node.insert(0, helper.make_node("Cast", ["x"], ["x_64"], to=TensorProto.DOUBLE))
+    g.node.insert(1, helper.make_node("Cast", ["u"], ["u_64"], to=TensorProto.DOUBLE))
+    g.node.append(helper.make_node("Cast", [f"{out.name}_64"], [out.name], to=TensorProto.FLOAT))
+    for v in (*g.input, *g.output):
+        v.type.tensor_type.elem_type = TensorProto.FLOAT
+    path = tmp_path / "baseline32.onnx"
+    onnx.save(m, str(path))
+    assert main(["check-model", str(path)]) == 0
+    out_text = capsys.readouterr().out
+    nmpc = out_text.split("    nmpc ")[1]
+    assert "flies" in nmpc and f"warning: {FLOAT32_NMPC_WARNING}" in nmpc
+    assert out_text.count("warning:") == 1           # the other controllers fly float32 models well
+    assert main(["check-model", str(ROOT / "models" / "baseline.onnx")]) == 0
+    assert "warning" not in capsys.readouterr().out
+
+
+class NaNEveryFifth:
+    """Made a prediction model by :func:`nan_every_fifth`: its Jacobians are NaN at every fifth linearization once
+    the flight has started (the feed-forward fit before it sees the model as it is)."""
+
+
+def nan_every_fifth(base):
+    from mpc.models import PredictionModel
+
+    class Broken(PredictionModel, NaNEveryFifth):
+        def __init__(self):
+            self.base, self.armed, self.calls = base, False, 0
+            self.name, self.theta, self.extra_names, self.extra_scale = (base.name, base.theta, base.extra_names,
+                                                                         base.extra_scale)
+
+        def __getattr__(self, name):
+            return getattr(self.base, name)
+
+        def step(self, x, u):
+            return self.base.step(x, u)
+
+        def linearize(self, x, u):
+            xn, A, B = self.base.linearize(x, u)
+            if self.armed:
+                self.calls += 1
+                if self.calls % 5 == 0:
+                    A = np.array(A, copy=True)
+                    A[..., 0, 0] = np.nan
+            return xn, A, B
+
+        def reference_states(self, trajectory, times):
+            return self.base.reference_states(trajectory, times)
+
+    return Broken()
+
+
+def test_fly_prints_the_settled_error_and_why_the_solver_failed(capsys, monkeypatch):
+    assert main(["fly", "--model", "oracle", "--controller", "lqr", "--scenario", "hover"]) == 0
+    out = capsys.readouterr().out
+    r, _ = runner.fly(RunSpec("hover", "lqr", "oracle"))
+    assert f"settled_error_m       {r['settled_error_m']:.4g}" in out and "failure_causes" not in out
+    # A model whose Jacobians turn NaN at every fifth period of the flight: fly names the cause of each failure.
+    import scenarios.loop as loop_module
+
+    real_fly, real_loop, flown = runner.fly, loop_module.fly_loop, []
+
+    def fly(spec, progress=False, model=None):
+        flown.append(nan_every_fifth(model))
+        return real_fly(spec, progress=progress, model=flown[-1])
+
+    def loop(*a, **k):
+        flown[-1].armed = True
+        return real_loop(*a, **k)
+
+    monkeypatch.setattr(runner, "fly", fly)
+    monkeypatch.setattr(loop_module, "fly_loop", loop)
+    assert main(["fly", "--model", "oracle", "--controller", "ltv", "--scenario", "hover"]) == 0
+    out = capsys.readouterr().out
+    failures = int(out.split("solver_failures")[1].split()[0])
+    assert failures == flown[0].calls // 5 > 0
+    assert f"failure_causes        non-finite model output {failures}\n" in out

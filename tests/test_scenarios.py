@@ -378,14 +378,26 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
                                      if "+" not in n
                                      or n in {f"figure8-fast+{v}" for v in VARIANTS} - {"figure8-fast+highfi"}}
     assert {s.scenario for s in main_plan(MODELS, full=True) if s.controller == "sqp"} == set(scenario_names())
-    ltv = {(s.scenario, s.model_name) for s in ideal if s.controller == "ltv"}
-    assert ltv and ltv <= sqp                       # the SQP flies every case the LTV-MPC flies
-    assert {"hover", "figure8-slow", "figure8-fast", "figure8-2.0s", "yaw-turn"} <= {sc for sc, _ in ltv}
     models = {m for _, m in sqp}
-    realtime = {(s.scenario, s.controller, s.model_name) for s in specs if s.timing == "realtime"}
-    assert realtime == {("figure8-fast", c, m) for c in ("sqp", "ltv", "nmpc") for m in models}
-    assert {s.scenario for s in main_plan(MODELS, full=True) if s.controller == "nmpc"} == set(scenario_names())
     assert len(models) == 1 + len(list(MODELS.glob("*.jac.onnx")))
+    from scenarios.campaign import EVERY_MODEL_SCENARIOS, LTV_EVERY_MODEL_SCENARIOS, LTV_SCENARIOS
+
+    # Every model on the cases the report compares models on, the oracle alone on the others (all with --full).
+    assert sqp == {(sc, m) for sc, _ in sqp for m in (models if sc in EVERY_MODEL_SCENARIOS else {"oracle"})}
+    ltv = {(s.scenario, s.model_name) for s in ideal if s.controller == "ltv"}
+    assert ltv == {(sc, m) for sc in LTV_SCENARIOS
+                   for m in (models if sc in LTV_EVERY_MODEL_SCENARIOS else {"oracle"})}
+    from scenarios.bounds import load_bounds
+
+    flown = {(s.scenario, s.controller, s.model_name) for s in ideal} | {(s.scenario, "lqr", "oracle") for s in ideal}
+    assert {(b.scenario, b.controller, b.model) for b in load_bounds()[1]} <= flown  # every CI bound case is flown
+    full_ideal = {(s.scenario, s.controller, s.model_name) for s in main_plan(MODELS, full=True)
+                  if s.timing == "ideal" and s.member is None}
+    assert {(sc, c, m) for sc in scenario_names() for c in ("sqp", "ltv", "nmpc") for m in models} <= full_ideal
+    realtime = {(s.scenario, s.controller, s.model_name) for s in specs if s.timing == "realtime"}
+    assert realtime == {("figure8-fast", c, m) for c in ("sqp", "ltv") for m in models} | {
+        ("figure8-fast", "nmpc", "oracle")}
+    assert {s.scenario for s in main_plan(MODELS, full=True) if s.controller == "nmpc"} == set(scenario_names())
     # With the state estimator: the disturbance and noise variants of the plan with every model (their twins without
     # it are in the plan), and the offset-free hover cases with the oracle, both ways.
     cases = {(s.scenario, s.model_name) for s in estimated}
@@ -404,23 +416,33 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
         main_plan(MODELS, estimator="kalman")
     # The high-fidelity plant: the oracle (its true equations), the nominal equations, the nominal-trained twins and
     # the models trained on its own data, with ensemble members where the scenario has them, and no run twice.
-    from scenarios.campaign import HIGHFI_MODELS, HIGHFI_SCENARIOS
-    expect = {(sc, m if m in ("oracle", "nominal") else Path(m).stem, k)
-              for sc, n in HIGHFI_SCENARIOS.items() for m in ("oracle", "nominal") + HIGHFI_MODELS
-              for k in ([None] if n == 1 else range(n))}
-    assert {(s.scenario, s.model_name, s.member) for s in highfi} == expect
+    from scenarios.campaign import HIGHFI_DEFAULT_MEMBERS, HIGHFI_MODELS, HIGHFI_SCENARIOS
+
+    def expect(full):
+        return {(sc, m if m in ("oracle", "nominal") else Path(m).stem, k)
+                for sc, n in HIGHFI_SCENARIOS.items() for m in ("oracle", "nominal") + HIGHFI_MODELS
+                for k in ([None] if (n if full else min(n, HIGHFI_DEFAULT_MEMBERS)) == 1
+                          else range(n if full else HIGHFI_DEFAULT_MEMBERS))}
+    assert {(s.scenario, s.model_name, s.member) for s in highfi} == expect(False)
+    assert {(s.scenario, s.model_name, s.member) for s in main_plan(MODELS, full=True)
+            if s.scenario.endswith("+highfi") and s.plant == "sim"} >= expect(True)
     assert {s.controller for s in highfi} == {"sqp"} and all(s.timing == "ideal" for s in highfi)
     full = main_plan(MODELS, full=True)
     assert len({s.run_id for s in full}) == len(full)
     # Other plants (RotorPy is installed with the test extra): figure8-fast with the SQP, the oracle and every shipped
     # model on the ideal set-up, the nominal equations and every model with motor lag and aerodynamics, and the
     # nominal equations flying RotorPy's two presets on both our simulator and RotorPy.
-    shipped = models - {"oracle"}
+    from scenarios.campaign import PLANT_DEFAULT_MODELS
+
+    def on_plants(shipped):
+        return ({("rotorpy-ideal", "rolling-spider", m) for m in shipped | {"oracle"}}
+                | {("rotorpy", "rolling-spider", m) for m in shipped | {"nominal"}}
+                | {(p, v, "nominal") for p in ("sim", "rotorpy") for v in ("hummingbird", "crazyflie")})
     assert {(s.scenario, s.controller) for s in other} == {("figure8-fast", "sqp")}
-    assert {(s.plant, s.vehicle_data.name, s.model_name) for s in other} == (
-        {("rotorpy-ideal", "rolling-spider", m) for m in shipped | {"oracle"}}
-        | {("rotorpy", "rolling-spider", m) for m in shipped | {"nominal"}}
-        | {(p, v, "nominal") for p in ("sim", "rotorpy") for v in ("hummingbird", "crazyflie")})
+    assert {(s.plant, s.vehicle_data.name, s.model_name) for s in other} == on_plants(
+        {Path(m).stem for m in PLANT_DEFAULT_MODELS})
+    assert {(s.plant, s.vehicle_data.name, s.model_name) for s in full if s.plant != "sim" or s.vehicle} >= \
+        on_plants(models - {"oracle"})                  # with --full, every shipped model
     # The same plan on another plant: every run there, the oracle replaced where the plant has no equations.
     on_rp = main_plan(MODELS, plant="rotorpy")
     assert {s.plant for s in on_rp} == {"rotorpy"} and "oracle" not in {s.model for s in on_rp}

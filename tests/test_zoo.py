@@ -258,3 +258,32 @@ def test_the_study_with_the_estimator_flies_its_ensembles_with_it_and_selects_mo
     # A partial study without the estimator would replace the zoo's study.json: refused before anything flies.
     assert main(["study", "--select", "baseline_e1", "--out", str(tmp_path / "z")]) == 2
     assert "--no-publish" in capsys.readouterr().err and not (tmp_path / "z").exists()
+
+
+def test_a_folder_without_a_manifest_is_studied_from_its_model_files(tmp_path, capsys):
+    """Its models are checked and evaluated open loop on the zoo's test data: the same errors as the zoo's manifest
+    recorded from the training run's torch model (onnxruntime on the exported file)."""
+    import shutil
+
+    from scenarios.zoo import zoo_models
+
+    manifest = json.loads((ZOO_DIR / "manifest.json").read_text())
+    names = list(manifest)[:2]
+    for n in names:
+        shutil.copy(ZOO_DIR / manifest[n]["files"]["onnx"], tmp_path / f"{n}.onnx")
+    models = zoo_models(tmp_path, progress=True)
+    assert "has no manifest.json: evaluating its 2 models" in capsys.readouterr().err
+    assert list(models) == sorted(names)
+    for n in names:
+        got, want = models[n]["metrics"], manifest[n]["metrics"]
+        for metric in ("one_step_mae", "rollout_100_mae"):
+            assert got[metric]["position"] == pytest.approx(want[metric]["position"], rel=1e-9, abs=0)
+        assert got["rollout_100_mae"]["n_rollouts"] == want["rollout_100_mae"]["n_rollouts"]
+        assert models[n]["path"] == str(tmp_path / f"{n}.onnx")
+    (tmp_path / "broken.onnx").write_bytes(b"not a model")
+    with pytest.raises(ScenarioError, match="broken.onnx"):
+        zoo_models(tmp_path)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ScenarioError, match="no manifest.json and no .onnx model"):
+        zoo_models(empty)
