@@ -5,7 +5,8 @@ Run ``python -m mpc.bench [--models models] [--controllers nmpc,sqp,ltv,lqr] [--
 accuracy of the three ways to get a model's A and B over a 30-stage horizon (:func:`derivative_paths`), or
 ``python -m mpc.bench --estimator [--models models] [--json FILE]`` for the state estimator's cost per period:
 the SQP with the estimator flies ``figure8-fast`` in real-time timing with the oracle and every shipped model
-(:func:`estimator_cost`).
+(:func:`estimator_cost`), or ``python -m mpc.bench --slowdown 2 [--estimator]`` for the same flights on a machine
+twice as slow for the models (:func:`slow_machine`: every model call takes twice as long).
 
 For the oracle and each shipped ONNX model, each controller flies a 5 s
 hover (from a 0.3 m offset) and two laps of ``figure8-fast`` (period 3 s,
@@ -43,7 +44,7 @@ from .contract import model_files
 from .controller import collector_paused, hover_reference
 from .lqr import LQRController
 from .ltv import LTVMPC, LTVSettings
-from .models import AnalyticModel, OnnxModel
+from .models import AnalyticModel, OnnxModel, PredictionModel
 from .nmpc import NMPC, NMPCSettings
 from .sqp import SQPMPC, SQPSettings
 from .trajectory import Figure8
@@ -199,7 +200,14 @@ def main(argv=None) -> int:
                     help="only compare the derivative paths (graph, float32 graph, central differences, CasADi import)")
     ap.add_argument("--estimator", action="store_true",
                     help="only the state estimator's cost per period: the SQP with it on figure8-fast in real time")
+    ap.add_argument("--slowdown", type=float, default=None, metavar="FACTOR",
+                    help="only the SQP on figure8-fast in real time with every model call FACTOR times as long (a "
+                         "machine that much slower); with --estimator, the state estimator flies too")
     args = ap.parse_args(argv)
+    if args.slowdown is not None:
+        if not args.slowdown >= 1.0:
+            raise SystemExit(f"--slowdown: a factor >= 1 expected; found {args.slowdown:g}")
+        return _main_slowdown(args)
     if args.derivatives:
         return _main_derivatives(args)
     if args.estimator:
@@ -301,6 +309,98 @@ def clock_stalls(seconds: float = 10.0) -> dict:
     g = 1e3 * np.asarray(gaps)
     return {"seconds": seconds, "over_1ms": int(np.sum(g > 1)), "over_2ms": int(np.sum(g > 2)),
             "over_4ms": int(np.sum(g > 4)), "longest_ms": float(g.max()) if g.size else 0.0}
+
+
+class SlowedModel(PredictionModel):
+    """A prediction model whose every call takes ``factor`` times as long: a machine that slow, for the model.
+
+    Each call of ``step``, ``linearize`` and ``linearize_single`` is timed and followed by a busy wait of
+    ``factor - 1`` times its duration (a sleep would hand the core away and come back late). Everything else is
+    the wrapped model's. The controllers' own Python, the QP solver and the simulator keep this machine's speed:
+    the model and its derivative graph are most of a period's time (:func:`run`'s time split).
+    """
+
+    def __init__(self, base, factor: float = 2.0):
+        if not (isinstance(factor, (int, float)) and factor >= 1.0):
+            raise ValueError(f"factor must be a number >= 1; found {factor!r}")
+        self.base, self.factor = base, float(factor)
+        self.name, self.theta, self.extra_names, self.extra_scale = (base.name, base.theta, base.extra_names,
+                                                                     base.extra_scale)
+
+    def __getattr__(self, name):      # what the wrapped model has beyond the interface (its file, its dtype)
+        return getattr(self.base, name)
+
+    def reference_states(self, trajectory, times):
+        return self.base.reference_states(trajectory, times)
+
+    def _slowed(self, fn, *args):
+        t0 = time.perf_counter()
+        out = fn(*args)
+        end = t0 + self.factor * (time.perf_counter() - t0)
+        while time.perf_counter() < end:
+            pass
+        return out
+
+    def step(self, x, u):
+        return self._slowed(self.base.step, x, u)
+
+    def linearize(self, x, u):
+        return self._slowed(self.base.linearize, x, u)
+
+    def linearize_single(self, x, u):
+        return self._slowed(self.base.linearize_single, x, u)
+
+
+def slow_machine(model: str, factor: float = 2.0, scenario: str = "figure8-fast", estimator: str = "none") -> dict:
+    """The SQP on ``scenario`` in real-time timing with ``model`` ('oracle' or a file) made ``factor`` times slower
+    (:class:`SlowedModel`; the state estimator's model calls too, with ``estimator="ekf"``).
+
+    Returns the time charged per period, ms (median / p95 / max), the periods charged more than the 10 ms period
+    (the deadline misses), the periods that sent the shifted plan because no plan could be made in time, and the
+    position RMSE, m.
+    """
+    from scenarios.runner import RunSpec, fly, load_run_model
+
+    spec = RunSpec(scenario, "sqp", model, timing="realtime", estimator=estimator)
+    r, tr = fly(spec, model=SlowedModel(load_run_model(spec), factor))
+    called = np.asarray(tr["called"], dtype=bool)
+    charged = np.asarray(tr["solve_s"], dtype=float)[called]
+    if tr.get("estimator_s") is not None and len(tr["estimator_s"]):
+        charged = charged + np.nan_to_num(np.asarray(tr["estimator_s"], dtype=float)[called])
+    return {"charged_ms": _ms(charged), "over_10ms": int(np.sum(charged > DT)),
+            "deadline_misses": r.get("deadline_misses"), "deadline_fallbacks": r.get("deadline_fallbacks"),
+            "rmse_position_m": r.get("rmse_position_m"), "crashed": r.get("crashed"), "periods": int(called.sum()),
+            "error": r.get("error")}
+
+
+def _main_slowdown(args) -> int:
+    if not args.models.is_dir():
+        raise SystemExit(f"--models: {str(args.models)!r} is not a folder")
+    models = ["oracle"] + [str(f) for f in model_files(args.models)]
+    est = "ekf" if args.estimator else "none"
+    out = {"python": platform.python_version(), "cpus": os.cpu_count(), "scenario": "figure8-fast",
+           "controller": "sqp", "timing": "realtime", "estimator": est, "factor": args.slowdown, "models": {}}
+    stalls = out["idle_clock_loop"] = clock_stalls()
+    print(f"This process doing nothing but read the clock for {stalls['seconds']:.0f} s: gaps over 1 / 2 / 4 ms "
+          f"{stalls['over_1ms']} / {stalls['over_2ms']} / {stalls['over_4ms']}, longest {stalls['longest_ms']:.1f} ms")
+    print(f"The SQP{' with the state estimator' if args.estimator else ''}, figure8-fast, real-time timing, every "
+          f"model call {args.slowdown:g} times as long; ms charged per period")
+    print(f"{'model':<22}{'median':>8}{'p95':>8}{'max':>8}{'>10 ms':>8}{'late':>6}{'RMSE m':>9}")
+    for m in models:
+        name = Path(m).stem if m != "oracle" else m
+        r = slow_machine(m, args.slowdown, estimator=est)
+        out["models"][name] = r
+        c = r["charged_ms"]
+        if r["error"]:
+            print(f"{name:<22}could not fly: {r['error']}", flush=True)
+            continue
+        rmse = "crashed" if r["crashed"] else format(r["rmse_position_m"], ".4f")
+        print(f"{name:<22}{c['median']:>8.2f}{c['p95']:>8.2f}{c['max']:>8.1f}{r['over_10ms']:>8}"
+              f"{r['deadline_fallbacks']:>6}{rmse:>9}", flush=True)
+    out["idle_clock_loop_after"] = after = clock_stalls()
+    print(f"The same clock loop after: gaps over 1 / 2 / 4 ms {after['over_1ms']} / {after['over_2ms']} / "
+          f"{after['over_4ms']}, longest {after['longest_ms']:.1f} ms")
+    return _write(args.json or Path("bench_slowdown.json"), out)
 
 
 def _main_estimator(args) -> int:

@@ -135,7 +135,8 @@ class LTVMPC(MPCBase):
         self._build_pattern()
         self._status = osqp.SolverStatus
         self._deadline: float | None = None
-        self._recent_s = {"derivatives": deque(maxlen=RECENT_PERIODS), "assembly": deque(maxlen=RECENT_PERIODS)}
+        self._recent_s = {"derivatives": deque(maxlen=RECENT_PERIODS), "assembly": deque(maxlen=RECENT_PERIODS),
+                          "line_search": deque(maxlen=RECENT_PERIODS)}
         self._solver = osqp.OSQP()
         settings_ = dict(verbose=False, warm_starting=True, max_iter=self.s.max_iter, eps_abs=self.s.eps_abs,
                          eps_rel=self.s.eps_rel, polishing=self.s.polish,
@@ -319,6 +320,8 @@ class LTVMPC(MPCBase):
         if cold:
             deadline = None     # a cold start makes a plan whatever it takes: its fallback (the LQR) has none
         expect = {k: float(np.median(v)) if v else 0.0 for k, v in self._recent_s.items()}
+        # A line search takes a varying number of model steps: the longest of the recent ones is expected.
+        expect["line_search"] = max(self._recent_s["line_search"], default=0.0)
         while done < max_it:
             t_it = tm.now()
             if deadline is not None and done == 0 and \
@@ -382,9 +385,12 @@ class LTVMPC(MPCBase):
             optimal = res.info.status_val == self._status.OSQP_SOLVED
             Xq = res.x[:self.nx_var].reshape(N + 1, self.nx)
             Uq = res.x[self.nx_var:].reshape(N, NU)
-            # With a budget, a period whose QP ended past it takes the QP's full step (the real-time iteration)
-            # and stops: no line search (its model steps and any correction's QP) on top of an overrun.
-            late = budget is not None and tm.now() - tm.start > budget
+            # With a budget, a period whose QP ended past it, or so close to it that the longest recent line search
+            # would end past it, takes the QP's full step (the real-time iteration) and stops: no line search (its
+            # model steps and any correction's QP) on top of an overrun.
+            elapsed = tm.now() - tm.start
+            late = budget is not None and (elapsed > budget or
+                                           (line_search and elapsed + expect["line_search"] > budget))
             if late:
                 late_steps += 1
             if line_search and not late:
@@ -410,6 +416,8 @@ class LTVMPC(MPCBase):
                 merits.append((phi0, phi, accepted))
                 ls_failures += not accepted
                 split["line_search"] += tm.now() - t_ls - (split["assembly"] + split["osqp"] - qp_before)
+                if budget is not None:
+                    self._recent_s["line_search"].append(tm.now() - t_ls)
             else:
                 Xn, Un, alpha, defect, f_next = Xq, Uq, 1.0, np.inf, None
             alphas.append(alpha)

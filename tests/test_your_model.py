@@ -29,6 +29,7 @@ TOL = {
     "linear_vs_oracle": 1e-6,     # the page's ZOH hover model vs the simulator's hover linearization (abs, per entry)
     "differences": 1e-6,          # central differences vs the derivative graph (relative Frobenius, float64 models)
     "rmse_ratio": 0.02,           # derivative-less model's closed-loop RMSE vs with its graph (relative)
+    "doc_model_settled_m": 0.02,  # the page's trained model at hover (the page quotes 9 mm)
 }
 #: Threshold beyond which the faulty derivative graph of the test is wrong, rad (pitch).
 FAULT_BEYOND_RAD = 0.3
@@ -287,3 +288,32 @@ def test_the_pages_pytorch_export_gives_a_model_every_controller_takes(tmp_path,
     with torch.no_grad():
         ref = (torch.as_tensor(x) + net.double()(torch.cat([torch.as_tensor(x), torch.as_tensor(u)], -1))).numpy()
     assert np.allclose(model.step(x, u), ref, rtol=0, atol=1e-12)
+
+
+def test_the_pages_path_from_data_to_a_flown_model(tmp_path, monkeypatch, capsys):
+    """The page's section "From data to a flown model", run as written: pinnmpc data, the training code, check-model
+    and fly. The model it trains hovers (the page quotes its settled error)."""
+    pytest.importorskip("torch")
+    text = DOC.read_text(encoding="utf-8")
+    section = text.split("## From data to a flown model")[1].split("\n## ")[0]
+    commands = [line for block in re.findall(r"```bash\n(.*?)```", section, re.S) for line in block.splitlines()
+                if line.startswith("pinnmpc ")]
+    assert [c.split()[1] for c in commands] == ["data", "check-model", "fly", "study"]
+    monkeypatch.chdir(tmp_path)
+    assert main(commands[0].split()[1:]) == 0
+    with np.load(tmp_path / "mydata.npz") as z:                # the format table of the page
+        n, k = z["x"].shape[:2]
+        shapes = {"x": (n, k, 12), "u": (n, k, 4), "x_next": (n, k, 12), "wrench": (n, k, 4),
+                  "rotor_speed": (n, k, 4), "saturated": (n, k, 4), "split": (n,), "meta": ()}
+        assert {a: z[a].shape for a in z.files} == shapes
+        assert z["saturated"].dtype == bool and z["split"].dtype == np.int8 and set(z["split"]) == {0, 1, 2}
+        assert np.array_equal(z["x_next"][:, :-1], z["x"][:, 1:])
+    code = re.findall(r"```python\n(.*?)```", section, re.S)[0]
+    exec(compile(code, str(DOC), "exec"), {"__name__": "your_model"})    # noqa: S102 - our own docs
+    capsys.readouterr()
+    assert main(commands[1].split()[1:]) == 0
+    assert "learned.onnx: valid" in capsys.readouterr().out
+    assert main(commands[2].split()[1:]) == 0
+    out = capsys.readouterr().out
+    settled = float(out.split("settled_error_m")[1].split()[0])
+    assert "crashed               False" in out and settled < TOL["doc_model_settled_m"]
