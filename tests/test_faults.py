@@ -585,3 +585,33 @@ def test_fly_prints_the_settled_error_and_why_the_solver_failed(capsys, monkeypa
     failures = int(out.split("solver_failures")[1].split()[0])
     assert failures == flown[0].calls // 5 > 0
     assert f"failure_causes        non-finite model output {failures}\n" in out
+
+
+# ----------------------------------------------------------------- budgets on a slower machine (defect 14)
+
+def test_a_line_search_that_would_end_past_the_budget_is_skipped_for_the_full_step():
+    """On a slower machine a line search started late ran the period past its deadline (a 2.9 ms line search after
+    a QP that ended at 7.4 ms of an 8 ms budget). A period whose longest recent line search would not fit takes the
+    QP's full step: bit for bit one full-step iteration; with room for it, the line search runs. (The rest of this
+    defect: the evaluation reused, tests/test_evaluation_reuse.py; the slower machine itself,
+    python -m mpc.bench --slowdown 2.)"""
+    from mpc.models import OnnxModel
+    from mpc.sqp import SQPMPC, SQPSettings
+    from mpc.trajectory import Figure8
+
+    model, fig8 = OnnxModel(ROOT / "models" / "proposed.onnx"), Figure8(0.75, 3.0, 1.0)
+    budget = 10.0                                   # seconds: no QP here comes near it
+    tight = SQPMPC(model, fig8, SQPSettings(time_budget_s=budget, cold_start_budget_s=None, max_sqp_iter=1))
+    roomy = SQPMPC(model, fig8, SQPSettings(time_budget_s=budget, cold_start_budget_s=None, max_sqp_iter=1))
+    rti = SQPMPC(model, fig8, SQPSettings(time_budget_s=None, cold_start_budget_s=None, max_sqp_iter=1,
+                                          line_search=False))
+    t = 0.5
+    X0, U0 = tight._horizon_reference(t)
+    x = X0[0] + np.r_[0.05, -0.03, 0.02, np.zeros(9)]
+    tight._recent_s["line_search"].append(budget)  # a line search as long as the whole budget, lately
+    X1, U1, info = tight.solve_from(x, t, X0, U0)
+    X2, U2, _ = rti.solve_from(x, t, X0, U0)
+    assert info.extra["late_full_steps"] == 1 and info.extra["merit"] == []
+    assert np.array_equal(X1, X2) and np.array_equal(U1, U2)
+    info = roomy.solve_from(x, t, X0, U0)[2]
+    assert info.extra["late_full_steps"] == 0 and len(info.extra["merit"]) == 1
