@@ -448,7 +448,9 @@ def realtime_table(runs: list[dict]) -> str:
             f"with its {budget_ms:g} ms budget in real time and without it (at most its iteration limit) in ideal "
             "timing. In real time the MPCs on OSQP must send their input 1 ms before the period ends: a period "
             "whose plan cannot be made by then sends the shifted plan at once (a deadline fallback, counted among "
-            "the solver failures too)."
+            "the solver failures too). A sweep flies these runs after all the others, one at a time, so that no "
+            "other run of it competes for the cores (and a second sweep cannot use the same folder); other "
+            "programs on the machine are not controlled, and a stall of the machine counts against the period."
             + (" \"Not flown\": the case was not flown in ideal timing in this folder (`pinnmpc run` leaves the NMPC's "
                "ideal-timing runs, about 90 s of a core each, to `--full`)." if unflown
                else "")
