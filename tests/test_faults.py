@@ -1,8 +1,10 @@
 """Faults a user or a fault tester finds: commands that check their input and outputs before they work, bounds that
-never exempt a run that did not fly, a code version that covers code only.
+never exempt a run that did not fly, a code version that covers code only, a cache keyed by what was flown, sweeps
+that outlive their workers and leave none behind, one sweep per folder, check-model over the flight envelope, and
+the SQP's budget on a slower machine.
 
-Each test names the defect it covers. Paths that cannot be written are made by putting them under a file (a folder
-that cannot exist), which holds for every user, root included.
+Each section's heading names the fault it covers. Paths that cannot be written are made by putting them under a
+file (a folder that cannot exist), which holds for every user, root included.
 """
 
 import json
@@ -36,7 +38,7 @@ def unwritable(tmp_path, name):
     return blocker / name
 
 
-# ----------------------------------------------------------------- outputs checked before the work (defect 5)
+# ----------------------------------------------------------------- outputs checked before the work
 
 @pytest.mark.parametrize("option,name", [("--json", "r.json"), ("--trace", "t.npz"), ("--plot", "p.png")])
 def test_fly_refuses_an_output_it_cannot_write_before_it_flies(tmp_path, capsys, no_flight, option, name):
@@ -59,7 +61,7 @@ def test_sweeps_refuse_an_output_folder_they_cannot_write_before_they_start(tmp_
     assert rc == 2 and "--out" in err and "cannot be written" in err
 
 
-# ----------------------------------------------------------------- --horizon checked when the line is read (defect 9)
+# ----------------------------------------------------------------- --horizon checked when the line is read
 
 @pytest.mark.parametrize("value", ["0", "-5", str(MAX_HORIZON + 1), "100000", "ten"])
 @pytest.mark.parametrize("controller", ["lqr", "sqp"])
@@ -79,7 +81,7 @@ def test_the_horizon_bound_holds_for_runs_made_in_python_too():
             RunSpec("hover", "sqp", horizon=bad)
 
 
-# ----------------------------------------------------------------- --trace writes the path given (defect 10)
+# ----------------------------------------------------------------- --trace writes the path given
 
 def test_trace_is_written_to_exactly_the_path_given(tmp_path, capsys):
     path = tmp_path / "trace-without-suffix"
@@ -91,7 +93,7 @@ def test_trace_is_written_to_exactly_the_path_given(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]      # no temporary file left
 
 
-# ----------------------------------------------------------------- bounds (defects 6 and 11)
+# ----------------------------------------------------------------- bounds
 
 def oracle_results(changes=None):
     """A measured result for each of the oracle's bound cases; ``changes`` ({(scenario, controller): fields})
@@ -146,7 +148,7 @@ def test_bounds_refuse_an_output_they_cannot_write_before_reading_the_results(tm
     assert rc == 2 and "--out" in err and "cannot be written" in err
 
 
-# ----------------------------------------------------------------- the code version covers code (defect 12)
+# ----------------------------------------------------------------- the code version covers code
 
 def test_the_code_version_covers_python_source_not_the_bounds_file(tmp_path, monkeypatch):
     for pkg in ("sim", "mpc", "scenarios"):
@@ -166,7 +168,7 @@ def test_the_code_version_covers_python_source_not_the_bounds_file(tmp_path, mon
     assert version() != before
 
 
-# ----------------------------------------------------------------- a cache keyed by what was flown (defects 1, 2, 8)
+# ----------------------------------------------------------------- a cache keyed by what was flown
 
 def copied_model(tmp_path, name="baseline"):
     d = tmp_path / "models"
@@ -244,7 +246,7 @@ def test_a_torn_trace_is_flown_again_with_a_line_saying_so(tmp_path, capsys):
     assert again == [spec.run_id] and "damaged" in capsys.readouterr().err
 
 
-# ----------------------------------------------------------------- workers that die (defect 3), orphans (defect 4)
+# ----------------------------------------------------------------- workers that die, and orphans after a killed sweep
 
 #: Seconds a dead parent's workers may outlive it (they watch for it every half second; Linux kills them at once).
 ORPHAN_WAIT_S = 5.0
@@ -404,7 +406,7 @@ def test_a_sweep_survives_three_random_kills_of_its_workers_with_identical_resul
     assert not [k for k in children(me) if b"spawn_main" in Path(f"/proc/{k}/cmdline").read_bytes()]
 
 
-# ----------------------------------------------------------------- one sweep per folder (defect 7)
+# ----------------------------------------------------------------- one sweep per folder
 
 HOLD_LOCK = """
 import sys, time
@@ -447,7 +449,7 @@ def test_a_second_sweep_on_a_folder_in_use_stops_with_a_line_naming_the_holder(t
     assert not (out / LOCK_NAME).exists()
 
 
-# ----------------------------------------------------------------- check-model over the envelope, fly's causes (13)
+# ----------------------------------------------------------------- check-model over the envelope, fly's causes
 
 #: Roll beyond which the broken model returns NaN, rad (a fast figure-8 reaches 0.58 rad).
 NAN_BEYOND_ROLL = 0.3
@@ -587,13 +589,13 @@ def test_fly_prints_the_settled_error_and_why_the_solver_failed(capsys, monkeypa
     assert f"failure_causes        non-finite model output {failures}\n" in out
 
 
-# ----------------------------------------------------------------- budgets on a slower machine (defect 14)
+# ----------------------------------------------------------------- budgets on a slower machine
 
 def test_a_line_search_that_would_end_past_the_budget_is_skipped_for_the_full_step():
     """On a slower machine a line search started late ran the period past its deadline (a 2.9 ms line search after
     a QP that ended at 7.4 ms of an 8 ms budget). A period whose longest recent line search would not fit takes the
-    QP's full step: bit for bit one full-step iteration; with room for it, the line search runs. (The rest of this
-    defect: the evaluation reused, tests/test_evaluation_reuse.py; the slower machine itself,
+    QP's full step: bit for bit one full-step iteration; with room for it, the line search runs. (The rest of the
+    budget: the evaluation reused, tests/test_evaluation_reuse.py; the slower machine itself,
     python -m mpc.bench --slowdown 2.)"""
     from mpc.models import OnnxModel
     from mpc.sqp import SQPMPC, SQPSettings
