@@ -17,5 +17,13 @@ class SolverError(RuntimeError):
     """The MPC optimizer failed in a way the controller cannot recover from."""
 
 
+class EstimatorError(RuntimeError):
+    """The state estimator lost the state in flight (its prediction through the model is not finite).
+
+    An in-flight event, not a bad input: a closed-loop run records it as a
+    failed flight with its cause, as it records a crash.
+    """
+
+
 class ConfigurationError(ValueError):
     """An inconsistent controller configuration (weights, horizon, bounds), or a bad measured state."""

@@ -52,7 +52,7 @@ from sim.dynamics import rotation_matrix
 from sim.params import DT, GRAVITY, NX
 from sim.sensors import wrap_angle as wrap
 
-from .errors import ConfigurationError
+from .errors import ConfigurationError, EstimatorError
 from .offset_free import disturbance_matrix, euler_rate_matrix
 
 #: Lengths of the disturbance and bias parts of the filter's state.
@@ -316,8 +316,10 @@ class DisturbanceEKF:
                 raise ConfigurationError("u_applied is needed after the first call: the input of the last period")
             self._predict(u_applied)
             if not np.all(np.isfinite(self.z)):
-                raise ConfigurationError(f"the model's prediction is not finite at t = {t:g} s")
+                raise EstimatorError(f"the filter's prediction through the model is not finite at t = {t:g} s")
             n = self._update(readings, t)
+            if not (np.all(np.isfinite(self.z)) and np.all(np.isfinite(self.P))):
+                raise EstimatorError(f"the filter's update is not finite at t = {t:g} s")
         nx = self.nx
         return Estimate(x=self.z[:nx].copy(), disturbance=self.z[nx:nx + ND].copy(),
                         gyro_bias=self.z[nx + GB:nx + GB + NB].copy(), accel_bias=self.z[nx + AB:].copy(),

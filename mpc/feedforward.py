@@ -286,20 +286,32 @@ class FeedForward:
         this call: the flatness map of the trajectory with the acceleration
         the rotors must make (:class:`mpc.offset_free.ShiftedTrajectory`), and
         inputs fitted through ``f(x, u) + G d`` from the undisturbed ones;
-        extra states move with their equilibrium under the new inputs.
+        extra states move with their equilibrium under the new inputs. Where
+        the model is not finite along that target, the undisturbed one.
         """
         t = np.asarray(times, dtype=float).ravel()
         if self._disturbance is None:
             return self.full_states(t), self.inputs(t[:-1])
-        from .extended import extra_equilibrium, extra_scale
-        from .offset_free import ShiftedTrajectory
-
         d, off = self._disturbance
         nominal_x, nominal_u = self.full_states(t), self.inputs(t[:-1])
         if self.is_flat and _stationary(self.trajectory.flat(t)):
-            target = self._steady_target(nominal_x[0], nominal_u[0], d, off)
+            target = self._steady_target(nominal_x[0], nominal_u[0], d, off, t[0])
             if target is not None:
                 return np.tile(target[0], (len(t), 1)), np.tile(target[1], (len(t) - 1, 1))
+        try:
+            return self._disturbed_horizon(t, d, off, nominal_x, nominal_u)
+        except ConfigurationError:
+            # The model is not finite along the disturbed target (a learned model far from its data): the flight
+            # goes on with the undisturbed target, as without an estimate; the prediction keeps the disturbance.
+            self._disturbed_inputs = None
+            return nominal_x, nominal_u
+
+    def _disturbed_horizon(self, t, d, off, nominal_x, nominal_u):
+        """:meth:`horizon` under the disturbance ``d`` (6,) with offset ``off`` (nx,), along a moving reference;
+        raises :class:`ConfigurationError` where the model is not finite along it."""
+        from .extended import extra_equilibrium, extra_scale
+        from .offset_free import ShiftedTrajectory
+
         traj = ShiftedTrajectory(self.trajectory, d[:3]) if self.is_flat else None
         if self.model_reference:
             X = self.model.reference_states(traj, t)
@@ -354,9 +366,10 @@ class FeedForward:
             X = np.hstack([X, e_nom + shift])
         return X, U
 
-    def _steady_target(self, x_nominal, u_nominal, d, off):
-        """The model's steady state under ``off`` at the reference's position and yaw, ``(x (nx,), u (4,))``, or None
-        when Newton does not converge (:func:`mpc.offset_free.steady_target`; warm-started from the last one)."""
+    def _steady_target(self, x_nominal, u_nominal, d, off, t: float):
+        """The model's steady state under ``off`` at the reference's position and yaw at time ``t`` (s),
+        ``(x (nx,), u (4,))``, or None when Newton does not converge (:func:`mpc.offset_free.steady_target`;
+        warm-started from the last one at the same point)."""
         from .extended import extra_scale
         from .offset_free import TARGET_ACCEPT, TARGET_FIXED, ShiftedTrajectory, steady_target
 
@@ -369,7 +382,8 @@ class FeedForward:
             x0, u0 = last
         else:       # the flatness map under the disturbance's acceleration: attitude and thrust close to the answer
             x0, u0 = x_nominal.copy(), u_nominal
-            x0[:NX] = flat_state(ShiftedTrajectory(self.trajectory, d[:3]).flat(np.zeros(1)), self.spec)[0][0]
+            # at the time asked for: a path that ends away from its start holds its end point, not its start
+            x0[:NX] = flat_state(ShiftedTrajectory(self.trajectory, d[:3]).flat(np.array([t])), self.spec)[0][0]
         x, u, res = steady_target(self.model, x0, u0, off, scale, self.u_scale)
         if not res < TARGET_ACCEPT:
             self._steady = None

@@ -6,7 +6,7 @@ and one sparse QP is solved::
 
     min  sum_k (x_k - r_k)' Q (x_k - r_k) + (u_k - f_k)' R (u_k - f_k) + (x_N - r_N)' P (x_N - r_N)
     s.t. x_0 = measured state, the linearized dynamics,
-         0 <= M^-1 u_k <= n_max^2      (rotor-feasible wrench set, linear in u)
+         0 <= M^-1 u_k / n_max^2 <= 1  (rotor-feasible wrench set, linear in u; each row a rotor's load)
          |phi_k|, |theta_k| <= attitude limit,   k = 1 .. N
 
 with ``r_k`` the reference states, ``f_k`` the model's own feed-forward
@@ -31,7 +31,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from sim.params import NU
-from sim.rotors import mixer_matrix, realize
+from sim.rotors import load_matrix, realize
 
 from .base import MPCBase
 from .controller import ControlInfo, Reference, Timer, check_common_settings, check_measured
@@ -128,7 +128,7 @@ class LTVMPC(MPCBase):
         N = self.s.horizon
         self.N = N
         self.nx_var = (N + 1) * self.nx
-        self._Minv = np.linalg.inv(mixer_matrix(self.spec))     # wrench -> rotor speeds squared
+        self._load = load_matrix(self.spec)     # wrench -> rotor loads n^2 / n_max^2 (unit-free)
         from .lqr import input_scale
 
         self._sx, self._su = self.state_scale, input_scale(self.spec)   # step sizes are measured in these
@@ -219,10 +219,10 @@ class LTVMPC(MPCBase):
         lo, hi = [np.zeros(r)], [np.zeros(r)]
         if self.s.constraints:
             for k in range(N):
-                add(r, self._ui(k), self._Minv)
+                add(r, self._ui(k), self._load)
                 r += NU
             lo.append(np.zeros(N * NU))
-            hi.append(np.full(N * NU, self.spec.n_max_sq))
+            hi.append(np.ones(N * NU))
             sel = np.zeros((2, nx))
             sel[0, 3] = sel[1, 4] = 1.0
             for k in range(1, N + 1):
@@ -474,8 +474,8 @@ class LTVMPC(MPCBase):
 
     def _rotor_feasible(self, u):
         """``u`` (4,) if the rotors can realize it, else its exact projection onto the rotor-feasible set."""
-        n_sq = self._Minv @ u
-        if np.all(n_sq >= 0.0) and np.all(n_sq <= self.spec.n_max_sq):
+        load = self._load @ u
+        if np.all(load >= 0.0) and np.all(load <= 1.0):
             return u
         return realize(u, self.spec).wrench
 

@@ -2,7 +2,7 @@
 
 Decision variables ``X`` (12, N + 1) and ``U`` (4, N); constraints
 ``X[:, k + 1] = F(X[:, k], U[:, k])``, ``X[:, 0] = measured state``, the
-rotor-feasible wrench set ``0 <= M^-1 U[:, k] <= n_max^2`` and attitude
+rotor-feasible wrench set ``0 <= M^-1 U[:, k] / n_max^2 <= 1`` and attitude
 bounds on ``X[3:5, 1:]``; cost as the LTV-MPC (tracking ``Q`` against the
 reference states, ``R`` on ``u - u_ff`` with ``u_ff`` the model's own
 feed-forward, Riccati terminal cost ``P``).
@@ -35,7 +35,7 @@ import casadi as ca
 import numpy as np
 
 from sim.params import NU
-from sim.rotors import mixer_matrix, realize
+from sim.rotors import load_matrix, realize
 
 from .base import MPCBase
 from .controller import ControlInfo, Reference, Timer, check_common_settings, check_measured, check_state
@@ -202,10 +202,10 @@ class NMPC(MPCBase):
         D = U - uref
         cost = (ca.sum2(ca.sum1(E[:, :N] * ca.mtimes(Q, E[:, :N]))) + ca.sum2(ca.sum1(D * ca.mtimes(R, D)))
                 + ca.mtimes([E[:, N].T, P, E[:, N]]))
-        Minv = ca.DM(np.linalg.inv(mixer_matrix(self.spec)))
+        load = ca.DM(load_matrix(self.spec))     # rotor loads n^2 / n_max^2 per unit wrench
         inv_sx = ca.DM(1.0 / self._sx)
         g = ca.vertcat(ca.vec((Xn - X[:, 1:]) * ca.repmat(inv_sx, 1, N)), (X[:, 0] - x0) * inv_sx,
-                       ca.vec(ca.mtimes(Minv, U)) / self.spec.n_max_sq)
+                       ca.vec(ca.mtimes(load, U)))
         self._n_dyn = nx * N + nx
         w = ca.vertcat(ca.vec(Xs), ca.vec(Us))
         nlp = {"x": w, "f": cost, "g": g, "p": ca.vertcat(x0, ca.vec(ref), ca.vec(uref), off)}

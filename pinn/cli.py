@@ -11,6 +11,8 @@ import os
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from sim.files import write_json
 from sim.params import FIDELITIES, INPUT_LOGS
 
@@ -157,6 +159,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     name = args.name or default_name(args.arch if recipe is None else f"{args.arch}_{recipe}", spec)
     res, metrics = _train_one(ds, args.arch, args.profile, args.seed, args.threads, recipe,
                               progress=sys.stderr.isatty(), **overrides)
+    last = res.history[-1]
+    if not (np.isfinite(last["val"]) and np.all(np.isfinite(last["theta"]))):
+        raise ValueError(f"training {name} ended with a non-finite validation loss ({last['val']}) or parameters; "
+                         f"nothing was written to {args.out}")
     training_config = {"name": name, "recipe": args.arch if recipe is None else f"{args.arch}+{recipe}",
                        "train": res.config.to_dict(), "data": spec}
     paths = export_model(res.model, args.out, name, training_config, spec["seed"], metrics, res.stats)
@@ -167,7 +173,6 @@ def cmd_train(args: argparse.Namespace) -> int:
               + (f"--inputs {spec['inputs']} " if "inputs" in spec else ""))
            + (f"--dropout-until {args.dropout_until:g} " if overrides else "")
            + f"--threads {args.threads} " + (f"--name {args.name} " if args.name else "") + f"--out {args.out}")
-    last = res.history[-1]
     entry = {
         "files": {k: Path(v).name for k, v in paths.items()},
         "command": cmd,

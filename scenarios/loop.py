@@ -15,7 +15,8 @@ the period with whatever input is in effect, and the controller is told
 the command that entered the actuators during the period (its time average,
 when it changed mid-way; before any input delay, which is the plant's): a
 controller whose model has actuator or history states carries them with
-it; then the crash test. The loop records everything in a :class:`Trace`.
+it; an estimator is told the input in effect (after the delay: what drove
+the plant); then the crash test. The loop records everything in a :class:`Trace`.
 
 With an :class:`Estimator` the controller never sees the state: at every
 period boundary the estimator collects what the sensors delivered, and when
@@ -122,6 +123,8 @@ class IdealClock:
         self.u = np.asarray(hover, dtype=float)
         #: The command that entered the actuators in the last period flown (before the plant's delay).
         self.sent = self.u
+        #: The input in effect (after the delay) over the last period flown.
+        self.in_effect = self.u
 
     def idle(self, k: int) -> bool:
         return True
@@ -134,6 +137,7 @@ class IdealClock:
     def fly_period(self, plant, k: int) -> np.ndarray:
         """Advance the plant through period ``k``; the input in effect at its end."""
         plant.advance(self.u, DT)
+        self.in_effect = self.u
         return self.u
 
 
@@ -159,6 +163,8 @@ class RealtimeClock:
         self._sent_events: list[tuple[int, np.ndarray]] = []
         #: Time average of the command that entered the actuators in the last period flown (before the delay).
         self.sent = self.u
+        #: Time average of the input in effect (after the delay) over the last period flown.
+        self.in_effect = self.u
 
     def idle(self, k: int) -> bool:
         return self.busy_until_ms <= PERIOD_MS * k
@@ -172,12 +178,15 @@ class RealtimeClock:
     def fly_period(self, plant, k: int) -> np.ndarray:
         """Advance the plant through period ``k`` in pieces; the input in effect at its end."""
         now, t1 = PERIOD_MS * k, PERIOD_MS * (k + 1)
+        effect = np.zeros_like(self.u)
         while now < t1:
             while self.events and self.events[0][0] <= now:
                 self.u = self.events.pop(0)[1]
             nxt = t1 if not self.events else min(t1, self.events[0][0])
             plant.advance(self.u, (nxt - now) * 1e-3)
+            effect += (nxt - now) * self.u
             now = nxt
+        self.in_effect = effect / PERIOD_MS
         # The command at the actuators' input over the same period, before the delay, averaged over time.
         now, total = PERIOD_MS * k, np.zeros_like(self.u)
         while now < t1:
@@ -253,9 +262,12 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
     ``x_ref`` (steps + 1, 12): the reference at each period boundary (the
     crash test's). ``progress``: an optional wrapper of the period range
     (for example ``tqdm``). ``estimator``: the controller sees its estimate
-    (``sensor`` is then unused). The loop ends early at a crash.
+    (``sensor`` is then unused). The loop ends early at a crash, and when the
+    estimator loses the state (:class:`mpc.errors.EstimatorError`: the run is
+    recorded as crashed at that period, its reason ``"estimator failed: ..."``).
     """
     from mpc.controller import collector_paused
+    from mpc.errors import EstimatorError
 
     tr = Trace.empty(steps)
     tr.x[0] = plant.x
@@ -281,7 +293,11 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
                 if set_deadline is not None:
                     set_deadline(c0 + DT - DEADLINE_MARGIN_S)
                 if estimator is not None:
-                    est = estimator.estimate()
+                    try:
+                        est = estimator.estimate()
+                    except EstimatorError as e:   # the state is lost: the flight ends here, recorded as a crash
+                        tr.crash_step, tr.crash_reason = k, f"estimator failed: {e}"
+                        break
                     xm = est.x
                     if disturb is not None:
                         disturb(est.disturbance, est.x)
@@ -308,7 +324,9 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
         if tell is not None:
             tell(clock.sent)
         if estimator is not None:
-            estimator.applied(clock.sent)
+            # The filter predicts with what drove the plant: after an actuation delay, the command sent that many
+            # periods ago (a flight computer knows its own delay), not the one sent in this period.
+            estimator.applied(clock.in_effect)
         x = plant.x
         tr.x[k + 1] = x
         tr.steps = k + 1

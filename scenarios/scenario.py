@@ -46,6 +46,12 @@ RANDOM_A_MAX = 4.0
 HOVER_START_OFFSET_M = (0.03, -0.02, 0.02)
 HOVER_START_ATTITUDE_DEG = (3.0, -3.0, 5.0)
 HOVER_DURATION_S = 6.0
+#: The longest flight a scenario may ask for, s. A small quadrotor's battery lasts 5-10 minutes; a flight's trace
+#: holds about 1 kB per 10 ms period (60 MB for 600 s, kept in memory until written), and each period costs a few
+#: milliseconds of computing (600 s of flight take 5-20 minutes to fly here).
+MAX_DURATION_S = 600.0
+DURATION_LIMIT_REASON = ("a small quadrotor's battery lasts 5-10 minutes, and a flight's trace (about 1 kB per "
+                         "10 ms period) is kept in memory until it is written")
 #: Measurement noise of ``+noise`` and delay of ``+delay``: see ``docs/scenarios.md`` for how they were chosen.
 NOISE = NoiseModel(position=1e-3, attitude=2e-3, body_rate=1e-2, velocity=1e-2)
 DELAY_STEPS = 3
@@ -161,6 +167,9 @@ class Scenario:
             raise ScenarioError(f"kind must be one of {', '.join(KINDS)}; found {self.kind!r}")
         if not (np.isfinite(self.duration_s) and self.duration_s >= DT):
             raise ScenarioError(f"duration_s must be >= {DT}; found {self.duration_s}")
+        if self.duration_s > MAX_DURATION_S:
+            raise ScenarioError(f"duration_s must be at most {MAX_DURATION_S:g} s ({DURATION_LIMIT_REASON}); "
+                                f"found {self.duration_s:g}")
         if len(self.x0) != NX or not np.all(np.isfinite(self.x0)):
             raise ScenarioError(f"x0 must hold 12 finite numbers; found {len(self.x0)}")
         if self.kind == "figure8" and not (self.period_s and self.period_s > 0):

@@ -33,7 +33,8 @@ import numpy as np
 from sim.params import DT, NoiseModel
 
 from .errors import ScenarioError
-from .scenario import HOVER_DURATION_S, NOISE, START_MAP, GustImpulse, Scenario, WindGusts
+from .scenario import (DURATION_LIMIT_REASON, HOVER_DURATION_S, MAX_DURATION_S, NOISE, START_MAP, GustImpulse,
+                       Scenario, WindGusts)
 from .metrics import CRASH_TILT_RAD
 
 #: The references a file may give; exactly one of them.
@@ -357,6 +358,11 @@ def scenario_from_dict(data: dict, name: str = "scenario", where: str = "scenari
         _check_path(r, kind, traj, fields.get("path_duration_s"))
     default = HOVER_DURATION_S if kind == "hover" else round(traj.duration_s + HOLD_S, 6)
     duration_s = r.number(data["duration_s"], "duration_s", DT, unit="s") if "duration_s" in data else default
+    if duration_s > MAX_DURATION_S:
+        what = (f"duration_s = {duration_s:g} s" if "duration_s" in data else
+                f"the reference lasts {traj.duration_s:g} s, so the flight (with its {HOLD_S:g} s of hover after it) "
+                f"would last {duration_s:g} s")
+        r.fail(f"{what}; a flight may last at most {MAX_DURATION_S:g} s ({DURATION_LIMIT_REASON})")
     x0 = traj(np.array([0.0]))[0]
     if "start_offset_m" in data:
         x0[0:3] += r.vector3(data["start_offset_m"], "start_offset_m", " [dx, dy, dz] (m, NED)")

@@ -336,20 +336,51 @@ def load_dataset(path) -> Dataset:
     Raises
     ------
     DatasetError
-        If a field is missing or the format version is unknown.
+        If the file is missing, not an ``.npz`` archive, truncated or otherwise unreadable, lacks a field, has an
+        unknown format version, or holds a non-finite value in its state, input or rotor-speed arrays (the message
+        names the file, the array and where the first such value sits).
     """
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"dataset file {str(path)!r} does not exist")
-    with np.load(path, allow_pickle=False) as z:
-        missing = [k for k in (*Dataset.ARRAYS, "meta") if k not in z.files]
-        if missing:
-            raise DatasetError(f"{path} is not a pinn-mpc dataset: missing {missing}")
-        meta = json.loads(str(z["meta"][()]))
-        if meta.get("format_version") != FORMAT_VERSION:
-            raise DatasetError(f"{path} has format_version {meta.get('format_version')}, "
-                               f"this code reads {FORMAT_VERSION}")
-        return Dataset(**{k: z[k] for k in Dataset.ARRAYS}, meta=meta)
+    if path.suffix != ".npz":
+        raise DatasetError(f"dataset file {str(path)!r} is not an .npz file (pinnmpc data writes one)")
+    if not zipfile.is_zipfile(path):
+        raise DatasetError(f"dataset file {str(path)!r} is not an .npz archive (truncated, or not written by "
+                           f"pinnmpc data)")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            missing = [k for k in (*Dataset.ARRAYS, "meta") if k not in z.files]
+            if missing:
+                raise DatasetError(f"dataset file {str(path)!r} is not a pinn-mpc dataset: missing "
+                                   f"{', '.join(missing)}")
+            meta = json.loads(str(z["meta"][()]))
+            if not isinstance(meta, dict) or meta.get("format_version") != FORMAT_VERSION:
+                found = meta.get("format_version") if isinstance(meta, dict) else None
+                raise DatasetError(f"dataset file {str(path)!r} has format_version {found}, "
+                                   f"this code reads {FORMAT_VERSION}")
+            arrays = {k: z[k] for k in Dataset.ARRAYS}
+    except DatasetError:
+        raise
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zipfile.LargeZipFile) as e:
+        # np.load's errors on a damaged archive: BadZipFile, EOFError or ValueError on a truncated member, ...
+        reason = " ".join(str(e).split()) or type(e).__name__
+        raise DatasetError(f"dataset file {str(path)!r} cannot be read (truncated or not a pinn-mpc dataset): "
+                           f"{reason}") from None
+    for k in ("x", "u", "rotor_speed", "x_next"):
+        a = arrays[k]
+        if not np.issubdtype(a.dtype, np.number):
+            raise DatasetError(f"dataset file {str(path)!r}: array {k} holds {a.dtype}, not numbers")
+        bad = ~np.isfinite(a)
+        if np.any(bad):
+            first = tuple(int(i) for i in np.argwhere(bad)[0])
+            raise DatasetError(f"dataset file {str(path)!r}: array {k} holds {int(bad.sum())} non-finite "
+                               f"value(s), the first at index {first}; a model cannot be trained on them")
+    try:
+        return Dataset(**arrays, meta=meta)
+    except (TypeError, ValueError) as e:
+        raise DatasetError(f"dataset file {str(path)!r} is not a consistent pinn-mpc dataset: "
+                           f"{' '.join(str(e).split())}") from None
 
 
 def _split(n: int, rng: np.random.Generator) -> np.ndarray:

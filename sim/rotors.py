@@ -48,6 +48,18 @@ def mixer_matrix(p: QuadParams) -> np.ndarray:
     return np.array(mixer(p.kt, p.kq, p.lever), dtype=float)
 
 
+def load_matrix(p: QuadParams) -> np.ndarray:
+    """``L`` (4, 4): each rotor's load ``n_i^2 / n_max^2`` (0 to 1 where it can be flown) per unit of wrench.
+
+    ``L = M^-1 / n_max^2``. Constraints written with it (``0 <= L u <= 1``)
+    have entries of the same size whatever the rotor unit: with rotor speeds
+    in rad/s (``n_max`` in the thousands) the rows ``M^-1 u <= n_max^2``
+    reach 1e7 beside dynamics rows of order one, and a QP solver's
+    equilibration cannot undo that.
+    """
+    return np.linalg.inv(mixer_matrix(p)) / p.n_max_sq
+
+
 def allocate(w: np.ndarray, p: QuadParams) -> np.ndarray:
     """Unclipped ``n^2`` (..., 4) that produces wrench ``w`` (..., 4)."""
     return w @ np.linalg.inv(mixer_matrix(p)).T

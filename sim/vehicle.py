@@ -13,7 +13,8 @@ Its keys are the field names of :class:`Vehicle`. Every key left out takes
 the Rolling Spider's value (the reference values of :class:`sim.QuadParams`
 and of the high-fidelity plant), except ``n_max``, which defaults to the
 rotor speed at which four rotors give twice the vehicle's weight. An unknown
-key is an error that names it.
+key is an error that names it, and so is a vehicle whose rotors cannot lift
+:data:`MIN_THRUST_TO_WEIGHT` times its weight.
 
 Three presets ship with the package (``sim/vehicles/*.toml``):
 ``rolling-spider`` (the default; the paper's vehicle), ``hummingbird`` and
@@ -33,6 +34,9 @@ from ._validate import nonnegative_finite, positive_finite
 from .errors import SimInputError
 from .params import GRAVITY, HIGH_FIDELITY, Fidelity, QuadParams
 
+#: The least maximum thrust a vehicle may have, as a multiple of its weight: below it the rotors cannot hover it and
+#: still turn it (at 1.2 a hover uses 83 % of the thrust and leaves 17 % for attitude control).
+MIN_THRUST_TO_WEIGHT = 1.2
 #: Folder of the shipped vehicle files.
 VEHICLE_DIR = Path(__file__).resolve().parent / "vehicles"
 #: The vehicle of every command that is given none.
@@ -89,7 +93,14 @@ class Vehicle:
                 raise SimInputError(f"vehicle {self.name!r}: {f.name} must be a number; found {v!r}")
             check = positive_finite if f.name in _POSITIVE else nonnegative_finite
             object.__setattr__(self, f.name, check(v, f"vehicle {self.name!r}: {f.name}"))
-        self.params   # validates the rigid body as QuadParams does
+        p = self.params   # validates the rigid body as QuadParams does
+        ratio = 4.0 * p.kt * p.n_max_sq / (p.m * p.g)
+        if not ratio >= MIN_THRUST_TO_WEIGHT:
+            raise SimInputError(
+                f"vehicle {self.name!r}: its four rotors at n_max lift {ratio:.3g} times its weight "
+                f"(4 kt n_max^2 = {4.0 * p.kt * p.n_max_sq:.4g} N against m g = {p.m * p.g:.4g} N); "
+                f"a vehicle must lift at least {MIN_THRUST_TO_WEIGHT} times its weight to hover and be controlled "
+                f"(check kt, n_max and m, and that kt is in the unit of n_max)")
 
     @property
     def params(self) -> QuadParams:
