@@ -9,7 +9,7 @@ from .figures import (FIG_DIR, FigureOut, fisher_figure, headline_figure, model_
 from .headline import correlation_text, headline_data
 from .html import markdown_to_html
 from .identification import highfi_table, table_six
-from .plants import plants_section, split_by_plant
+from .plants import plants_section, split_by_plant, where_sentence
 from .inputs import load_inputs
 from .summary import summary_text
 from .versus import versus_section
@@ -118,7 +118,8 @@ def report_markdown(run_dir) -> str:
         table_two(inp.evaluation) + "\n\n" + fisher_table(inp.fisher))
     body["Table III: ablation"] = table_three(inp.ablation, inp.evaluation)
     body["Table VI: identification under model mismatch"] = table_six(inp.evaluation)
-    body["Closed-loop results"] = closed_loop_table(inp.runs)
+    body["Closed-loop results"] = (where_sentence(inp.runs) + (" " if inp.runs else "")
+                                   + closed_loop_table(inp.runs))
     body["High-fidelity plant: models trained on its own data"] = highfi_table(
         inp.runs + members, inp.evaluation)
     body["Learned against nominal on plants with unmodelled physics"] = versus_section(inp.versus)

@@ -17,11 +17,52 @@ PLANT_LABELS = {"sim": "our simulator", "rotorpy-ideal": "RotorPy, ideal (instan
 PLANT_ORDER = ("sim", "rotorpy-ideal", "rotorpy")
 NO_RUNS = ("No run on another plant or vehicle in this results folder (the main job flies them when RotorPy is "
            "installed: `pip install -e '.[rotorpy]'`).")
+#: Units of the timing table's columns.
+TIMING_HEADER = ["plant", "vehicle", "scenario", "controller", "model", "RMSE (mm)", "solve median (ms)",
+                 "worst solve (ms)", "deadline misses / periods"]
 
 
 def where(run: dict) -> tuple[str, str]:
     """(plant, vehicle) of a result (the defaults for results written before plants existed)."""
     return run.get("plant") or DEFAULT_PLANT, run.get("vehicle") or DEFAULT_VEHICLE
+
+
+def plant_label(plant: str) -> str:
+    """How the report names a plant."""
+    return PLANT_LABELS.get(plant, plant)
+
+
+def where_sentence(runs: list[dict]) -> str:
+    """One sentence naming the plant and vehicle of every run in ``runs`` (with counts when there are several)."""
+    counts: dict[tuple[str, str], int] = {}
+    for r in runs:
+        counts[where(r)] = counts.get(where(r), 0) + 1
+    if not counts:
+        return ""
+    if len(counts) == 1:
+        (plant, vehicle), n = next(iter(counts.items()))
+        return f"All {n} run{'s' if n > 1 else ''} here flew on {plant_label(plant)} with the {vehicle}."
+    order = sorted(counts, key=lambda k: (PLANT_ORDER.index(k[0]) if k[0] in PLANT_ORDER else 99, k[1]))
+    return ("The runs here flew on " + "; ".join(f"{plant_label(p)} with the {v} ({counts[(p, v)]} runs)"
+                                                for p, v in order) + ".")
+
+
+def timing_table(runs: list[dict]) -> str:
+    """Each run's RMSE beside its median and worst solve time and its deadline misses, with its plant and vehicle."""
+    rows = []
+    key = (lambda r: (PLANT_ORDER.index(where(r)[0]) if where(r)[0] in PLANT_ORDER else 99, where(r)[1],
+                      str(r.get("scenario")), str(r.get("controller")), str(r.get("model"))))
+    for r in sorted(runs, key=key):
+        sm = r.get("solve_ms") or {}
+        flown = not r.get("error") and bool(sm)
+        rows.append([plant_label(where(r)[0]), where(r)[1], r.get("scenario"), str(r.get("controller")).upper(),
+                     r.get("model"), _cell(r),
+                     fmt(sm.get("median"), ".2f") if flown else MISSING,
+                     fmt(sm.get("max"), ".2f") if flown else MISSING,
+                     f"{r.get('deadline_misses')} / {r.get('steps')}" if flown else MISSING])
+    return ("**Compute time on each plant and vehicle.** Per run: position RMSE (mm, or the crash), the "
+            "controller's median and largest time per 10 ms period, and the periods whose call took longer "
+            "than the period (deadline misses).\n\n" + md_table(TIMING_HEADER, rows))
 
 
 def split_by_plant(runs: list[dict], plan: dict | None) -> tuple[list[dict], list[dict]]:
@@ -46,7 +87,7 @@ def plants_section(own: list[dict], others: list[dict]) -> str:
     single = [r for r in own + others if r.get("member") is None and r.get("timing", "ideal") == "ideal"]
     ext = [r for r in others if r.get("member") is None and r.get("timing", "ideal") == "ideal"]
     if not ext:
-        return NO_RUNS
+        return where_sentence(own) + (" " if own else "") + NO_RUNS
     by = {(r.get("scenario"), r.get("controller"), r.get("model"), *where(r)): r for r in single}
     parts = []
     # 1. The Rolling Spider (or the folder's vehicle) on every plant: one row per model.
@@ -72,7 +113,7 @@ def plants_section(own: list[dict], others: list[dict]) -> str:
                      f"equations where they are known (on RotorPy's ideal set-up the rigid-body equations without "
                      f"drag); `nominal` the rigid-body equations with the vehicle's values (on our simulator the "
                      f"oracle itself).\n\n"
-                     + md_table(["model"] + [PLANT_LABELS.get(p, p) for p in plants], rows))
+                     + md_table(["model"] + [plant_label(p) for p in plants], rows))
         parts.append(_compare(by, sc, ctrl, own_vehicle, models))
     # 2. Other vehicles: the nominal equations on each plant.
     other_v = [v for v in vehicles if v != own_vehicle]
@@ -85,7 +126,8 @@ def plants_section(own: list[dict], others: list[dict]) -> str:
         parts.append("**Other vehicles** (RotorPy's presets). Position RMSE in mm, or the crash.\n\n"
                      + md_table(["vehicle", "scenario", "controller", "model"] + [PLANT_LABELS[p] for p in PLANT_ORDER],
                                 rows))
-    return "\n\n".join(p for p in parts if p)
+    parts.append(timing_table(ext))
+    return "\n\n".join(p for p in [where_sentence(own + others)] + parts if p)
 
 
 def _compare(by: dict, sc: str, ctrl: str, vehicle: str, models: list[str]) -> str:

@@ -246,7 +246,7 @@ def closed_loop_table(runs: list[dict]) -> str:
     if not runs:
         return "`results.json` lists no closed-loop runs."
     header = ["scenario", "controller", "model", "RMSE (m)", "max error (m)", "settled (m)", "crash",
-              "solve median / p95 (ms)", "deadline misses", "solver failures", "fallbacks"]
+              "solve median / p95 / max (ms)", "deadline misses", "solver failures", "fallbacks"]
     rows = []
     for r in runs:
         err = bool(r.get("error"))
@@ -254,7 +254,8 @@ def closed_loop_table(runs: list[dict]) -> str:
         rows.append([r["scenario"], controller_label(r["controller"]), r["model"],
                      fmt(r.get("rmse_position_m"), RMSE_FORMAT), fmt(r.get("max_position_error_m"), RMSE_FORMAT),
                      fmt(r.get("settled_error_m"), RMSE_FORMAT), crash_text(r),
-                     MISSING if err or not sm else f"{fmt(sm.get('median'), '.2f')} / {fmt(sm.get('p95'), '.2f')}",
+                     MISSING if err or not sm else
+                     f"{fmt(sm.get('median'), '.2f')} / {fmt(sm.get('p95'), '.2f')} / {fmt(sm.get('max'), '.2f')}",
                      MISSING if err else fmt(r.get("deadline_misses"), "d"),
                      MISSING if err else fmt(r.get("solver_failures"), "d"),
                      MISSING if err else fmt(r.get("fallbacks"), "d")])

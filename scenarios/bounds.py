@@ -254,6 +254,15 @@ def generate(results: list[dict], models: list[str], source: str = "") -> str:
         r = by_key.get((scenario, controller, model))
         o = by_key.get((scenario, controller, "oracle"))
         if r is None or o is None:
+            elsewhere = sorted({f"{x.get('plant', 'sim')} with the {x.get('vehicle', DEFAULT_VEHICLE)}"
+                                for x in results if _key(x) in ((scenario, controller, model),
+                                                                (scenario, controller, "oracle"))
+                                and x.get("timing", "ideal") == "ideal"})
+            if elsewhere:
+                raise BoundsError(f"the results have runs of {model} on {scenario} with {controller} only on "
+                                  f"{', '.join(elsewhere)}; bounds are of our simulator with the {DEFAULT_VEHICLE} "
+                                  f"(the tests' cases): give the results of a `pinnmpc run` without --plant and "
+                                  f"--vehicle")
             raise BoundsError(f"the results have no run of {model} on {scenario} with {controller} "
                               f"(or of the oracle there); run `pinnmpc run` first")
         for run, who in ((r, model), (o, "the oracle")):

@@ -222,6 +222,14 @@ def cmd_fly(args: argparse.Namespace) -> int:
     return 2 if result["error"] else 0     # a run that could not start is a failure of the command
 
 
+def _check_vehicle(vehicle) -> None:
+    """A sweep's --vehicle is read (and refused, naming the file and key) before anything is written or flown."""
+    if vehicle is not None:
+        from sim.vehicle import load_vehicle
+
+        load_vehicle(vehicle)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc run``."""
     from .campaign import run_main_job
@@ -230,6 +238,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise ValueError(f"--jobs must be >= 1; found {args.jobs}")
     if args.address is not None and args.engine != "ray":
         raise ValueError("--address needs --engine ray")
+    _check_vehicle(args.vehicle)
     check_writable(args.out, "--out", folder=True)
     out = run_main_job(args.out, args.models, args.jobs, args.full, progress=True, engine=args.engine,
                        address=args.address, resume=not args.fresh, plant=args.plant, vehicle=args.vehicle,
@@ -268,6 +277,7 @@ def cmd_study(args: argparse.Namespace) -> int:
                          "--no-publish (or another --models folder)")
     from .zoo import study_file
 
+    _check_vehicle(args.vehicle)
     check_writable(args.out, "--out", folder=True)
     select = None if args.select is None else [n.strip() for n in args.select.split(",") if n.strip()]
     if select is not None and args.estimator == "none" and not args.no_publish:
@@ -278,6 +288,11 @@ def cmd_study(args: argparse.Namespace) -> int:
     print(format_study(out))
     name = study_file(args.estimator)
     print(f"wrote {args.out / name}" + ("" if args.no_publish else f" and {args.models / name}"))
+    failed = out.get("failed") or {}
+    if failed:
+        print(f"pinnmpc study: {len(failed)} model{'s' if len(failed) > 1 else ''} could not be studied (recorded in "
+              f"{name}): " + "; ".join(f"{n}: {why}" for n, why in failed.items()), file=sys.stderr)
+        return 1
     return 0
 
 

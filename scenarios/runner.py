@@ -171,9 +171,11 @@ class RunSpec:
         sc = get_scenario(self.scenario)  # raises for an unknown name or a bad scenario file
         object.__setattr__(self, "_scenario_name", sc.name)
         if sc.high_fidelity and self.plant != "sim":
+            hint = ("RotorPy's own motor lag and aerodynamics are already on with --plant rotorpy: fly the scenario "
+                    "without its high-fidelity set-up" if self.plant == "rotorpy" else
+                    "fly --plant rotorpy for RotorPy's motor lag and aerodynamics, or --plant sim for ours")
             raise ScenarioError(f"scenario {sc.name!r} asks for the reference simulator's high-fidelity set-up, which "
-                                f"plant {self.plant!r} does not have (fly --plant rotorpy for RotorPy's motor lag and "
-                                f"aerodynamics)")
+                                f"plant {self.plant!r} does not have ({hint})")
         if not isinstance(self.model, str) or not self.model:
             raise ScenarioError(f"model must be 'oracle', 'nominal' or the path of an .onnx file; found {self.model!r}")
         if self.model.startswith("analytic:"):

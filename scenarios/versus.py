@@ -192,13 +192,24 @@ def summarize_plant(key: str, models: list[str], results: dict, speeds: dict) ->
         if row["path"] is not None and row["ensemble"]["crashes"] == 0 and row["ensemble"]["median"] is not None:
             if best is None or row["ensemble"]["median"] < rows[best]["ensemble"]["median"]:
                 best = name
-    verdict = None
+    verdict, no_verdict = None, None
+    n_members = max((r["ensemble"]["runs"] for r in rows.values()), default=0)
+    if best is None:
+        no_verdict = "no learned model flew every member without a crash"
+    elif rows[best]["versus_nominal"] is None:
+        if n_members < 2:
+            no_verdict = (f"no comparison with the nominal equations: their bootstrap intervals need at least 2 "
+                          f"members per model (found {n_members}; --members)")
+        elif nominal_vals is None or len(nominal_vals) < 2:
+            no_verdict = "no comparison: the nominal equations did not fly at least 2 members without a crash"
+        else:
+            no_verdict = f"no comparison: {best} has fewer than 2 members with an RMSE"
     if best is not None and rows[best]["versus_nominal"] is not None:
         v = rows[best]["versus_nominal"]
         verdict = {"best": best, "fraction": v["fraction"], "fraction_ci95": v["fraction_ci95"], "apart": v["apart"],
                    "goal": WIN_FRACTION, "met": bool(v["fraction"] >= WIN_FRACTION and v["apart"])}
     return {"plant": p.plant, "label": p.label, "scenario": p.scenario(VERSUS_SCENARIO), "models": rows,
-            "verdict": verdict}
+            "verdict": verdict, "no_verdict": no_verdict}
 
 
 @locks_out_dir
@@ -289,7 +300,7 @@ def format_versus(out: dict) -> str:
                          f"max speed {'–' if sp is None else f'{sp:.2f} m/s'}")
         v = p["verdict"]
         if v is None:
-            lines.append("  no learned model flew every member")
+            lines.append("  " + (p.get("no_verdict") or "no learned model flew every member without a crash"))
         else:
             lines.append(f"  best learned: {v['best']}, {100 * v['fraction']:.0f} % better than nominal "
                          f"(goal {100 * v['goal']:.0f} %, intervals {'apart' if v['apart'] else 'overlap'}): "

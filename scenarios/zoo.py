@@ -86,10 +86,11 @@ def zoo_models(models_dir, progress: bool = False) -> dict[str, dict]:
 def manifest_of_files(models_dir, progress: bool = False) -> dict[str, dict]:
     """Manifest entries for the model files of a folder that has no manifest: ``{name: entry}``, sorted by name.
 
-    Each model passes the contract check (a defect is an error naming the file) and is evaluated open loop on the
+    Each model is checked against the contract and evaluated open loop on the
     zoo's test data (:data:`pinn.zoo.TEST_DATA`, generated in a few seconds): its one-step and 100-step position
     errors are the entry's ``metrics``, as ``pinnmpc zoo`` records them when it trains a model (the same numbers:
-    onnxruntime on the exported file agrees with the training run's torch to 1e-15 m).
+    onnxruntime on the exported file agrees with the training run's torch to 1e-15 m). A model that fails the
+    check or the evaluation gets an entry with ``failed``, the reason, instead of metrics.
     """
     from mpc.contract import ModelContractError, check_model, model_files
     from pinn.evaluate import evaluate_model, regenerate
@@ -105,13 +106,14 @@ def manifest_of_files(models_dir, progress: bool = False) -> dict[str, dict]:
     ds = regenerate(TEST_DATA)
     out = {}
     for f in files:
+        entry = {"files": {"onnx": f.name}, "why": "a model of your own", "test_data": TEST_DATA, "path": str(f)}
         try:
             info = check_model(f)
-        except ModelContractError as e:
-            raise ScenarioError(str(e)) from e
-        r = evaluate_model(f, ds=ds, info=info)
-        out[f.stem] = {"files": {"onnx": f.name}, "architecture": info.architecture, "why": "a model of your own",
-                       "test_data": TEST_DATA, "path": str(f),
+            r = evaluate_model(f, ds=ds, info=info)
+        except (ModelContractError, ValueError) as e:   # recorded; the study goes on with the other models
+            out[f.stem] = {**entry, "failed": " ".join(str(e).split())}
+            continue
+        out[f.stem] = {**entry, "architecture": info.architecture,
                        "metrics": {"one_step_mae": r["one_step"], "rollout_100_mae": r["rollout_100"]}}
     return out
 
@@ -236,7 +238,21 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
 
     if estimator not in ESTIMATORS:
         raise ScenarioError(f"estimator must be one of {', '.join(ESTIMATORS)}; found {estimator!r}")
+    from mpc.models import load_model
+
     models = select_models(zoo_models(models_dir, progress), select)
+    # A model that cannot be loaded (a damaged file, another dt, ...) is recorded with its reason and not flown;
+    # the study goes on with the others.
+    failed = {n: e["failed"] for n, e in models.items() if e.get("failed")}
+    for name, entry in models.items():
+        if name not in failed:
+            try:
+                load_model(entry["path"])
+            except ValueError as e:
+                failed[name] = " ".join(str(e).split())
+    models = {n: e for n, e in models.items() if n not in failed}
+    if not models:
+        raise ScenarioError(f"{models_dir}: no model can be flown: " + "; ".join(f"{n}: {w}" for n, w in failed.items()))
     oracle, ens, ladder = study_specs(models, members, controllers, plant, vehicle, estimator)
     t0 = time.perf_counter()
     results = sweep([oracle, *ens, *ladder], out_dir, jobs=jobs, progress=progress, **sweep_kwargs)
@@ -249,9 +265,13 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
     speeds = ladder_speeds()
     rows = {}
     for name, entry in models.items():
+        try:
+            candidates = _candidates(name, entry, oracle_trace)
+        except ValueError as e:      # the model changed or broke after its flights: recorded, not scored
+            failed[name] = " ".join(str(e).split())
+            continue
         row = {"run": entry.get("run"), "why": entry.get("why"), "epochs": entry.get("epochs"),
-               "architecture": entry.get("architecture"), "candidates": _candidates(name, entry, oracle_trace),
-               "ensembles": {}}
+               "architecture": entry.get("architecture"), "candidates": candidates, "ensembles": {}}
         for c in controllers:
             runs = [by_id[s.run_id] for s in ens if s.model == entry["path"] and s.controller == c]
             row["ensembles"][c] = summarize(runs)
@@ -267,7 +287,7 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
                       "rmse_bound_m": LADDER_RMSE_BOUND_M},
            "candidates": CANDIDATES, "kstep": KSTEP, "oracle_run": oracle.run_id,
            "oracle_rmse_m": ref.get("rmse_position_m"), "models": rows, "scores": scores,
-           "refused": refused_models(models_dir),
+           "refused": refused_models(models_dir), "failed": failed,
            "runs": len(results), "code_version": code_version(), "plant": plant,
            "vehicle": oracle.vehicle_data.name,
            "estimator": estimator,

@@ -617,3 +617,185 @@ def test_a_line_search_that_would_end_past_the_budget_is_skipped_for_the_full_st
     assert np.array_equal(X1, X2) and np.array_equal(U1, U2)
     info = roomy.solve_from(x, t, X0, U0)[2]
     assert info.extra["late_full_steps"] == 0 and len(info.extra["merit"]) == 1
+
+
+# ----------------------------------------------------------------- a scenario longer than the limit
+
+@pytest.mark.parametrize("text,what", [
+    ("hover = [0, 0, -1]\nduration_s = 1e7\n", "duration_s = 1e+07 s"),
+    ("waypoints = [[0, 0, -1], [1, 0, -1]]\npath_duration_s = 900\n", "the reference lasts 900 s"),
+])
+def test_a_scenario_longer_than_the_limit_is_refused_with_its_reason(tmp_path, capsys, no_flight, text, what):
+    from scenarios.scenario import MAX_DURATION_S
+
+    f = tmp_path / "long.toml"
+    f.write_text(text)
+    out = tmp_path / "r.json"
+    rc = main(["fly", "--model", "oracle", "--controller", "lqr", "--scenario", str(f), "--json", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "long.toml" in err and what in err and f"at most {MAX_DURATION_S:g} s" in err
+    assert "battery" in err and len(err.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_the_duration_limit_holds_for_scenarios_made_in_python_too():
+    import dataclasses
+
+    from scenarios.scenario import MAX_DURATION_S
+
+    with pytest.raises(ScenarioError, match="at most 600 s"):
+        dataclasses.replace(runner.get_scenario("hover"), duration_s=MAX_DURATION_S + DT_S)
+    dataclasses.replace(runner.get_scenario("hover"), duration_s=MAX_DURATION_S)
+
+
+DT_S = 0.01
+
+
+# ----------------------------------------------------------------- datasets a model cannot be trained on
+
+def _dataset(tmp_path):
+    from sim.excitation import make_dataset
+
+    path = tmp_path / "d.npz"
+    make_dataset("small", 3, 0.5, 0).save(path)
+    return path
+
+
+@pytest.mark.parametrize("damage,says", [
+    ("nan", "array x holds 1 non-finite value(s), the first at index (1, 5, 2)"),
+    ("inf", "array u holds 1 non-finite value(s)"),
+    ("truncated", "is not an .npz archive"),
+    ("not-npz", "is not an .npz file"),
+    ("text", "is not an .npz archive"),
+    ("missing", "missing rotor_speed"),
+])
+def test_train_refuses_a_dataset_it_cannot_use_in_one_line_and_writes_nothing(tmp_path, capsys, damage, says):
+    import dataclasses
+    import zipfile
+
+    from sim.excitation import load_dataset
+
+    good = _dataset(tmp_path)
+    bad = tmp_path / "bad.npz"
+    ds = load_dataset(good)
+    if damage == "nan":
+        x = ds.x.copy()
+        x[1, 5, 2] = np.nan
+        dataclasses.replace(ds, x=x).save(bad)
+    elif damage == "inf":
+        u = ds.u.copy()
+        u[0, 0, 0] = np.inf
+        dataclasses.replace(ds, u=u).save(bad)
+    elif damage == "truncated":
+        data = good.read_bytes()
+        bad.write_bytes(data[:len(data) // 2])
+    elif damage == "not-npz":
+        bad = tmp_path / "bad.csv"
+        bad.write_text("x,y\n1,2\n")
+    elif damage == "text":
+        bad.write_text("hello")
+    else:
+        with zipfile.ZipFile(good) as zin, zipfile.ZipFile(bad, "w") as zout:
+            for item in zin.namelist():
+                if item != "rotor_speed.npy":
+                    zout.writestr(item, zin.read(item))
+    out = tmp_path / "models"
+    rc = main(["train", "--arch", "baseline", "--profile", "quick", "--data", str(bad), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and bad.name in err and says in err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert not out.exists()
+
+
+# ----------------------------------------------------------------- a study with models that cannot be flown
+
+def _broken_models(folder: Path) -> None:
+    """A damaged file and a model of another dt, beside whatever else is in ``folder``."""
+    import onnx
+
+    m = onnx.load(str(ROOT / "models" / "zoo" / "baseline_e2.onnx"))
+    for p in m.metadata_props:
+        if p.key == "dt":
+            p.value = "0.02"
+    onnx.save(m, str(folder / "wrongdt.onnx"))
+    (folder / "corrupt.onnx").write_bytes(np.random.default_rng(0).bytes(2000))
+
+
+def test_a_folder_of_models_records_those_that_fail_the_contract_instead_of_stopping(tmp_path):
+    from scenarios.zoo import zoo_models
+
+    shutil.copy(ROOT / "models" / "zoo" / "baseline_e8.onnx", tmp_path)
+    _broken_models(tmp_path)
+    models = zoo_models(tmp_path)
+    assert sorted(models) == ["baseline_e8", "corrupt", "wrongdt"]
+    assert "failed" not in models["baseline_e8"] and models["baseline_e8"]["metrics"]["rollout_100_mae"]
+    assert "not a readable ONNX file" in models["corrupt"]["failed"]
+    assert "'dt' must equal" in models["wrongdt"]["failed"] and "found 0.02" in models["wrongdt"]["failed"]
+
+
+def test_study_exits_non_zero_with_one_line_naming_the_models_it_could_not_study(tmp_path, capsys, monkeypatch):
+    import scenarios.zoo as zoo
+
+    failed = {"corrupt": "not a readable ONNX file", "wrongdt": "metadata 'dt' must equal 0.01; found 0.02"}
+    monkeypatch.setattr(zoo, "run_study", lambda *a, **k: {"failed": failed})
+    monkeypatch.setattr(zoo, "format_study", lambda out: "(the study's table)")
+    rc = main(["study", "--out", str(tmp_path / "out"), "--no-publish"])
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert rc == 1 and len(lines) == 1
+    assert "2 models could not be studied" in lines[0] and "corrupt: not a readable" in lines[0] \
+        and "wrongdt: metadata" in lines[0]
+
+
+@pytest.mark.slow
+def test_a_study_with_a_corrupt_and_a_wrong_dt_model_flies_the_others_and_records_both(tmp_path, capsys):
+    models = tmp_path / "zoo"
+    models.mkdir()
+    for f in ("baseline_e8.onnx", "baseline_e8.jac.onnx"):
+        shutil.copy(ROOT / "models" / "zoo" / f, models)
+    _broken_models(models)
+    out = tmp_path / "out"
+    rc = main(["study", "--models", str(models), "--out", str(out), "--members", "1", "--no-publish", "--jobs", "1"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "2 models could not be studied" in err
+    study = json.loads((out / "study.json").read_text())
+    assert list(study["models"]) == ["baseline_e8"]
+    assert set(study["failed"]) == {"corrupt", "wrongdt"} and "found 0.02" in study["failed"]["wrongdt"]
+    assert study["models"]["baseline_e8"]["ensembles"]["sqp"]["runs"] == 1
+
+
+# ----------------------------------------------------------------- messages that say what is true
+
+def test_versus_with_one_member_says_why_it_gives_no_verdict():
+    from scenarios.versus import VERSUS_PLANTS, summarize_plant
+
+    key = next(iter(VERSUS_PLANTS))
+    sc = VERSUS_PLANTS[key].scenario("figure8-fast")
+
+    from scenarios.library import ladder_names, ladder_speeds
+
+    def run(model, rmse, rung=None):
+        return {"_model": model, "_rung": rung, "rmse_position_m": rmse, "crashed": False, "error": None,
+                "scenario": sc if rung is None else rung, "solve_ms": {"median": 2.0}}
+
+    models = ["nominal", str(ROOT / "models" / "baseline.onnx")]
+    runs = [run(m, rmse) for m, rmse in zip(models, (0.04, 0.03))]
+    runs += [run(m, 0.05, rung) for m in models for rung in ladder_names() if rung != "figure8-fast"]
+    out = summarize_plant(key, models, dict(enumerate(runs)), ladder_speeds())
+    assert out["verdict"] is None
+    assert "at least 2 members" in out["no_verdict"] and "found 1" in out["no_verdict"]
+    assert "flew every member" not in out["no_verdict"]
+
+
+def test_bounds_on_results_of_another_plant_say_so():
+    runs = [dict(r, plant="rotorpy-ideal") for r in oracle_results()]
+    with pytest.raises(BoundsError, match="only on rotorpy-ideal with the rolling-spider") as e:
+        generate(runs, [])
+    assert "run `pinnmpc run` first" not in str(e.value)
+
+
+def test_a_high_fidelity_scenario_on_rotorpy_does_not_advise_rotorpy():
+    with pytest.raises(ScenarioError, match="already on with --plant rotorpy") as e:
+        RunSpec("hover+highfi", "lqr", "nominal", plant="rotorpy")
+    assert "fly --plant rotorpy" not in str(e.value)
+    with pytest.raises(ScenarioError, match="fly --plant rotorpy for RotorPy's"):
+        RunSpec("hover+highfi", "lqr", "nominal", plant="rotorpy-ideal")

@@ -458,10 +458,21 @@ def test_runs_on_other_plants_have_their_own_section_and_stay_out_of_the_others(
     assert "1 learned model(s) do better: alpha" in text and "within 1.0 %" in text
     assert "| crazyflie | figure8-fast | SQP | nominal | – | – | crashed at" in text
     assert "| hummingbird | figure8-fast | SQP | nominal | 2 | – | – |" in text
-    assert plants_section(mine, []) == NO_RUNS
+    # Every run is named with its plant and vehicle, and its compute time stands beside its RMSE.
+    assert "our simulator with the rolling-spider (2 runs)" in text and "RotorPy, motor lag and aerodynamics with " \
+        "the rolling-spider (2 runs)" in text and "with the crazyflie (1 runs)" in text
+    assert "| RotorPy, motor lag and aerodynamics | rolling-spider | figure8-fast | SQP | alpha | 40 | 4.00 | 12.00 | " \
+        "2 / 200 |" in text
+    alone = plants_section(mine, [])
+    assert alone.startswith("All 2 runs here flew on our simulator with the rolling-spider.") and NO_RUNS in alone
     # A folder flown on another plant: its own runs are those, ours the others.
     mine, others = split_by_plant(runs, {"plant": "rotorpy"})
     assert {r["model"] for r in mine} == {"nominal", "alpha"} and len(others) == 6
+    # ... and a folder whose every run is on RotorPy names it (it never says "no run on another plant" alone).
+    rp = [run("oracle", 2e-5, "rotorpy-ideal"), run("alpha", 0.0303, "rotorpy-ideal")]
+    mine, others = split_by_plant(rp, {"plant": "rotorpy-ideal"})
+    assert plants_section(mine, others).startswith(
+        "All 2 runs here flew on RotorPy, ideal (instant motors, no drag) with the rolling-spider.")
 
 
 def test_runs_with_the_estimator_have_their_own_section_beside_their_twins():
