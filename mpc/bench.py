@@ -6,7 +6,10 @@ accuracy of the three ways to get a model's A and B over a 30-stage horizon (:fu
 ``python -m mpc.bench --estimator [--models models] [--json FILE]`` for the state estimator's cost per period:
 the SQP with the estimator flies ``figure8-fast`` in real-time timing with the oracle and every shipped model
 (:func:`estimator_cost`), or ``python -m mpc.bench --slowdown 2 [--estimator]`` for the same flights on a machine
-twice as slow for the models (:func:`slow_machine`: every model call takes twice as long).
+twice as slow for the models (:func:`slow_machine`: every model call takes twice as long), or
+``python -m mpc.bench --units [--vehicles crazyflie,hummingbird,FILE.toml] [--plant rotorpy] [--estimator]`` for
+each vehicle flown in its own rotor unit and in normalized units (``n_max`` = 1): the same QP, so the same time
+(:func:`unit_cost`).
 
 For the oracle and each shipped ONNX model, each controller flies a 5 s
 hover (from a 0.3 m offset) and two laps of ``figure8-fast`` (period 3 s,
@@ -200,6 +203,13 @@ def main(argv=None) -> int:
                     help="only compare the derivative paths (graph, float32 graph, central differences, CasADi import)")
     ap.add_argument("--estimator", action="store_true",
                     help="only the state estimator's cost per period: the SQP with it on figure8-fast in real time")
+    ap.add_argument("--units", action="store_true",
+                    help="only the SQP and the LTV-MPC on figure8-fast with each of --vehicles in its own rotor unit "
+                         "and in normalized units (n_max = 1)")
+    ap.add_argument("--vehicles", default="crazyflie,hummingbird",
+                    help="with --units: vehicle names or files (default crazyflie,hummingbird)")
+    ap.add_argument("--plant", default="rotorpy", help="with --units: the plant flown (default rotorpy)")
+    ap.add_argument("--repeats", type=int, default=3, help="with --units: flights per vehicle and unit (default 3)")
     ap.add_argument("--slowdown", type=float, default=None, metavar="FACTOR",
                     help="only the SQP on figure8-fast in real time with every model call FACTOR times as long (a "
                          "machine that much slower); with --estimator, the state estimator flies too")
@@ -208,6 +218,8 @@ def main(argv=None) -> int:
         if not args.slowdown >= 1.0:
             raise SystemExit(f"--slowdown: a factor >= 1 expected; found {args.slowdown:g}")
         return _main_slowdown(args)
+    if args.units:
+        return _main_units(args)
     if args.derivatives:
         return _main_derivatives(args)
     if args.estimator:
@@ -425,6 +437,72 @@ def _main_estimator(args) -> int:
         print(f"{name:<22}{f(r['estimator_ms']):>22}{f(r['controller_ms']):>22}{f(r['charged_ms']):>22}"
               f"{r['deadline_misses']:>8}{r['deadline_fallbacks']:>6}{rmse:>9}", flush=True)
     return _write(args.json or Path("bench_estimator.json"), out)
+
+
+def unit_cost(vehicle: str, controller: str, plant: str = "rotorpy", estimator: str = "none",
+              scenario: str = "figure8-fast", repeats: int = 3) -> dict:
+    """The nominal equations with ``controller`` on ``scenario`` (ideal timing), ``vehicle`` (a name or file) flown
+    in its own rotor unit and in normalized units (:meth:`sim.vehicle.Vehicle.normalized`), alternately
+    ``repeats`` times (this machine's speed drifts between flights).
+
+    Returns, for ``"own"`` and ``"normalized"``: the per-period time (ms: median of the flights' medians, largest
+    p95 and max), deadline misses (calls over 10 ms, summed), solver failures, RMSE (m, the last flight's), the
+    periods' summed iterations (the last flight's), and ``ratio``: the own unit's median over the normalized one's.
+    """
+    import tempfile
+
+    from scenarios.runner import RunSpec, fly
+    from sim.vehicle import load_vehicle
+
+    v = load_vehicle(vehicle)
+    out = {"vehicle": v.name, "n_max": v.n_max_value, "controller": controller, "plant": plant,
+           "estimator": estimator}
+    with tempfile.TemporaryDirectory() as tmp:
+        norm = Path(tmp) / f"{v.name}-normalized.toml"
+        norm.write_text(v.normalized().to_toml())
+        flights = {"own": [], "normalized": []}
+        for _ in range(repeats):
+            for label, file in (("own", vehicle), ("normalized", str(norm))):
+                flights[label].append(fly(RunSpec(scenario, controller, "nominal", plant=plant, vehicle=file,
+                                                  estimator=estimator)))
+        for label, runs in flights.items():
+            r, tr = runs[-1]
+            solve = [x["solve_ms"] for x, _ in runs if x["solve_ms"]]
+            out[label] = {"solve_ms": None if not solve else
+                          {"median": float(np.median([s["median"] for s in solve])),
+                           "p95": max(s["p95"] for s in solve), "max": max(s["max"] for s in solve),
+                           "flight_medians": [s["median"] for s in solve]},
+                          "deadline_misses": sum(x["deadline_misses"] or 0 for x, _ in runs),
+                          "solver_failures": sum(x["solver_failures"] or 0 for x, _ in runs),
+                          "rmse_position_m": r["rmse_position_m"], "crashed": any(x["crashed"] for x, _ in runs),
+                          "iterations": int(np.sum(tr["iterations"])), "flights": len(runs)}
+    own, nrm = out["own"]["solve_ms"], out["normalized"]["solve_ms"]
+    out["ratio"] = None if not (own and nrm) else own["median"] / nrm["median"]
+    return out
+
+
+def _main_units(args) -> int:
+    vehicles = [v for v in args.vehicles.split(",") if v]
+    out = {"python": platform.python_version(), "cpus": os.cpu_count(), "scenario": "figure8-fast",
+           "plant": args.plant, "estimator": "ekf" if args.estimator else "none", "runs": []}
+    print(f"The nominal equations on figure8-fast, plant {args.plant}, ideal timing"
+          + (", with the state estimator" if args.estimator else "")
+          + f"; ms per period (median of {args.repeats} flights' medians / largest), deadline misses over the "
+          f"flights, iterations of one flight")
+    print(f"{'vehicle':<26}{'ctrl':<6}{'own unit':>22}{'normalized':>22}{'ratio':>7}{'misses':>9}{'iterations':>16}")
+    for v in vehicles:
+        for c in ("sqp", "ltv"):
+            r = unit_cost(v, c, args.plant, out["estimator"], repeats=args.repeats)
+            out["runs"].append(r)
+
+            def f(d):
+                s = d["solve_ms"]
+                return "–" if not s else f"{s['median']:.2f} / {s['max']:.1f}"
+            print(f"{r['vehicle']:<26}{c:<6}{f(r['own']):>22}{f(r['normalized']):>22}"
+                  f"{'–' if r['ratio'] is None else format(r['ratio'], '.2f'):>7}"
+                  f"{r['own']['deadline_misses']:>4} /{r['normalized']['deadline_misses']:>3}"
+                  f"{r['own']['iterations']:>8} /{r['normalized']['iterations']:>7}", flush=True)
+    return _write(args.json or Path("bench_units.json"), out)
 
 
 def _main_derivatives(args) -> int:

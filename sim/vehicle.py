@@ -144,6 +144,29 @@ class Vehicle:
         """A copy with fields replaced (validated again)."""
         return dataclasses.replace(self, **changes)
 
+    def in_rotor_unit(self, old_per_new: float, name: str | None = None) -> "Vehicle":
+        """The same vehicle with rotor speeds counted in another unit: one new unit is ``old_per_new`` of the present
+        ones (``2 pi / 60`` turns rad/s into RPM; :meth:`normalized` uses ``n_max``).
+
+        Every coefficient per rotor unit is converted (``kt``, ``kq`` by the square, ``rotor_drag``, ``k_z``,
+        ``k_flap``, ``rotor_gyro`` by the factor), so thrusts, torques and forces are unchanged.
+        """
+        s = positive_finite(old_per_new, "old_per_new")
+        return dataclasses.replace(self, name=name or self.name, kt=self.kt * s * s, kq=self.kq * s * s,
+                                   n_max=self.n_max_value / s, rotor_drag=self.rotor_drag * s, k_z=self.k_z * s,
+                                   k_flap=self.k_flap * s, rotor_gyro=self.rotor_gyro * s)
+
+    def normalized(self) -> "Vehicle":
+        """The same vehicle with rotor speeds in units of its limit (``n_max`` = 1)."""
+        return self.in_rotor_unit(self.n_max_value, name=f"{self.name}-normalized")
+
+    def to_toml(self) -> str:
+        """The vehicle as a vehicle file's text (:func:`load_vehicle` reads it back to the same vehicle)."""
+        def value(v):
+            return '"""' + v.replace("\\", "\\\\").replace('"', '\\"') + '"""' if isinstance(v, str) else repr(float(v))
+
+        return "".join(f"{k} = {value(v)}\n" for k, v in self.to_dict().items())
+
 
 #: Fields that must be > 0 (the rest may be 0: an effect switched off).
 _POSITIVE = frozenset(("m", "Jxx", "Jyy", "Jzz", "kt", "kq", "d", "n_max"))

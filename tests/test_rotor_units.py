@@ -29,16 +29,32 @@ UNITS = {"rad/s": 1.0, "rpm": 2.0 * math.pi / 60.0}
 
 def in_unit(v: Vehicle, rad_per_unit: float | None) -> Vehicle:
     """``v`` with its rotor speeds in another unit (None: normalized, n_max = 1); the same physical vehicle."""
-    s = 1.0 / v.n_max_value if rad_per_unit is None else rad_per_unit     # rad/s per new unit
-    return v.replace(name=f"{v.name}-{rad_per_unit}", kt=v.kt * s * s, kq=v.kq * s * s, n_max=v.n_max_value / s,
-                     rotor_drag=v.rotor_drag * s, k_z=v.k_z * s, k_flap=v.k_flap * s, rotor_gyro=v.rotor_gyro * s)
+    return v.normalized() if rad_per_unit is None else v.in_rotor_unit(rad_per_unit, name=f"{v.name}-{rad_per_unit}")
 
 
 def write_vehicle(path, v: Vehicle):
-    fields = {k: val for k, val in v.to_dict().items() if k != "source"}
-    path.write_text("".join(f'{k} = "{val}"\n' if isinstance(val, str) else f"{k} = {val!r}\n"
-                            for k, val in fields.items()))
+    path.write_text(v.to_toml())
     return path
+
+
+def test_a_vehicle_in_another_rotor_unit_has_the_same_thrusts_and_forces():
+    v = load_vehicle("hummingbird")
+    for s in (*UNITS.values(), None):
+        w = in_unit(v, s)
+        n_old = 0.7 * v.n_max_value
+        n_new = n_old * w.n_max_value / v.n_max_value
+        assert w.kt * n_new ** 2 == pytest.approx(v.kt * n_old ** 2, rel=1e-14)
+        assert w.kq * n_new ** 2 == pytest.approx(v.kq * n_old ** 2, rel=1e-14)
+        assert w.rotor_drag * n_new == pytest.approx(v.rotor_drag * n_old, rel=1e-14)
+        assert w.k_z * n_new == pytest.approx(v.k_z * n_old, rel=1e-14)
+    assert v.normalized().n_max_value == 1.0
+
+
+def test_a_vehicle_file_written_by_to_toml_reads_back_the_same(tmp_path):
+    for name in ("crazyflie", "hummingbird", "rolling-spider"):
+        v = load_vehicle(name)
+        back = load_vehicle(write_vehicle(tmp_path / f"{name}.toml", v))
+        assert back == v.replace(n_max=v.n_max_value)
 
 
 def test_the_load_matrix_gives_each_rotor_its_share_of_n_max_squared():
