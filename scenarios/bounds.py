@@ -254,10 +254,10 @@ def generate(results: list[dict], models: list[str], source: str = "") -> str:
         r = by_key.get((scenario, controller, model))
         o = by_key.get((scenario, controller, "oracle"))
         if r is None or o is None:
+            missing = [k for k, run in (((scenario, controller, model), r), ((scenario, controller, "oracle"), o))
+                       if run is None]
             elsewhere = sorted({f"{x.get('plant', 'sim')} with the {x.get('vehicle', DEFAULT_VEHICLE)}"
-                                for x in results if _key(x) in ((scenario, controller, model),
-                                                                (scenario, controller, "oracle"))
-                                and x.get("timing", "ideal") == "ideal"})
+                                for x in results if _key(x) in missing and x.get("timing", "ideal") == "ideal"})
             if elsewhere:
                 raise BoundsError(f"the results have runs of {model} on {scenario} with {controller} only on "
                                   f"{', '.join(elsewhere)}; bounds are of our simulator with the {DEFAULT_VEHICLE} "
