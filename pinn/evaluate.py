@@ -71,7 +71,9 @@ def regenerate(spec: dict, with_clean: bool = False):
     fp = spec.get("fingerprint")
     if fp and ds.fingerprint() != fp:
         raise ValueError(f"regenerated {spec['regime']} dataset (seed {spec['seed']}) does not match the "
-                         f"fingerprint stored with the model; the data generator has changed since training")
+                         f"fingerprint stored with the model: the data generator has changed since training, or "
+                         f"this machine rounds differently from the one that made it (numpy picks its float64 sin, "
+                         f"cos and exp by the CPU: with AVX-512 from another library than without)")
     return (ds, clean) if with_clean else ds
 
 
