@@ -43,8 +43,8 @@ def where_sentence(runs: list[dict]) -> str:
         (plant, vehicle), n = next(iter(counts.items()))
         return f"All {n} run{'s' if n > 1 else ''} here flew on {plant_label(plant)} with the {vehicle}."
     order = sorted(counts, key=lambda k: (PLANT_ORDER.index(k[0]) if k[0] in PLANT_ORDER else 99, k[1]))
-    return ("The runs here flew on " + "; ".join(f"{plant_label(p)} with the {v} ({counts[(p, v)]} runs)"
-                                                for p, v in order) + ".")
+    return ("The runs here flew on " + "; ".join(f"{plant_label(p)} with the {v} ({counts[(p, v)]} run"
+                                                f"{'s' if counts[(p, v)] > 1 else ''})" for p, v in order) + ".")
 
 
 def timing_table(runs: list[dict]) -> str:

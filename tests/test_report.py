@@ -460,7 +460,7 @@ def test_runs_on_other_plants_have_their_own_section_and_stay_out_of_the_others(
     assert "| hummingbird | figure8-fast | SQP | nominal | 2 | – | – |" in text
     # Every run is named with its plant and vehicle, and its compute time stands beside its RMSE.
     assert "our simulator with the rolling-spider (2 runs)" in text and "RotorPy, motor lag and aerodynamics with " \
-        "the rolling-spider (2 runs)" in text and "with the crazyflie (1 runs)" in text
+        "the rolling-spider (2 runs)" in text and "with the crazyflie (1 run)" in text
     assert "| RotorPy, motor lag and aerodynamics | rolling-spider | figure8-fast | SQP | alpha | 40 | 4.00 | 12.00 | " \
         "2 / 200 |" in text
     alone = plants_section(mine, [])
