@@ -17,7 +17,7 @@ PLANT_LABELS = {"sim": "our simulator", "rotorpy-ideal": "RotorPy, ideal (instan
 PLANT_ORDER = ("sim", "rotorpy-ideal", "rotorpy")
 NO_RUNS = ("No run on another plant or vehicle in this results folder (the main job flies them when RotorPy is "
            "installed: `pip install -e '.[rotorpy]'`).")
-#: Units of the timing table's columns.
+#: Columns of the compute-time table (:func:`timing_table`).
 TIMING_HEADER = ["plant", "vehicle", "scenario", "controller", "model", "RMSE (mm)", "solve median (ms)",
                  "worst solve (ms)", "deadline misses / periods"]
 
@@ -32,6 +32,11 @@ def plant_label(plant: str) -> str:
     return PLANT_LABELS.get(plant, plant)
 
 
+def _plant_rank(plant: str) -> int:
+    """A plant's place in the report's order (:data:`PLANT_ORDER`; unknown plants last)."""
+    return PLANT_ORDER.index(plant) if plant in PLANT_ORDER else len(PLANT_ORDER)
+
+
 def where_sentence(runs: list[dict]) -> str:
     """One sentence naming the plant and vehicle of every run in ``runs`` (with counts when there are several)."""
     counts: dict[tuple[str, str], int] = {}
@@ -42,7 +47,7 @@ def where_sentence(runs: list[dict]) -> str:
     if len(counts) == 1:
         (plant, vehicle), n = next(iter(counts.items()))
         return f"All {n} run{'s' if n > 1 else ''} here flew on {plant_label(plant)} with the {vehicle}."
-    order = sorted(counts, key=lambda k: (PLANT_ORDER.index(k[0]) if k[0] in PLANT_ORDER else 99, k[1]))
+    order = sorted(counts, key=lambda k: (_plant_rank(k[0]), k[1]))
     return ("The runs here flew on " + "; ".join(f"{plant_label(p)} with the {v} ({counts[(p, v)]} run"
                                                 f"{'s' if counts[(p, v)] > 1 else ''})" for p, v in order) + ".")
 
@@ -50,8 +55,10 @@ def where_sentence(runs: list[dict]) -> str:
 def timing_table(runs: list[dict]) -> str:
     """Each run's RMSE beside its median and worst solve time and its deadline misses, with its plant and vehicle."""
     rows = []
-    key = (lambda r: (PLANT_ORDER.index(where(r)[0]) if where(r)[0] in PLANT_ORDER else 99, where(r)[1],
-                      str(r.get("scenario")), str(r.get("controller")), str(r.get("model"))))
+    def key(r):
+        plant, vehicle = where(r)
+        return _plant_rank(plant), vehicle, str(r.get("scenario")), str(r.get("controller")), str(r.get("model"))
+
     for r in sorted(runs, key=key):
         sm = r.get("solve_ms") or {}
         flown = not r.get("error") and bool(sm)

@@ -12,7 +12,6 @@ import pytest
 
 from mpc.models import AnalyticModel, PredictionModel
 from mpc.offset_free import disturbance_offset
-from mpc.trajectory import Hover
 from scenarios.library import get_scenario, scenario_names
 from scenarios.loop import IdealClock, RealtimeClock
 from scenarios.runner import RunSpec, fly, load_run_model, make_controller

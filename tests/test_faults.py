@@ -641,13 +641,11 @@ def test_the_duration_limit_holds_for_scenarios_made_in_python_too():
     import dataclasses
 
     from scenarios.scenario import MAX_DURATION_S
+    from sim.params import DT
 
     with pytest.raises(ScenarioError, match="at most 600 s"):
-        dataclasses.replace(runner.get_scenario("hover"), duration_s=MAX_DURATION_S + DT_S)
+        dataclasses.replace(runner.get_scenario("hover"), duration_s=MAX_DURATION_S + DT)
     dataclasses.replace(runner.get_scenario("hover"), duration_s=MAX_DURATION_S)
-
-
-DT_S = 0.01
 
 
 # ----------------------------------------------------------------- datasets a model cannot be trained on
