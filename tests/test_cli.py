@@ -59,6 +59,7 @@ def test_console_script_help_runs_without_traceback():
     assert r.returncode == 0 and "data" in r.stdout and "fisher" in r.stdout
 
 
+@pytest.mark.slow
 def test_train_check_and_evaluate_round_trip(tmp_path, capsys):
     """Quick training through the CLI, the contract check of its export, and Tables I/II from it."""
     data = make_dataset("small", 10, 5.0, 4).save(tmp_path / "d.npz")
@@ -95,6 +96,7 @@ def test_evaluate_rejects_an_empty_folder(tmp_path, capsys):
     assert "no .onnx models" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_data_from_another_plant_and_vehicle_trains_unchanged(tmp_path, capsys):
     """`pinnmpc data --plant rotorpy-ideal --vehicle hummingbird` writes the usual format; `pinnmpc train` takes it."""
     from sim.plant import SimPlant

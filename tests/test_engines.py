@@ -37,6 +37,7 @@ def reference(tmp_path_factory):
     return sweep(SPECS, out, jobs=2, progress=False), out
 
 
+@pytest.mark.slow
 def test_a_ray_sweep_gives_the_process_engines_results(reference, tmp_path):
     pytest.importorskip("ray")
     results = sweep(SPECS, tmp_path, jobs=2, progress=False, engine="ray")

@@ -94,6 +94,7 @@ def test_the_controller_sees_the_estimate_and_the_clock_charges_the_filter():
     assert r["run_id"] == "figure8-fast__sqp__oracle__ekf__realtime"
 
 
+@pytest.mark.slow
 def test_a_model_with_actuator_states_flies_on_its_estimate():
     """The high-fidelity oracle's controllers get its 16-state estimate (rotor speeds included) and track."""
     r, tr = fly(RunSpec("figure8-fast+highfi", "sqp", "oracle", estimator="ekf"))
@@ -149,6 +150,7 @@ def integrated_autocorrelation_time(x: np.ndarray, cutoff: float = 0.05) -> floa
     return tau
 
 
+@pytest.mark.slow
 def test_the_filter_is_consistent_on_the_plant_its_model_is_exact_for():
     """Time-averaged NEES of the 12 rigid-body states over 20 seeded oracle flights on the nominal plant.
 

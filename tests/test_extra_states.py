@@ -286,6 +286,7 @@ def test_the_history_model_passes_and_its_register_holds_the_commands_sent(histo
     np.testing.assert_allclose(tr.u[DELAY:], sent[:K - DELAY], rtol=0, atol=0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("controller", ["ltv", "sqp"])
 def test_the_history_model_flies_the_delay_scenario(history_file, controller):
     r = _fly("figure8-slow+delay", controller, history_file)

@@ -362,6 +362,7 @@ def test_killing_a_sweep_with_sigkill_leaves_no_worker_alive(tmp_path):
                 pass
 
 
+@pytest.mark.slow
 def test_a_sweep_survives_three_random_kills_of_its_workers_with_identical_results(tmp_path, monkeypatch, capsys):
     """The stress run: a worker is SIGKILLed three times, at random moments (seeded), while the sweep flies; it
     ends with the results of an undisturbed sweep, timing aside, and no process of it left."""

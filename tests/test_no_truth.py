@@ -59,7 +59,7 @@ def patched_plant(monkeypatch):
     assert QuadParams().m == ref.m * FACTORS["m"]
 
 
-@pytest.mark.parametrize("kind", ["ltv", "nmpc", "lqr"])
+@pytest.mark.parametrize("kind", ["ltv", pytest.param("nmpc", marks=pytest.mark.slow), "lqr"])
 def test_pinn_controllers_ignore_the_plants_parameters(kind, request):
     model = str(ROOT / "models" / "proposed.onnx")
     states = _states()

@@ -347,7 +347,8 @@ def test_training_history_follows_the_schedules(small_ds):
 
 
 # ----------------------------------------------------------------- training
-@pytest.mark.parametrize("arch", ARCHITECTURES)
+@pytest.mark.parametrize("arch", [a if a == "baseline" else pytest.param(a, marks=pytest.mark.slow)
+                                  for a in ARCHITECTURES])      # one architecture by default, all four on demand
 def test_quick_training_moves_theta_toward_truth_and_lowers_validation_loss(small_ds, arch):
     # (Its wall time, under 60 s on 2 cores, is measured by `python -m pinn.bench`, not asserted here.)
     res = train(small_ds, make_config(arch, "quick", 0))
@@ -357,6 +358,7 @@ def test_quick_training_moves_theta_toward_truth_and_lowers_validation_loss(smal
     assert res.history[-1]["val"] < res.history[0]["val"]
 
 
+@pytest.mark.slow
 def test_quick_hybrid_training_identifies_every_parameter_within_a_percent(small_ds):
     # theta-hat inside the prediction: the quick budget already brings the +30 % guess within 1 % (the Baseline's
     # inertias, identified through the physics loss only, are still 9 % off after the same budget).
@@ -365,6 +367,7 @@ def test_quick_hybrid_training_identifies_every_parameter_within_a_percent(small
     assert np.all(err < TOL["hybrid_theta_pct"]), err
 
 
+@pytest.mark.slow
 def test_quick_lag_model_training_finds_the_lag_and_the_inertias(small_ds_highfi):
     # On data with a 30 ms motor lag the rigid-body forms read the lag as 30-50 % more inertia; with the rotors as
     # states and tau_m learnable, the quick budget brings the inertias within a few % and tau_m (from 50 ms,

@@ -181,6 +181,7 @@ def test_bad_analytic_model_names_are_clear_errors(bad, match):
         load_model(bad)
 
 
+@pytest.mark.slow
 def test_the_oracle_flies_every_rung_of_the_speed_ladder():
     from scenarios.runner import RunSpec, fly
 

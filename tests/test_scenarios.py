@@ -289,6 +289,7 @@ def test_same_seed_gives_identical_results_and_another_seed_does_not(tmp_path):
     assert not np.array_equal(t3["x_measured"], t1["x_measured"])
 
 
+@pytest.mark.slow
 def test_a_two_process_sweep_equals_the_serial_one(tmp_path):
     specs = [RunSpec("hover+wind", "lqr", "oracle", seed=2), RunSpec("figure8-fast", "lqr", "oracle"),
              RunSpec("hover+delay", "ltv", str(MODELS / "fourier.onnx"))]

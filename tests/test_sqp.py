@@ -148,6 +148,7 @@ def assert_strict_local_minima(plans, which):
     assert np.all(plans[:, 1] >= TOL["curvature_min"]), f"{which}: reduced Hessian {np.min(plans[:, 1]):.2e}"
 
 
+@pytest.mark.slow
 def test_sqp_reaches_ipopts_optimal_objective_with_the_oracle():
     found = objective_gaps(AnalyticModel())
     gaps = np.abs(found["gap"])

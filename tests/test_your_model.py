@@ -232,6 +232,7 @@ def _rmse_pair(name, controller, scenario, tmp_path):
     return bare["rmse_position_m"], full["rmse_position_m"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("controller", ("ltv", "sqp"))
 def test_a_derivative_less_model_flies_like_the_model_with_its_graph(controller, tmp_path):
     a, b = _rmse_pair("baseline", controller, "figure8-slow", tmp_path)
@@ -290,6 +291,7 @@ def test_the_pages_pytorch_export_gives_a_model_every_controller_takes(tmp_path,
     assert np.allclose(model.step(x, u), ref, rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_the_pages_path_from_data_to_a_flown_model(tmp_path, monkeypatch, capsys):
     """The page's section "From data to a flown model", run as written: pinnmpc data, the training code, check-model
     and fly. The model it trains hovers (the page quotes its settled error)."""

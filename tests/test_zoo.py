@@ -188,6 +188,7 @@ def _assert_flyable(name: str):
         assert u.shape == (4,) and np.all(np.isfinite(u)), f"{name} / {kind}: {u}"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (ZOO_DIR / "manifest.json").is_file(), reason="the zoo is not trained here")
 def test_every_controller_takes_every_zoo_model():
     """LQR, LTV-MPC, SQP and IPOPT are built on every zoo model and return a finite first input (about 20 s)."""
@@ -195,6 +196,7 @@ def test_every_controller_takes_every_zoo_model():
         _assert_flyable(name)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (ZOO_DIR / "manifest.json").is_file(), reason="the zoo is not trained here")
 def test_study_of_a_two_model_zoo(tmp_path):
     """The most and one of the least accurate zoo models, 2 members, LTV-MPC: outcomes, scores, rescoring, resume."""
@@ -260,6 +262,7 @@ def test_the_study_with_the_estimator_flies_its_ensembles_with_it_and_selects_mo
     assert "--no-publish" in capsys.readouterr().err and not (tmp_path / "z").exists()
 
 
+@pytest.mark.slow
 def test_a_folder_without_a_manifest_is_studied_from_its_model_files(tmp_path, capsys):
     """Its models are checked and evaluated open loop on the zoo's test data: the same errors as the zoo's manifest
     recorded from the training run's torch model (onnxruntime on the exported file)."""
