@@ -1,4 +1,4 @@
-"""``pinnmpc data`` and ``pinnmpc fisher``."""
+"""``pinnmpc data``, ``pinnmpc import`` and ``pinnmpc fisher``."""
 
 from __future__ import annotations
 
@@ -46,6 +46,24 @@ def register(sub) -> None:
     add_plant_options(p, " ; --fidelity applies to sim only")
     p.set_defaults(handler=cmd_data)
 
+    p = sub.add_parser("import", help="turn real flight logs (CSV, Parquet) into a dataset (.npz)",
+                       description="Read flight logs through a format file (which column holds what, in which "
+                                   "frame and unit), clean them (held rows, NaN, spikes), bring them onto the 10 ms "
+                                   "grid, convert frames, cut to the airborne part, estimate each flight's "
+                                   "motor-to-state delay and write one dataset (docs/real-flights.md).")
+    p.add_argument("logs", nargs="+", type=Path, metavar="LOG", help="flight logs, one flight each (.csv, .parquet)")
+    p.add_argument("--format", required=True, metavar="NAME|FILE.toml",
+                   help="the logs' format: nanodrone-raw, nanodrone-processed, or a format file")
+    p.add_argument("--vehicle", required=True, metavar="NAME|FILE.toml",
+                   help="the vehicle whose rotor coefficients turn rotor speeds (rad/s) into the wrench, "
+                        "e.g. crazyflie-brushless")
+    p.add_argument("--out", required=True, type=Path, help="output dataset, .npz")
+    p.add_argument("--split", action="append", default=[], metavar="SPLIT=PATTERN[,PATTERN]",
+                   help="put the flights whose name (the file's stem) matches a pattern into SPLIT (train, val, "
+                        "test); repeatable; unmatched flights are train")
+    p.add_argument("--json", type=Path, default=None, help="also write the import report as JSON")
+    p.set_defaults(handler=cmd_import)
+
     p = sub.add_parser("fisher", help="Fisher information and Cramer-Rao bounds of the six parameters",
                        description="Compare regimes (small, aggressive) and input parameterizations "
                                    "(wrench command, motor-level command) by their Fisher information.")
@@ -82,6 +100,65 @@ def cmd_data(args: argparse.Namespace) -> int:
           f"samples with a saturated rotor {100 * s['saturation_fraction']:.2f} %")
     if args.json:
         write_json(args.json, {"out": str(args.out), **s})
+    return 0
+
+
+def _parse_splits(items: list[str]) -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    for item in items:
+        split, sep, patterns = item.partition("=")
+        if not sep or not split or not patterns:
+            raise ValueError(f"--split must be SPLIT=PATTERN[,PATTERN]; found {item!r}")
+        out.setdefault(split.strip(), []).extend(p.strip() for p in patterns.split(",") if p.strip())
+    return out
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    """Handler of ``pinnmpc import``: every log is read and checked before anything is written."""
+    import dataclasses
+    import os
+    import tempfile
+
+    from .flightlog import assign_splits, flights_to_dataset, read_flight
+    from .logformat import load_format
+    from .vehicle import load_vehicle
+
+    if args.out.suffix != ".npz":
+        raise ValueError(f"--out must end in .npz; found {str(args.out)!r}")
+    if args.json is not None and args.json.suffix != ".json":
+        raise ValueError(f"--json must end in .json; found {str(args.json)!r}")
+    fmt = load_format(args.format)
+    vehicle = load_vehicle(args.vehicle)
+    names = [p.stem for p in args.logs]
+    if len(set(names)) != len(names):
+        dup = next(n for n in names if names.count(n) > 1)
+        raise ValueError(f"two logs are named {dup!r} (a flight is named by its file's stem)")
+    splits = assign_splits(names, _parse_splits(args.split))
+    flights = []
+    for i, path in enumerate(args.logs):
+        if sys.stderr.isatty():
+            print(f"[{i + 1}/{len(args.logs)}] {path}", file=sys.stderr, flush=True)
+        flights.append(read_flight(path, fmt, vehicle))
+    ds = flights_to_dataset(flights, vehicle, splits, fmt)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=args.out.parent, prefix=f".{args.out.stem}.", suffix=".npz")
+    os.close(fd)
+    try:
+        ds.save(tmp)
+        os.replace(tmp, args.out)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    for f in flights:
+        print("\n".join(f.report.lines()))
+        for w in f.report.warnings():
+            print(f"warning: {w}", file=sys.stderr)
+    counts = {s: sum(1 for n in names if splits[n] == s) for s in ("train", "val", "test")}
+    print(f"wrote {args.out}: {len(flights)} flights ({counts['train']} train, {counts['val']} val, "
+          f"{counts['test']} test), {int(ds.usable.sum())} usable one-step samples of {ds.usable.size}")
+    if args.json:
+        write_json(args.json, {"out": str(args.out), "format": fmt.name, "vehicle": vehicle.name,
+                               "splits": splits, "flights": [dataclasses.asdict(f.report) for f in flights]})
     return 0
 
 

@@ -18,3 +18,7 @@ class DatasetError(ValueError):
 
 class PlantUnavailableError(SimInputError):
     """A plant needs an optional package that is not installed (the message says how to install it)."""
+
+
+class FlightLogError(SimInputError):
+    """A flight log or its format file cannot be imported (the message names the file and the column or key)."""

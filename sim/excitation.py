@@ -264,8 +264,25 @@ class Dataset:
     saturated: np.ndarray    # rotor clipped (bool), (n_traj, n_steps, 4)
     split: np.ndarray        # 0 train, 1 validation, 2 test, (n_traj,)
     meta: dict               # regime, seed, noise, fidelity, params, versions
+    valid: np.ndarray | None = None   # (n_traj, n_steps, 3) bool: x, rotor speeds, x_next measured; None: all
 
     ARRAYS = ("x", "u", "rotor_speed", "x_next", "wrench", "saturated", "split")
+    #: Arrays a dataset may lack (``valid``: only imported flight logs have samples that were not measured).
+    OPTIONAL = ("valid",)
+
+    def __post_init__(self):
+        if self.valid is not None:
+            v = np.asarray(self.valid)
+            if v.dtype != bool or v.shape != (*self.x.shape[:2], 3):
+                raise ValueError(f"valid must be a bool array of shape {(*self.x.shape[:2], 3)}; "
+                                 f"found {v.dtype} {v.shape}")
+
+    @property
+    def usable(self) -> np.ndarray:
+        """(n_traj, n_steps) bool: samples whose state, rotor speeds and next state were all measured."""
+        if self.valid is None:
+            return np.ones(self.x.shape[:2], dtype=bool)
+        return np.all(self.valid, axis=-1)
 
     @property
     def n_traj(self) -> int:
@@ -276,7 +293,8 @@ class Dataset:
         """Flattened samples of one split: ``x, u, rotor_speed, x_next`` as (n, width)."""
         idx = SPLIT_NAMES.index(choice(split, "split", SPLIT_NAMES))
         sel = self.split == idx
-        return {k: getattr(self, k)[sel].reshape(-1, getattr(self, k).shape[-1])
+        use = self.usable[sel].reshape(-1)
+        return {k: getattr(self, k)[sel].reshape(-1, getattr(self, k).shape[-1])[use]
                 for k in ("x", "u", "rotor_speed", "x_next")}
 
     def summary(self) -> dict:
@@ -303,12 +321,13 @@ class Dataset:
         """Dataset of the trajectories selected by ``traj`` (boolean mask or indices over n_traj)."""
         idx = np.arange(self.n_traj)[traj]
         return dataclasses.replace(self, **{k: getattr(self, k)[idx] for k in self.ARRAYS},
+                                   valid=None if self.valid is None else self.valid[idx],
                                    meta={**self.meta, "subset_of_n_traj": self.n_traj})
 
     def fingerprint(self) -> str:
         """sha256 of the data arrays (not of the file), so a regenerated dataset has the same value."""
         h = hashlib.sha256()
-        for k in self.ARRAYS:
+        for k in self.ARRAYS + (("valid",) if self.valid is not None else ()):
             a = np.ascontiguousarray(getattr(self, k))
             h.update(f"{k}:{a.dtype.str}:{a.shape}".encode())
             h.update(a.tobytes())
@@ -321,6 +340,8 @@ class Dataset:
             raise SimInputError(f"out must end in .npz; found {str(path)!r}")
         path.parent.mkdir(parents=True, exist_ok=True)
         items = {k: getattr(self, k) for k in self.ARRAYS}
+        if self.valid is not None:
+            items["valid"] = self.valid
         items["meta"] = np.array(json.dumps(self.meta, sort_keys=True))
         with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as zf:
             for name, arr in items.items():
@@ -360,6 +381,7 @@ def load_dataset(path) -> Dataset:
                 raise DatasetError(f"dataset file {str(path)!r} has format_version {found}, "
                                    f"this code reads {FORMAT_VERSION}")
             arrays = {k: z[k] for k in Dataset.ARRAYS}
+            arrays.update({k: z[k] for k in Dataset.OPTIONAL if k in z.files})
     except DatasetError:
         raise
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zipfile.LargeZipFile) as e:

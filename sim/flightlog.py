@@ -1,0 +1,589 @@
+"""Flight-log import: real flight logs (CSV, Parquet) to this project's dataset.
+
+One log is one flight. :func:`read_flight` turns it into a :class:`Flight`
+on the 10 ms grid, in this project's conventions (NED world, FRD body, ZYX
+Euler angles, rotor speeds in rad/s renumbered to ``sim.rotors``' layout),
+and :func:`flights_to_dataset` stacks flights into a :class:`~sim.excitation.Dataset`.
+Its steps, in order, each reported in :class:`ImportReport`:
+
+1. **Read** the columns the format file names (:mod:`sim.logformat`); a
+   missing or all-empty column, or time that goes backwards, is an error.
+2. **Clean** each signal group (position, attitude, velocity, rates,
+   rotors): a row with a NaN, a row *held* (exactly equal to the row before:
+   telemetry that was not refreshed) and, for the rotors, a *spike* (a speed
+   below 0 or above ``max_rotor_over_n_max`` times the vehicle's ``n_max``)
+   is masked, not guessed. Rows with a repeated timestamp are dropped.
+3. **Resample** onto the 10 ms grid when the log is not on it (another rate,
+   or jittered timestamps): linear interpolation between the two rows around
+   each grid time (normalized for a quaternion); a grid sample is valid only
+   if both rows are.
+4. **Convert** frames once, to NED and FRD, and the attitude to continuous
+   ZYX Euler angles.
+5. **Cut** to the airborne part: from the first to the last sample of the
+   longest stretch where the rotors carry ``min_thrust_to_weight`` of the
+   weight (and the log's flying flag, if the format names one; dips shorter
+   than :data:`BRIDGE_S` do not end it), less ``margin_s`` at each end.
+6. **Delay**: the motor-to-state delay ``d`` (samples) is the shift of the
+   rotor speeds that best explains the measured thrust (the specific force
+   along the body z axis, from the velocity's differences) by ``sum n^2``,
+   in least squares over the format's search range; the rotor speeds are
+   shifted by it (``rotor[k] = logged[k - d]``) and ``d`` is stored.
+7. **Check** the conversion: logged velocity against differentiated
+   position, logged body rates against rates derived from the attitude (a
+   slope per axis; a negative one means a column's sign is wrong), and the
+   thrust the motion shows against the vehicle's ``kt sum n^2 / m`` (a
+   negative slope means the body frame is wrong; far from 1, the rotor unit
+   or the vehicle).
+
+Masked samples are filled by linear interpolation in time (so every array
+is finite) and flagged invalid in the dataset's ``valid`` array.
+"""
+
+from __future__ import annotations
+
+import csv
+import fnmatch
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .dynamics import rotation_matrix
+from .errors import FlightLogError
+from .logformat import LogFormat
+from .params import DT, GRAVITY
+from .rotors import mixer_matrix
+from .vehicle import Vehicle
+
+#: Grid times closer than this to a log row (in periods) take that row as it is.
+ON_GRID_TOL = 1e-3
+#: Dips of the rotor thrust below the airborne threshold shorter than this (s) do not end a flight (a fast descent).
+BRIDGE_S = 1.0
+#: Samples of the centred mean that smooths both sides of the delay fit.
+DELAY_SMOOTH = 5
+#: Fewest airborne samples a flight must keep.
+MIN_SAMPLES = 100
+GROUPS = ("position", "attitude", "velocity", "rates", "rotors")
+
+
+@dataclass(frozen=True)
+class ImportReport:
+    """What the import did to one log (plain numbers, for JSON)."""
+
+    name: str
+    source: str
+    rows: int                       # rows in the log
+    duplicate_times: int            # rows dropped for a repeated timestamp
+    nan_rows: dict                  # group -> rows with a NaN
+    held_rows: dict                 # group -> rows equal to the row before
+    spikes: int                     # rotor rows outside [0, max_rotor_over_n_max n_max]
+    resampling: str                 # how the log was brought onto the 10 ms grid
+    log_period_s: float             # median period of the log
+    airborne_s: tuple               # (start, end) kept, s from the log's first row
+    samples: int                    # samples kept (on the grid)
+    valid_state_fraction: float     # kept samples whose state is measured (not filled)
+    valid_rotor_fraction: float     # kept samples whose rotor speeds are measured
+    delay_samples: int              # motor-to-state delay applied (rotor[k] = logged[k - d])
+    delay_rss_ratio: float          # residual of the best delay over that of the next best (< 1: clear)
+    velocity_check: dict            # slope per axis of logged velocity on differentiated position, rms
+    rates_check: dict               # slope per axis of logged rates on attitude-derived rates, rms
+    thrust_check: dict              # slope of measured thrust on kt sum n^2 (at the delay), intercept m/s^2
+
+    def lines(self) -> list[str]:
+        """The report as short human-readable lines."""
+        held = ", ".join(f"{g} {100.0 * n / max(self.rows, 1):.0f} %" for g, n in self.held_rows.items())
+        nans = sum(self.nan_rows.values())
+        vs, rs = self.velocity_check["slope"], self.rates_check["slope"]
+        ts = self.thrust_check["slope"]
+        return [
+            f"{self.name}: {self.rows} rows, {self.samples} kept ({self.airborne_s[0]:.2f}-{self.airborne_s[1]:.2f} s "
+            f"airborne); {self.resampling}",
+            f"  held rows: {held}; NaN rows {nans}; rotor spikes {self.spikes}; duplicate times "
+            f"{self.duplicate_times}",
+            f"  valid: state {100 * self.valid_state_fraction:.1f} %, rotors {100 * self.valid_rotor_fraction:.1f} %;"
+            f" motor-to-state delay {self.delay_samples} samples (residual ratio {self.delay_rss_ratio:.2f})",
+            f"  checks: velocity / d(position)/dt slope {vs[0]:.3f} {vs[1]:.3f} {vs[2]:.3f}; "
+            f"rates / attitude-derived slope {rs[0]:.3f} {rs[1]:.3f} {rs[2]:.3f}; "
+            f"thrust from motion / kt sum n^2 slope {ts:.3f}",
+        ]
+
+    def warnings(self) -> list[str]:
+        """Lines for checks that point at a wrong frame or unit (a slope below 0.5 or above 2)."""
+        out = []
+        for what, check in (("velocity against differentiated position", self.velocity_check),
+                            ("body rates against attitude-derived rates", self.rates_check)):
+            for axis, s in zip("xyz", check["slope"]):
+                if not (0.5 <= s <= 2.0):
+                    out.append(f"{self.name}: {what}, axis {axis}: slope {s:.3f} (a frame, sign or unit may be "
+                               f"wrong in the format file)")
+        s = self.thrust_check["slope"]
+        if not (0.5 <= s <= 2.0):
+            out.append(f"{self.name}: thrust from motion against the vehicle's kt sum n^2 / m: slope {s:.3f} (the "
+                       f"body frame, the rotor unit or the vehicle's kt / m may be wrong)")
+        return out
+
+
+@dataclass(frozen=True)
+class Flight:
+    """One imported flight on the 10 ms grid (n samples), in this project's conventions."""
+
+    name: str
+    t: np.ndarray             # (n,) s from the log's first row
+    x: np.ndarray             # (n, 12) state, NED / FRD / ZYX Euler; masked samples filled
+    rotor_speed: np.ndarray   # (n, 4) rad/s, project rotor order, shifted by the delay; masked filled
+    u: np.ndarray             # (n, 4) wrench from the rotor speeds, N and N m
+    x_ok: np.ndarray          # (n,) bool, state measured (not filled)
+    rotor_ok: np.ndarray      # (n,) bool, rotor speeds measured (not filled)
+    reference: np.ndarray | None   # (n, 3) position reference, NED, m (if the format names one)
+    report: ImportReport = field(repr=False)
+
+
+# ------------------------------------------------------------------ reading
+def read_table(path, columns) -> dict[str, np.ndarray]:
+    """The named columns of a CSV or Parquet file as float64 arrays (empty cells and nulls NaN, booleans 0/1).
+
+    Raises
+    ------
+    FlightLogError
+        If the file is missing or unreadable, or lacks a column (the message names the file and the column).
+    """
+    path = Path(path)
+    where = f"log {str(path)!r}"
+    if not path.is_file():
+        raise FlightLogError(f"{where} does not exist")
+    columns = list(dict.fromkeys(columns))
+    suffix = path.suffix.lower()
+    if suffix == ".parquet":
+        return _read_parquet(path, columns, where)
+    if suffix not in (".csv", ".txt"):
+        raise FlightLogError(f"{where} is neither .csv nor .parquet")
+    try:
+        with open(path, newline="") as f:
+            reader = csv.reader(f)
+            header = next(reader, None)
+            if header is None:
+                raise FlightLogError(f"{where} is empty")
+            index = {name.strip(): i for i, name in enumerate(header)}
+            _require(columns, index, where)
+            idx = [index[c] for c in columns]
+            rows = [[r[i] if i < len(r) else "" for i in idx] for r in reader if r]
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise FlightLogError(f"{where} could not be read: {e}") from None
+    out = {}
+    for j, c in enumerate(columns):
+        col = np.empty(len(rows))
+        for i, r in enumerate(rows):
+            col[i] = _cell(r[j], where, c, i)
+        out[c] = col
+    return out
+
+
+def _cell(text: str, where: str, column: str, row: int) -> float:
+    s = text.strip()
+    if s == "" or s.lower() in ("nan", "null", "none", "na"):
+        return math.nan
+    low = s.lower()
+    if low == "true":
+        return 1.0
+    if low == "false":
+        return 0.0
+    try:
+        return float(s)
+    except ValueError:
+        raise FlightLogError(f"{where}: column {column!r} holds {s!r} at row {row + 1}, not a number") from None
+
+
+def _read_parquet(path: Path, columns: list[str], where: str) -> dict[str, np.ndarray]:
+    try:
+        import pyarrow as pa
+        import pyarrow.compute as pc
+        import pyarrow.parquet as pq
+    except ImportError:
+        raise FlightLogError(f"{where}: reading Parquet needs pyarrow: python -m pip install -e \".[logs]\"") \
+            from None
+    try:
+        names = pq.read_schema(path).names
+        _require(columns, {n: i for i, n in enumerate(names)}, where)
+        table = pq.read_table(path, columns=columns)
+        return {c: pc.cast(table.column(c), pa.float64()).to_numpy(zero_copy_only=False).astype(float)
+                for c in columns}
+    except FlightLogError:
+        raise
+    except (OSError, ValueError, pa.ArrowException) as e:
+        raise FlightLogError(f"{where} could not be read as Parquet: {' '.join(str(e).split())}") from None
+
+
+def _require(columns, index, where):
+    for c in columns:
+        if c not in index:
+            shown = ", ".join(list(index)[:12]) + (", ..." if len(index) > 12 else "")
+            raise FlightLogError(f"{where}: column {c!r} is missing (the log has {len(index)} columns: {shown})")
+
+
+# ------------------------------------------------------------------ maths
+def quaternion_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (n, 3, 3) of unit quaternions (n, 4) in w, x, y, z order (body to world)."""
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def euler_matrix(e: np.ndarray) -> np.ndarray:
+    """Rotation matrices (n, 3, 3) of ZYX Euler angles (n, 3) = (roll, pitch, yaw), body to world."""
+    return rotation_matrix(e[:, 0], e[:, 1], e[:, 2])
+
+
+def matrix_euler(R: np.ndarray) -> np.ndarray:
+    """ZYX Euler angles (n, 3) of rotation matrices (n, 3, 3); yaw in (-pi, pi]."""
+    phi = np.arctan2(R[:, 2, 1], R[:, 2, 2])
+    theta = -np.arcsin(np.clip(R[:, 2, 0], -1.0, 1.0))
+    psi = np.arctan2(R[:, 1, 0], R[:, 0, 0])
+    return np.stack([phi, theta, psi], -1)
+
+
+def _rotation_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (n, 3) of rotation matrices (n, 3, 3) (angles below pi)."""
+    c = np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    ang = np.arccos(c)
+    v = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], -1)
+    s = np.sin(ang)
+    scale = np.where(s > 1e-9, ang / (2.0 * np.where(s > 1e-9, s, 1.0)), 0.5)
+    return v * scale[:, None]
+
+
+def _held(a: np.ndarray) -> np.ndarray:
+    """Rows (n,) exactly equal to the row before (the first row is never held)."""
+    out = np.zeros(len(a), dtype=bool)
+    if len(a) > 1:
+        out[1:] = np.all(a[1:] == a[:-1], axis=1)
+    return out
+
+
+def _fill(t: np.ndarray, a: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """``a`` (n, w) with the rows where ``ok`` is False replaced by linear interpolation in ``t`` (nearest at ends)."""
+    out = a.copy()
+    if ok.all():
+        return out
+    if not ok.any():
+        raise ValueError("no valid row to fill from")
+    for j in range(a.shape[1]):
+        out[~ok, j] = np.interp(t[~ok], t[ok], a[ok, j])
+    return out
+
+
+def _slope(measured: np.ndarray, derived: np.ndarray) -> list[float]:
+    """Least-squares slope per column of ``measured`` on ``derived`` (through the origin)."""
+    den = np.sum(derived ** 2, axis=0)
+    return [float(s) for s in np.where(den > 0, np.sum(measured * derived, axis=0) / np.where(den > 0, den, 1), 0)]
+
+
+# ------------------------------------------------------------------ one flight
+def read_flight(path, fmt: LogFormat, vehicle: Vehicle, name: str | None = None) -> Flight:
+    """Import one flight log (see the module docstring for the steps).
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``.csv`` or ``.parquet`` log, one row per sample.
+    fmt : LogFormat
+        Which column holds what (:func:`sim.logformat.load_format`).
+    vehicle : Vehicle
+        Rotor coefficients (``kt``, ``kq``, ``d``; ``kt`` per (rad/s)^2), mass and ``n_max`` (rad/s).
+    name : str, optional
+        The flight's name (default: the file's stem).
+
+    Raises
+    ------
+    FlightLogError
+        For a missing or all-empty column, time that goes backwards or holds a NaN, or a log with no airborne
+        part; the message names the file and the column.
+    """
+    path = Path(path)
+    where = f"log {str(path)!r}"
+    name = name or path.stem
+    cols = fmt.columns()
+    table = read_table(path, [c for group in cols.values() for c in group])
+    for group, names in cols.items():
+        for c in names:
+            if not np.any(np.isfinite(table[c])):
+                raise FlightLogError(f"{where}: column {c!r} ({group}) holds no number (every row empty or NaN)")
+    rows = len(table[fmt.time_column])
+    if rows < 2:
+        raise FlightLogError(f"{where}: {rows} row(s); a flight needs many")
+    t = table[fmt.time_column] * fmt.time_scale
+    if not np.all(np.isfinite(t)):
+        i = int(np.argmax(~np.isfinite(t)))
+        raise FlightLogError(f"{where}: column {fmt.time_column!r} (time) is empty or NaN at row {i + 1}")
+    dt = np.diff(t)
+    if np.any(dt < 0):
+        i = int(np.argmax(dt < 0)) + 1
+        raise FlightLogError(f"{where}: column {fmt.time_column!r} (time) goes backwards at row {i + 1} "
+                             f"({t[i]:.6g} s after {t[i - 1]:.6g} s)")
+    keep = np.concatenate([[True], dt > 0])
+    duplicates = int(np.sum(~keep))
+    t = t[keep] - t[keep][0]
+    groups = {g: np.stack([table[c][keep] for c in cols[g]], -1) for g in GROUPS}
+    nan_rows = {g: int(np.sum(~np.all(np.isfinite(a), axis=1))) for g, a in groups.items()}
+    held = {g: _held(a) for g, a in groups.items()}
+    ok = {g: np.all(np.isfinite(a), axis=1) & ~held[g] for g, a in groups.items()}
+    rot = groups["rotors"] * fmt.rotor_scale
+    with np.errstate(invalid="ignore"):
+        spike = np.any((rot < 0) | (rot > fmt.max_rotor_over_n_max * vehicle.n_max_value), axis=1)
+    ok["rotors"] &= ~spike
+    flag = None
+    if fmt.airborne_column is not None:
+        flag = table[fmt.airborne_column][keep]
+    ref = None
+    if fmt.reference is not None:
+        ref = np.stack([table[c][keep] for c in fmt.reference], -1)
+
+    # --- onto the 10 ms grid
+    period = float(np.median(np.diff(t)))
+    n_grid = int(math.floor(t[-1] / DT + ON_GRID_TOL)) + 1
+    tg = np.arange(n_grid) * DT
+    if len(t) == n_grid and np.max(np.abs(t - tg)) <= ON_GRID_TOL * DT:
+        resampling = "on the 10 ms grid already"
+        grid = {g: a for g, a in groups.items()}
+        grid_ok = ok
+    else:
+        jitter = float(np.std(np.diff(t)))
+        resampling = (f"resampled from a {1e3 * period:.3g} ms median period (jitter {1e3 * jitter:.2g} ms rms) "
+                      f"onto 10 ms by linear interpolation")
+        j = np.clip(np.searchsorted(t, tg, side="right") - 1, 0, len(t) - 2)
+        w = (tg - t[j]) / (t[j + 1] - t[j])
+        exact0, exact1 = w <= ON_GRID_TOL, w >= 1.0 - ON_GRID_TOL
+        grid, grid_ok = {}, {}
+        for g, a in groups.items():
+            a0, a1 = a[j], a[j + 1]
+            if g == "attitude" and fmt.quaternion is not None:
+                a1 = np.where(np.sum(a0 * a1, axis=1, keepdims=True) < 0, -a1, a1)
+            grid[g] = np.where(exact0[:, None], a0, np.where(exact1[:, None], a1,
+                                                            a0 + w[:, None] * (a1 - a0)))
+            grid_ok[g] = np.where(exact0, ok[g][j], np.where(exact1, ok[g][j + 1], ok[g][j] & ok[g][j + 1]))
+        if flag is not None:
+            flag = np.where(w < 0.5, flag[j], flag[j + 1])
+        if ref is not None:
+            ref = ref[j] + w[:, None] * (ref[j + 1] - ref[j])
+        rot = grid["rotors"] * fmt.rotor_scale
+    x_ok = grid_ok["position"] & grid_ok["attitude"] & grid_ok["velocity"] & grid_ok["rates"]
+    rot_ok = grid_ok["rotors"]
+    if not x_ok.any() or not rot_ok.any():
+        raise FlightLogError(f"{where}: no row has every state column measured and fresh" if not x_ok.any() else
+                             f"{where}: no row has every rotor column measured and fresh")
+
+    # --- frames, once
+    Cw, Cb = fmt.world_matrix, fmt.body_matrix
+    att = grid["attitude"]
+    if fmt.quaternion is not None:
+        norm = np.linalg.norm(att, axis=1, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            R_log = quaternion_matrix(att / norm)
+    else:
+        R_log = euler_matrix(att * fmt.angle_scale)
+    R = Cw @ R_log @ Cb.T
+    R_fill = np.where(x_ok[:, None, None], R, np.eye(3))
+    eul = matrix_euler(R_fill)
+    pos = grid["position"] * fmt.position_scale @ Cw.T
+    vel = grid["velocity"] * fmt.velocity_scale
+    vel = vel @ Cw.T if fmt.velocity_frame == "world" else np.einsum("nij,nj->ni", R_fill, vel @ Cb.T)
+    rates = grid["rates"] * fmt.rate_scale @ Cb.T
+    # continuous angles: unwrap over the measured samples, then fill between them
+    for k in range(3):
+        eul[x_ok, k] = np.unwrap(eul[x_ok, k])
+    x = np.concatenate([pos, eul, rates, vel], axis=1)
+    x = _fill(tg, np.where(x_ok[:, None], x, 0.0), x_ok)
+    rot = _fill(tg, np.where(rot_ok[:, None], rot, 0.0), rot_ok)
+    if ref is not None:
+        ref = ref * fmt.position_scale @ Cw.T
+
+    # --- airborne part
+    weight = vehicle.m * GRAVITY
+    ratio = vehicle.kt * np.sum(rot ** 2, axis=1) / weight
+    air = ratio >= fmt.min_thrust_to_weight
+    if flag is not None:
+        air &= np.nan_to_num(flag) > 0.5
+    start, stop = _longest_run(_bridge(air, int(round(BRIDGE_S / DT))))
+    margin = int(round(fmt.margin_s / DT))
+    start, stop = start + margin, stop - margin
+    if stop - start < MIN_SAMPLES:
+        raise FlightLogError(f"{where}: no airborne part of at least {MIN_SAMPLES * DT:g} s (rotor thrust "
+                             f">= {fmt.min_thrust_to_weight:g} x weight"
+                             + (f" and column {fmt.airborne_column!r} set" if flag is not None else "")
+                             + f", less {fmt.margin_s:g} s at each end)")
+
+    # --- motor-to-state delay
+    d, rss_ratio, coef = estimate_delay(x, x_ok, rot, rot_ok, start, stop, fmt.delay_search)
+    shifted = np.full_like(rot, np.nan)
+    shifted_ok = np.zeros_like(rot_ok)
+    lo, hi = max(0, d), min(len(rot), len(rot) + d)
+    shifted[lo:hi] = rot[lo - d:hi - d]
+    shifted_ok[lo:hi] = rot_ok[lo - d:hi - d]
+    sl = slice(start, stop)
+    x, x_ok, tg = x[sl], x_ok[sl], tg[sl]
+    rot, rot_ok = shifted[sl], shifted_ok[sl]
+    if not rot_ok.any():
+        raise FlightLogError(f"{where}: no airborne row has every rotor column measured and fresh")
+    rot = _fill(tg, np.where(rot_ok[:, None], rot, 0.0), rot_ok)
+    M = mixer_matrix(vehicle.params)
+    M[3] *= fmt.yaw_sign
+    u = rot ** 2 @ M.T
+    if ref is not None:
+        ref = ref[sl]
+
+    report = ImportReport(
+        name=name, source=str(path), rows=rows, duplicate_times=duplicates, nan_rows=nan_rows,
+        held_rows={g: int(h.sum()) for g, h in held.items()}, spikes=int(spike.sum()), resampling=resampling,
+        log_period_s=period, airborne_s=(float(tg[0]), float(tg[-1])), samples=int(len(tg)),
+        valid_state_fraction=float(x_ok.mean()), valid_rotor_fraction=float(rot_ok.mean()),
+        delay_samples=int(d), delay_rss_ratio=float(rss_ratio),
+        velocity_check=_velocity_check(x, x_ok), rates_check=_rates_check(x, x_ok),
+        thrust_check={"slope": float(coef[0] * vehicle.m / vehicle.kt), "intercept_m_s2": float(coef[1])})
+    return Flight(name=name, t=tg, x=x, rotor_speed=rot, u=u, x_ok=x_ok, rotor_ok=rot_ok, reference=ref,
+                  report=report)
+
+
+def _bridge(mask: np.ndarray, gap: int) -> np.ndarray:
+    """``mask`` with each run of False shorter than ``gap`` samples between two runs of True set True."""
+    out = mask.copy()
+    edges = np.diff(np.concatenate([[1], mask.astype(np.int8), [1]]))
+    for a, b in zip(np.flatnonzero(edges == -1), np.flatnonzero(edges == 1)):
+        if 0 < a and b < len(mask) and b - a < gap:
+            out[a:b] = True
+    return out
+
+
+def _longest_run(mask: np.ndarray) -> tuple[int, int]:
+    """(start, stop) of the longest run of True in ``mask`` ((0, 0) if none)."""
+    if not mask.any():
+        return 0, 0
+    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    i = int(np.argmax(stops - starts))
+    return int(starts[i]), int(stops[i])
+
+
+def estimate_delay(x, x_ok, rot, rot_ok, start, stop, search) -> tuple[int, float, np.ndarray]:
+    """Motor-to-state delay (samples) that best explains the measured thrust by the rotor speeds.
+
+    The measured thrust per unit mass is ``-z_b . (dv/dt - g e3)`` with
+    ``dv/dt`` the forward difference of the velocity over one period and
+    ``z_b`` the body z axis; for each delay ``d`` in ``search`` it is fitted
+    (least squares, with an intercept) by ``sum n^2`` taken ``d`` samples
+    earlier. Both sides are smoothed alike (a centred mean over
+    :data:`DELAY_SMOOTH` samples, which keeps the delay and averages out the
+    noise a difference of velocities has) on the filled series of
+    ``[start, stop)``, and the residual is summed over the samples whose
+    state and next state were measured. Returns the delay with the least
+    residual, the ratio of that residual to the next best one (near 1: the
+    data hardly tell the delays apart), and the fit at that delay (slope in
+    m/s^2 per rad^2/s^2, intercept in m/s^2).
+    """
+    del rot_ok   # the rotor speeds are the filled ones: requiring every shift measured would drop most samples
+    lo_d, hi_d = search
+    n = len(x)
+    k = np.arange(max(start, hi_d, 0), min(stop, n - 1, n + lo_d))
+    nothing = 0, math.nan, np.array([math.nan, math.nan])
+    if len(k) < 10 * DELAY_SMOOTH:
+        return nothing
+    ker = np.ones(DELAY_SMOOTH) / DELAY_SMOOTH
+    half = DELAY_SMOOTH // 2
+    use = (x_ok[k] & x_ok[k + 1])[half:len(k) - half]
+    if use.sum() < 10:
+        return nothing
+    R = euler_matrix(x[k, 3:6])
+    acc = (x[k + 1, 9:12] - x[k, 9:12]) / DT - np.array([0.0, 0.0, GRAVITY])
+    y = np.convolve(-np.einsum("ni,ni->n", R[:, :, 2], acc), ker, "valid")[use]
+    rss, fits = [], []
+    for d in range(lo_d, hi_d + 1):
+        s = np.convolve(np.sum(rot[k - d] ** 2, axis=1), ker, "valid")[use]
+        A = np.stack([s, np.ones_like(s)], -1)
+        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+        rss.append(float(np.sum((y - A @ coef) ** 2)))
+        fits.append(coef)
+    order = np.argsort(rss)
+    best = int(order[0])
+    ratio = rss[best] / rss[int(order[1])] if len(rss) > 1 and rss[int(order[1])] > 0 else 0.0
+    return lo_d + best, ratio, fits[best]
+
+
+def _velocity_check(x, ok) -> dict:
+    k = np.flatnonzero(ok[1:-1] & ok[:-2] & ok[2:]) + 1
+    if len(k) < 3:
+        return {"slope": [math.nan] * 3, "rms_m_s": math.nan}
+    dp = (x[k + 1, 0:3] - x[k - 1, 0:3]) / (2 * DT)
+    v = x[k, 9:12]
+    return {"slope": _slope(v, dp), "rms_m_s": float(np.sqrt(np.mean((v - dp) ** 2)))}
+
+
+def _rates_check(x, ok) -> dict:
+    k = np.flatnonzero(ok[:-1] & ok[1:])
+    if len(k) < 3:
+        return {"slope": [math.nan] * 3, "rms_rad_s": math.nan}
+    R0, R1 = euler_matrix(x[k, 3:6]), euler_matrix(x[k + 1, 3:6])
+    derived = _rotation_log(np.swapaxes(R0, 1, 2) @ R1) / DT
+    measured = 0.5 * (x[k, 6:9] + x[k + 1, 6:9])
+    return {"slope": _slope(measured, derived), "rms_rad_s": float(np.sqrt(np.mean((measured - derived) ** 2)))}
+
+
+# ------------------------------------------------------------------ many flights
+def assign_splits(names: list[str], splits: dict[str, list[str]]) -> dict[str, str]:
+    """Each flight's split: the split whose pattern (``fnmatch``) matches its name, ``train`` if none does.
+
+    Raises
+    ------
+    FlightLogError
+        For an unknown split name, or a flight that two splits claim.
+    """
+    from .excitation import SPLIT_NAMES
+
+    out = {}
+    for split, patterns in splits.items():
+        if split not in SPLIT_NAMES:
+            raise FlightLogError(f"split {split!r} is not known; choose from {', '.join(SPLIT_NAMES)}")
+        for n in names:
+            if any(fnmatch.fnmatchcase(n, p) for p in patterns):
+                if n in out and out[n] != split:
+                    raise FlightLogError(f"flight {n!r} matches both split {out[n]!r} and split {split!r}")
+                out[n] = split
+    return {n: out.get(n, "train") for n in names}
+
+
+def flights_to_dataset(flights: list[Flight], vehicle: Vehicle, splits: dict[str, str], fmt: LogFormat):
+    """Stack flights into a :class:`~sim.excitation.Dataset` (padded to the longest; padding invalid).
+
+    ``valid[i, k]`` holds (state at k measured, rotor speeds at k measured, state at k + 1 measured); a sample is
+    a usable one-step pair when all three are True.
+    """
+    from . import __version__
+    from .excitation import FORMAT_VERSION, SPLIT_NAMES, Dataset
+
+    n_steps = max(len(f.t) for f in flights) - 1
+    n = len(flights)
+    x = np.zeros((n, n_steps, 12))
+    x_next = np.zeros((n, n_steps, 12))
+    u = np.zeros((n, n_steps, 4))
+    rs = np.zeros((n, n_steps, 4))
+    valid = np.zeros((n, n_steps, 3), dtype=bool)
+    for i, f in enumerate(flights):
+        m = len(f.t) - 1
+        x[i, :m], x_next[i, :m], u[i, :m], rs[i, :m] = f.x[:-1], f.x[1:], f.u[:-1], f.rotor_speed[:-1]
+        x[i, m:], x_next[i, m:], u[i, m:], rs[i, m:] = f.x[-1], f.x[-1], f.u[-1], f.rotor_speed[-1]
+        valid[i, :m] = np.stack([f.x_ok[:-1], f.rotor_ok[:-1], f.x_ok[1:]], -1)
+    meta = {
+        "format_version": FORMAT_VERSION, "regime": "flight logs", "source": "flight logs",
+        "log_format": fmt.name, "vehicle": vehicle.to_dict(), "dt": DT, "version": __version__,
+        "flights": [asdict(f.report) for f in flights],
+        "flight_names": [f.name for f in flights],
+        "flight_samples": [int(len(f.t)) for f in flights],
+        "delay_samples": [f.report.delay_samples for f in flights],
+        "envelope_deg": [0.0, 90.0],
+        "valid_columns": ["state", "rotors", "next state"],
+    }
+    return Dataset(x=x, u=u, rotor_speed=rs, x_next=x_next, wrench=u.copy(),
+                   saturated=rs >= vehicle.n_max_value,
+                   split=np.array([SPLIT_NAMES.index(splits[f.name]) for f in flights], dtype=np.int8),
+                   meta=meta, valid=valid)

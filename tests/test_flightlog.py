@@ -1,0 +1,350 @@
+"""Flight-log import: a flight of our own plant, written in a foreign layout with a real log's faults, comes back.
+
+The foreign layout is the one real Crazyflie logs use: z-up world, FLU body,
+xyzw quaternions, motor speeds in eRPM (6 pole pairs) in another rotor order,
+3 samples of motor-to-state delay, 10 % held rows in each signal group, NaN
+rows and eRPM spikes.
+"""
+
+import csv
+import math
+import tomllib
+
+import numpy as np
+import pytest
+
+from scenarios.cli import main
+from sim import NoiseModel
+from sim.errors import FlightLogError
+from sim.excitation import load_dataset, make_dataset
+from sim.flightlog import read_flight
+from sim.logformat import load_format, parse_format
+from sim.params import DT
+from sim.rotors import mixer_matrix
+from sim.vehicle import load_vehicle
+
+# tolerances and fixed figures of this module
+STATE_TOL = 1e-9          # imported state against the plant's, on every kept sample
+WRENCH_RTOL = 1e-9        # wrench from the imported rotor speeds against the plant's, relative to its size
+MIN_KEPT = 0.85           # kept measured states, as a fraction of the plant's samples
+DELAY = 3                 # samples the foreign log's motors lead the state
+ERPM_PER_RAD_S = 360.0 / (2.0 * math.pi)   # 6 pole pairs
+T0 = 12.5                 # the foreign log's time at its first row, s
+
+LAYOUT = """
+name = "foreign-test"
+[time]
+column = "time_ms"
+unit = "ms"
+[frames]
+world = "z-up"
+body = "flu"
+[position]
+columns = ["px", "py", "pz"]
+unit = "m"
+[attitude]
+quaternion = ["qx", "qy", "qz", "qw"]
+order = "xyzw"
+[velocity]
+columns = ["vx", "vy", "vz"]
+unit = "m/s"
+frame = "world"
+[rates]
+columns = ["gx", "gy", "gz"]
+unit = "rad/s"
+[rotors]
+columns = ["m1", "m2", "m3", "m4"]
+unit = "erpm"
+pole_pairs = 6
+positions = ["front-left", "front-right", "rear-right", "rear-left"]
+spin = ["cw", "ccw", "cw", "ccw"]
+[airborne]
+margin_s = 0.2
+[delay]
+search = [-5, 10]
+"""
+#: Log column m1..m4 holds the project's rotor 4, 1, 2, 3.
+LOG_ROTOR = [3, 0, 1, 2]
+
+
+def _quat_xyzw(R):
+    """Quaternions (n, 4), x y z w, of rotation matrices (n, 3, 3) (Shepperd's method, an independent route)."""
+    out = np.empty((len(R), 4))
+    for i, m in enumerate(R):
+        tr = np.trace(m)
+        if tr > 0:
+            s = 2.0 * math.sqrt(tr + 1.0)
+            w, x, y, z = 0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s
+        else:
+            j = int(np.argmax(np.diag(m)))
+            a, b, c = j, (j + 1) % 3, (j + 2) % 3
+            s = 2.0 * math.sqrt(1.0 + m[a, a] - m[b, b] - m[c, c])
+            q = np.empty(3)
+            q[a], q[b], q[c] = 0.25 * s, (m[b, a] + m[a, b]) / s, (m[c, a] + m[a, c]) / s
+            w = (m[c, b] - m[b, c]) / s
+            x, y, z = q
+        out[i] = (x, y, z, w)
+    return out
+
+
+def _rot_zyx(e):
+    cf, sf, ct, st, cp, sp = (np.cos(e[:, 0]), np.sin(e[:, 0]), np.cos(e[:, 1]), np.sin(e[:, 1]),
+                              np.cos(e[:, 2]), np.sin(e[:, 2]))
+    Rz = np.zeros((len(e), 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = cp, -sp, sp, cp, 1
+    Ry = np.zeros_like(Rz)
+    Ry[:, 0, 0], Ry[:, 0, 2], Ry[:, 2, 0], Ry[:, 2, 2], Ry[:, 1, 1] = ct, st, -st, ct, 1
+    Rx = np.zeros_like(Rz)
+    Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2], Rx[:, 0, 0] = cf, -sf, sf, cf, 1
+    return Rz @ Ry @ Rx
+
+
+@pytest.fixture(scope="module")
+def plant_flight():
+    """20 s of our plant flying RotorPy's Crazyflie (rotor speeds in rad/s), noise-free."""
+    ds = make_dataset("small", 1, 20.0, 11, noise=NoiseModel.none(), vehicle="crazyflie")
+    states = np.concatenate([ds.x[0], ds.x_next[0, -1:]])
+    rotors = np.concatenate([ds.rotor_speed[0], ds.rotor_speed[0, -1:]])
+    wrench = np.concatenate([ds.wrench[0], ds.wrench[0, -1:]])
+    return states, rotors, wrench
+
+
+def write_foreign(path, states, rotors, seed=0, held=0.10, delay=DELAY, faults=True):
+    """Write the plant's flight as a foreign log; return the rows (log index) whose state was held or NaN."""
+    rng = np.random.default_rng(seed)
+    n = len(states)
+    flip = np.array([1.0, -1.0, -1.0])
+    pos, vel, rates = states[:, 0:3] * flip, states[:, 9:12] * flip, states[:, 6:9] * flip
+    R_log = flip[:, None] * _rot_zyx(states[:, 3:6]) * flip[None, :]     # diag(flip) R diag(flip)
+    q = _quat_xyzw(R_log)
+    lead = np.concatenate([rotors[delay:], np.repeat(rotors[-1:], delay, axis=0)])  # logged[k] = rotor[k + d]
+    erpm = lead[:, LOG_ROTOR] * ERPM_PER_RAD_S
+    state = np.concatenate([pos, q, vel, rates], axis=1)
+    bad_state = np.zeros(n, dtype=bool)
+    if faults:
+        for block, is_state in ((state, True), (erpm, False)):
+            rows = np.sort(rng.choice(np.arange(1, n), int(held * n), replace=False))
+            for r in rows:
+                block[r] = block[r - 1]
+            if is_state:
+                bad_state[rows] = True
+        nan_state = rng.choice(np.arange(1, n), 3, replace=False)
+        state[nan_state, 3] = np.nan
+        bad_state[nan_state] = True
+        erpm[rng.choice(np.arange(1, n), 5, replace=False)] = np.nan
+        spikes = rng.choice(np.arange(1, n), 4, replace=False)
+        erpm[spikes, rng.integers(0, 4, 4)] = 6e6
+    t_ms = (T0 + np.arange(n) * DT) * 1e3
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["time_ms", "px", "py", "pz", "qx", "qy", "qz", "qw", "vx", "vy", "vz", "gx", "gy", "gz",
+                    "m1", "m2", "m3", "m4", "battery"])
+        for k in range(n):
+            w.writerow([repr(float(t_ms[k])), *("" if np.isnan(v) else repr(float(v)) for v in state[k]),
+                        *("" if np.isnan(v) else repr(float(v)) for v in erpm[k]), "4.0"])
+    return bad_state
+
+
+@pytest.fixture(scope="module")
+def layout(tmp_path_factory):
+    path = tmp_path_factory.mktemp("fmt") / "foreign.toml"
+    path.write_text(LAYOUT)
+    return load_format(path)
+
+
+@pytest.fixture(scope="module")
+def round_trip(plant_flight, layout, tmp_path_factory):
+    states, rotors, wrench = plant_flight
+    path = tmp_path_factory.mktemp("logs") / "flight_a.csv"
+    bad = write_foreign(path, states, rotors)
+    flight = read_flight(path, layout, load_vehicle("crazyflie"))
+    return flight, bad, path
+
+
+def test_round_trip_recovers_the_delay_exactly(round_trip):
+    flight, _, _ = round_trip
+    assert flight.report.delay_samples == DELAY
+    assert flight.report.delay_rss_ratio < 0.5     # the held rotor rows are filled, so the best fit is not exact
+
+
+def test_round_trip_recovers_the_plant_states(round_trip, plant_flight):
+    flight, bad, _ = round_trip
+    states = plant_flight[0]
+    idx = np.rint(flight.t / DT).astype(int)          # the log's first row is the plant's sample 0
+    kept = flight.x_ok
+    assert np.array_equal(kept, ~bad[idx]), "exactly the held and NaN rows are masked"
+    err = np.max(np.abs(flight.x[kept] - states[idx[kept]]))
+    assert err <= STATE_TOL
+    assert kept.sum() >= MIN_KEPT * len(states)
+
+
+def test_round_trip_rotor_speeds_give_the_plant_wrench(round_trip, plant_flight):
+    flight, _, _ = round_trip
+    _, rotors, wrench = plant_flight
+    idx = np.rint(flight.t / DT).astype(int)
+    ok = flight.rotor_ok
+    assert np.max(np.abs(flight.rotor_speed[ok] - rotors[idx[ok]])) <= 1e-9 * rotors.max()
+    scale = np.abs(wrench).max(axis=0)
+    assert np.all(np.abs(flight.u[ok] - wrench[idx[ok]]) <= WRENCH_RTOL * scale)
+    assert flight.report.spikes == 4
+
+
+def test_round_trip_conversion_checks_are_near_one(round_trip):
+    rep = round_trip[0].report
+    assert np.allclose(rep.velocity_check["slope"], 1.0, atol=2e-3)
+    assert np.allclose(rep.rates_check["slope"], 1.0, atol=2e-2)
+    assert rep.warnings() == []
+
+
+def test_a_wrong_frame_shows_in_the_checks(plant_flight, tmp_path):
+    """Read with an FRD body, the FLU log is self-consistent in rates and attitude, but its thrust points the wrong
+    way: the thrust check's slope is negative. A logger that flips one rate's sign shows in the rates check."""
+    states, rotors, _ = plant_flight
+    path = tmp_path / "f.csv"
+    write_foreign(path, states, rotors, faults=False)
+    clean = read_flight(path, parse_format(tomllib.loads(LAYOUT)), load_vehicle("crazyflie")).report
+    assert clean.delay_samples == DELAY and clean.delay_rss_ratio < 1e-2
+    assert abs(clean.thrust_check["slope"] - 1.0) < 1e-3
+    fmt = parse_format(tomllib.loads(LAYOUT.replace('body = "flu"', 'body = "frd"')))
+    rep = read_flight(path, fmt, load_vehicle("crazyflie")).report
+    assert rep.thrust_check["slope"] < 0
+    assert any("thrust" in w for w in rep.warnings())
+    flipped = states.copy()
+    flipped[:, 7] *= -1.0                          # the logger's pitch rate has the wrong sign
+    write_foreign(path, flipped, rotors, faults=False)
+    rep = read_flight(path, parse_format(tomllib.loads(LAYOUT)), load_vehicle("crazyflie")).report
+    assert rep.rates_check["slope"][1] < -0.9
+    assert rep.rates_check["slope"][0] > 0.99 and rep.rates_check["slope"][2] > 0.99
+    assert any("axis y" in w for w in rep.warnings())
+
+
+def test_jittered_log_is_resampled(plant_flight, layout, tmp_path):
+    """Dropping every third row (a 15 ms average period): the grid samples between rows are interpolated, with an
+    error of second order in the gap."""
+    states, rotors, _ = plant_flight
+    path = tmp_path / "full.csv"
+    write_foreign(path, states, rotors, faults=False)
+    lines = path.read_text().splitlines()
+    thin = tmp_path / "thin.csv"
+    thin.write_text("\n".join([lines[0]] + [ln for i, ln in enumerate(lines[1:]) if i % 3 != 1]) + "\n")
+    flight = read_flight(thin, layout, load_vehicle("crazyflie"))
+    assert "resampled" in flight.report.resampling
+    idx = np.rint(flight.t / DT).astype(int)
+    on_row = idx % 3 != 1
+    assert np.max(np.abs(flight.x[on_row, :3] - states[idx[on_row], :3])) <= STATE_TOL
+    assert np.max(np.abs(flight.x[:, :3] - states[idx, :3])) <= 1e-3    # 2 cm/s^2-ish curvature over 10 ms
+
+
+# ------------------------------------------------------------------ bad logs on the command line
+BAD_CASES = {
+    "missing column": (lambda s: s.replace("gz", "gzz", 1), None, "'gz'"),
+    "unknown unit": (None, lambda f: f.replace('unit = "erpm"', 'unit = "krpm"'), "unit"),
+    "time backwards": ("swap", None, "'time_ms'"),
+    "all-NaN column": ("nan_m3", None, "'m3'"),
+    "unknown format key": (None, lambda f: f.replace("[delay]", "[delay]\nwindow = 3"), "'window'"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CASES))
+def test_bad_logs_give_one_line_and_write_nothing(case, plant_flight, tmp_path, capsys):
+    states, rotors, _ = plant_flight
+    log = tmp_path / "flight.csv"
+    write_foreign(log, states[:400], rotors[:400], faults=False)
+    edit_log, edit_fmt, needle = BAD_CASES[case]
+    lines = log.read_text().splitlines()
+    if edit_log == "swap":
+        lines[200], lines[201] = lines[201], lines[200]
+    elif edit_log == "nan_m3":
+        head = lines[0].split(",")
+        j = head.index("m3")
+        lines = [lines[0]] + [",".join("" if i == j else v for i, v in enumerate(ln.split(","))) for ln in lines[1:]]
+    elif edit_log is not None:
+        lines[0] = edit_log(lines[0])
+    log.write_text("\n".join(lines) + "\n")
+    fmt = tmp_path / "fmt.toml"
+    fmt.write_text(edit_fmt(LAYOUT) if edit_fmt else LAYOUT)
+    out = tmp_path / "out" / "data.npz"
+    code = main(["import", str(log), "--format", str(fmt), "--vehicle", "crazyflie", "--out", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert len(err.splitlines()) == 1
+    assert needle in err
+    assert (str(log) in err) or (str(fmt) in err)
+    assert not out.exists() and not out.parent.exists()
+
+
+def test_import_command_writes_a_dataset_with_validity(plant_flight, tmp_path, capsys):
+    states, rotors, wrench = plant_flight
+    for name, seed in (("square_1", 1), ("melon_1", 2)):
+        write_foreign(tmp_path / f"{name}.csv", states, rotors, seed=seed)
+    fmt = tmp_path / "fmt.toml"
+    fmt.write_text(LAYOUT)
+    out = tmp_path / "real.npz"
+    code = main(["import", str(tmp_path / "square_1.csv"), str(tmp_path / "melon_1.csv"), "--format", str(fmt),
+                 "--vehicle", "crazyflie", "--out", str(out), "--split", "test=melon*"])
+    assert code == 0, capsys.readouterr().err
+    ds = load_dataset(out)
+    assert ds.meta["flight_names"] == ["square_1", "melon_1"]
+    assert ds.split.tolist() == [0, 2]
+    assert ds.meta["delay_samples"] == [DELAY, DELAY]
+    pairs = ds.pairs("train")
+    n_usable = int(ds.usable[0].sum())
+    assert len(pairs["x"]) == n_usable
+    # every usable pair is a true one-step pair of the plant: x_next is the state one period after x
+    k = np.array([int(np.argmin(np.abs(states[:, 0] - xi[0]) + np.abs(states[:, 1] - xi[1]))) for xi in pairs["x"][:50]])
+    assert np.max(np.abs(pairs["x_next"][:50] - states[k + 1])) <= STATE_TOL
+    u_true = wrench[k]
+    assert np.all(np.abs(pairs["u"][:50] - u_true) <= WRENCH_RTOL * np.abs(wrench).max(axis=0))
+    assert "delay 3 samples" in capsys.readouterr().out
+    # training on it is refused in one line until the training windows skip masked samples
+    code = main(["train", "--arch", "proposed", "--data", str(out), "--out", str(tmp_path / "m")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "imported flight logs" in err
+    assert not (tmp_path / "m").exists()
+
+
+def test_mixer_of_reversed_spins_flips_yaw_only():
+    """A log whose front-right rotor turns clockwise gets the yaw torque reversed and nothing else."""
+    fmt = parse_format(tomllib.loads(LAYOUT.replace('spin = ["cw", "ccw", "cw", "ccw"]',
+                                                                 'spin = ["ccw", "cw", "ccw", "cw"]')))
+    assert fmt.yaw_sign == -1.0
+    assert load_format  # the shipped formats load too
+    for name in ("nanodrone-raw", "nanodrone-processed"):
+        assert load_format(name).rotors[0].startswith("m1")
+    M = mixer_matrix(load_vehicle("crazyflie").params)
+    assert M[3, 0] > 0
+
+
+def test_format_errors_name_the_key():
+    with pytest.raises(FlightLogError, match="'colums'"):
+        parse_format(tomllib.loads(LAYOUT.replace('columns = ["px"', 'colums = ["px"')))
+    with pytest.raises(FlightLogError, match="does not alternate"):
+        parse_format(tomllib.loads(LAYOUT.replace('spin = ["cw", "ccw", "cw", "ccw"]',
+                                                  'spin = ["cw", "cw", "ccw", "ccw"]')))
+
+
+# ------------------------------------------------------------------ the real benchmark, on demand
+BENCH = __import__("os").environ.get("PINNMPC_NANODRONE")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not BENCH, reason="set PINNMPC_NANODRONE to a clone of nanodrone-sysid-benchmark (model_export)")
+def test_the_benchmarks_raw_flights_import_as_documented(tmp_path):
+    """Figures of docs/real-flights.md, from the benchmark's commit ac439dbc."""
+    import json
+    from pathlib import Path
+
+    logs = sorted((Path(BENCH) / "data" / "real" / "raw" / "parquets").glob("*.parquet"))
+    assert len(logs) == 21
+    out = tmp_path / "real.npz"
+    code = main(["import", *map(str, logs), "--format", "nanodrone-raw", "--vehicle", "crazyflie-brushless",
+                 "--out", str(out), "--split", "test=melon*", "--json", str(tmp_path / "r.json")])
+    assert code == 0
+    rep = {f["name"].replace("_20251017", ""): f for f in json.loads((tmp_path / "r.json").read_text())["flights"]}
+    assert rep["melon_run1"]["rows"] == 6995
+    assert rep["multisine_run1"]["spikes"] == 2 and rep["multisine_run4"]["spikes"] == 3
+    assert all(f["spikes"] == 0 for n, f in rep.items() if n not in ("multisine_run1", "multisine_run4"))
+    assert all(-5 <= f["delay_samples"] <= 5 for f in rep.values())
+    assert all(0.85 <= f["thrust_check"]["slope"] <= 1.2 for f in rep.values())
+    ds = load_dataset(out)
+    assert ds.split.tolist().count(2) == 4

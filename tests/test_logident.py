@@ -1,0 +1,104 @@
+"""Real-flight identification and the benchmark's prediction protocol, on flights with known answers."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from sim import NoiseModel
+from sim.excitation import make_dataset
+from sim.logbench import HORIZONS, physics_step, prediction_errors, rotation_angle
+from sim.logident import fisher_table, identify
+from sim.params import DT
+from sim.rotors import wrench_from_rotor_sq
+from sim.vehicle import load_vehicle
+
+# tolerances of this module
+EXACT = 1e-9          # the plant's own equations predict its noise-free flight (RK4, same substeps)
+RATIO_RTOL = 2e-3     # identified ratios against the true ones (forward differences bias them by O(dt))
+SCALE_TOL = 1e-6      # the Fisher information's null direction against the common scale
+
+
+def _flights(ds):
+    """The dataset's trajectories as imported flights: every sample measured, no delay."""
+    out = []
+    for i in range(ds.n_traj):
+        x = np.concatenate([ds.x[i], ds.x_next[i, -1:]])
+        n = np.concatenate([ds.rotor_speed[i], ds.rotor_speed[i, -1:]])
+        ok = np.ones(len(x), dtype=bool)
+        out.append(SimpleNamespace(name=f"f{i}", x=x, rotor_speed=n, u=np.concatenate([ds.wrench[i], ds.wrench[i, -1:]]),
+                                   x_ok=ok, rotor_ok=ok, report=SimpleNamespace(delay_samples=0)))
+    return out
+
+
+@pytest.fixture(scope="module")
+def crazyflie_flights():
+    vehicle = load_vehicle("crazyflie")
+    ds = make_dataset("small", 4, 8.0, 5, noise=NoiseModel.none(), vehicle=vehicle)
+    return vehicle, _flights(ds)
+
+
+@pytest.fixture(scope="module")
+def noisy_flights():
+    """The same flights with the stated measurement noise (the Fisher information needs residuals of a real size)."""
+    vehicle = load_vehicle("crazyflie")
+    return vehicle, _flights(make_dataset("small", 4, 8.0, 5, noise=NoiseModel(), vehicle=vehicle))
+
+
+def test_rotation_angle_of_a_known_rotation():
+    e0 = np.array([[0.1, -0.2, 0.3]])
+    e1 = e0 + np.array([[0.0, 0.0, 0.25]])          # 0.25 rad more yaw: a rotation of 0.25 rad about world z
+    assert rotation_angle(e1, e0)[0] == pytest.approx(0.25, abs=1e-12)
+    assert rotation_angle(e0, e0)[0] == pytest.approx(0.0, abs=1e-7)
+
+
+def test_the_true_equations_predict_the_plants_flight_exactly(crazyflie_flights):
+    vehicle, flights = crazyflie_flights
+    e = prediction_errors(physics_step(vehicle.params), flights)
+    for q in ("position", "velocity", "rotation", "angular_velocity"):
+        assert max(getattr(e, q)) <= EXACT, q
+    assert e.windows[0] == sum(len(f.x) - max(HORIZONS) for f in flights)
+
+
+def test_holding_the_state_gives_the_mean_displacement(crazyflie_flights):
+    """A model that predicts no motion errs by exactly the logged displacement over h steps."""
+    _, flights = crazyflie_flights
+    e = prediction_errors(lambda x, u: x, flights)
+    H = max(HORIZONS)
+    for j, h in enumerate(HORIZONS):
+        d = np.concatenate([np.linalg.norm(f.x[h:len(f.x) - H + h, 0:3] - f.x[:len(f.x) - H, 0:3], axis=1)
+                            for f in flights])
+        assert e.position[j] == pytest.approx(d.mean(), rel=1e-12)
+
+
+def test_identified_ratios_are_the_vehicles(crazyflie_flights):
+    vehicle, flights = crazyflie_flights
+    ident = identify(flights, vehicle)
+    assert ident.value("kt/m") == pytest.approx(vehicle.kt / vehicle.m, rel=RATIO_RTOL)
+    assert ident.value("kt/Jxx") == pytest.approx(vehicle.kt / vehicle.Jxx, rel=RATIO_RTOL)
+    assert ident.value("kt/Jyy") == pytest.approx(vehicle.kt / vehicle.Jyy, rel=RATIO_RTOL)
+    assert ident.value("kq/Jzz") == pytest.approx(vehicle.kq / vehicle.Jzz, rel=RATIO_RTOL)
+    for c in ("k_x", "k_y", "k_z"):                 # the plant has no drag (c_d = 0 for this vehicle)
+        assert abs(ident.value(c)) < 1e-2
+    # with the midpoint regressors the equations hold to second order in the period (x and y carry no force at all)
+    assert min(ident.explained[e] for e in ("a_z", "p_dot", "q_dot", "r_dot")) > 1 - 1e-6
+    c = ident.coefficients["kt/m"]
+    assert c.low <= np.mean(c.per_flight) <= c.high and len(c.per_flight) == 4
+
+
+def test_fisher_information_has_the_common_scale_as_its_null_direction(noisy_flights):
+    vehicle, flights = noisy_flights
+    table = fisher_table(flights, vehicle, identify(flights, vehicle))
+    ev = table["eigenvalues"]
+    assert abs(ev[0]) <= 1e-9 * ev[-1]
+    assert np.allclose(table["weakest_direction"], 1 / np.sqrt(6), atol=SCALE_TOL)
+    assert all(v > 0 for v in table["crlb_relative_with_m_fixed"].values())
+
+
+def test_the_wrench_of_the_flights_is_the_rotor_speeds_through_the_mixer(crazyflie_flights):
+    """The helper's flights are consistent: u is the wrench of the logged rotor speeds (so the identification sees
+    the same rotor speeds that flew)."""
+    vehicle, flights = crazyflie_flights
+    f = flights[0]
+    assert np.allclose(wrench_from_rotor_sq(f.rotor_speed ** 2, vehicle.params), f.u, rtol=1e-12, atol=1e-15)
+    assert DT == 0.01
