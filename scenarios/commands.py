@@ -32,6 +32,17 @@ def register(sub) -> None:
     from .runner import CONTROLLERS, ESTIMATORS, HORIZON, MAX_HORIZON, TIMINGS
 
     names = scenario_names()
+    p = sub.add_parser("realdata", help="the real-data study on a copy of the nano-drone benchmark",
+                       description="Import the benchmark's raw flights, hold the melon flights out, identify the "
+                                   "vehicle on the training flights, choose on the validation flights, and evaluate "
+                                   "every model under the benchmark's protocol (docs/real-flights.md).")
+    p.add_argument("--logs", required=True, type=Path, metavar="DIR",
+                   help="the benchmark's root (branch model_export) or a copy with its data/real/ layout")
+    p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder (realdata.json, .md)")
+    p.add_argument("--vehicle", default="crazyflie-brushless", metavar="NAME|FILE.toml",
+                   help="the vehicle (default crazyflie-brushless, the benchmark's stated values)")
+    p.set_defaults(handler=cmd_realdata)
+
     p = sub.add_parser("fly", help="fly one closed-loop run and print its metrics",
                        description="One closed-loop run: a scenario flown on a plant (by default this project's "
                                    "simulator) by a controller using a prediction model. Scenarios: "
@@ -172,6 +183,18 @@ def _horizon_arg(text: str) -> int:
         return check_horizon(value, "--horizon")
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def cmd_realdata(args: argparse.Namespace) -> int:
+    """Handler of ``pinnmpc realdata``."""
+    from .realdata import run_realdata, summary_lines
+
+    check_writable(args.out, "--out", folder=True)
+    r = run_realdata(args.logs, args.out, args.vehicle,
+                     progress=(lambda line: print(line, file=sys.stderr, flush=True)))
+    print("\n".join(summary_lines(r)))
+    print(f"wrote {args.out / 'realdata.json'} and {args.out / 'realdata.md'}")
+    return 0
 
 
 def cmd_fly(args: argparse.Namespace) -> int:

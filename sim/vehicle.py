@@ -16,10 +16,11 @@ rotor speed at which four rotors give twice the vehicle's weight. An unknown
 key is an error that names it, and so is a vehicle whose rotors cannot lift
 :data:`MIN_THRUST_TO_WEIGHT` times its weight.
 
-Three presets ship with the package (``sim/vehicles/*.toml``):
+Four presets ship with the package (``sim/vehicles/*.toml``):
 ``rolling-spider`` (the default; the paper's vehicle), ``hummingbird`` and
 ``crazyflie`` (RotorPy's presets of the AscTec Hummingbird and the Bitcraze
-Crazyflie 2.0). ``load_vehicle(NAME or PATH)`` reads either.
+Crazyflie 2.0), and ``crazyflie-brushless`` (the values a real-flight
+benchmark states for its Crazyflie 2.1 Brushless). ``load_vehicle(NAME or PATH)`` reads either.
 """
 
 from __future__ import annotations

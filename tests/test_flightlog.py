@@ -23,6 +23,8 @@ from sim.params import DT
 from sim.rotors import mixer_matrix
 from sim.vehicle import load_vehicle
 
+from foreign_logs import quat_xyzw, rot_zyx
+
 # tolerances and fixed figures of this module
 STATE_TOL = 1e-9          # imported state against the plant's, on every kept sample
 WRENCH_RTOL = 1e-9        # wrench from the imported rotor speeds against the plant's, relative to its size
@@ -67,38 +69,6 @@ search = [-5, 10]
 LOG_ROTOR = [3, 0, 1, 2]
 
 
-def _quat_xyzw(R):
-    """Quaternions (n, 4), x y z w, of rotation matrices (n, 3, 3) (Shepperd's method, an independent route)."""
-    out = np.empty((len(R), 4))
-    for i, m in enumerate(R):
-        tr = np.trace(m)
-        if tr > 0:
-            s = 2.0 * math.sqrt(tr + 1.0)
-            w, x, y, z = 0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s
-        else:
-            j = int(np.argmax(np.diag(m)))
-            a, b, c = j, (j + 1) % 3, (j + 2) % 3
-            s = 2.0 * math.sqrt(1.0 + m[a, a] - m[b, b] - m[c, c])
-            q = np.empty(3)
-            q[a], q[b], q[c] = 0.25 * s, (m[b, a] + m[a, b]) / s, (m[c, a] + m[a, c]) / s
-            w = (m[c, b] - m[b, c]) / s
-            x, y, z = q
-        out[i] = (x, y, z, w)
-    return out
-
-
-def _rot_zyx(e):
-    cf, sf, ct, st, cp, sp = (np.cos(e[:, 0]), np.sin(e[:, 0]), np.cos(e[:, 1]), np.sin(e[:, 1]),
-                              np.cos(e[:, 2]), np.sin(e[:, 2]))
-    Rz = np.zeros((len(e), 3, 3))
-    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = cp, -sp, sp, cp, 1
-    Ry = np.zeros_like(Rz)
-    Ry[:, 0, 0], Ry[:, 0, 2], Ry[:, 2, 0], Ry[:, 2, 2], Ry[:, 1, 1] = ct, st, -st, ct, 1
-    Rx = np.zeros_like(Rz)
-    Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2], Rx[:, 0, 0] = cf, -sf, sf, cf, 1
-    return Rz @ Ry @ Rx
-
-
 @pytest.fixture(scope="module")
 def plant_flight():
     """20 s of our plant flying RotorPy's Crazyflie (rotor speeds in rad/s), noise-free."""
@@ -115,8 +85,8 @@ def write_foreign(path, states, rotors, seed=0, held=0.10, delay=DELAY, faults=T
     n = len(states)
     flip = np.array([1.0, -1.0, -1.0])
     pos, vel, rates = states[:, 0:3] * flip, states[:, 9:12] * flip, states[:, 6:9] * flip
-    R_log = flip[:, None] * _rot_zyx(states[:, 3:6]) * flip[None, :]     # diag(flip) R diag(flip)
-    q = _quat_xyzw(R_log)
+    R_log = flip[:, None] * rot_zyx(states[:, 3:6]) * flip[None, :]     # diag(flip) R diag(flip)
+    q = quat_xyzw(R_log)
     lead = np.concatenate([rotors[delay:], np.repeat(rotors[-1:], delay, axis=0)])  # logged[k] = rotor[k + d]
     erpm = lead[:, LOG_ROTOR] * ERPM_PER_RAD_S
     state = np.concatenate([pos, q, vel, rates], axis=1)

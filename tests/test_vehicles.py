@@ -54,13 +54,21 @@ def test_the_default_vehicle_is_the_reference_values():
 
 
 def test_the_presets_carry_rotorpys_numbers_and_their_sources():
-    assert vehicle_names() == ["crazyflie", "hummingbird", "rolling-spider"]
+    assert vehicle_names() == ["crazyflie", "crazyflie-brushless", "hummingbird", "rolling-spider"]
     hb, cf = load_vehicle("hummingbird"), load_vehicle("crazyflie")
     assert (hb.m, hb.kt, hb.kq, hb.d, hb.n_max, hb.motor_tau) == (0.5, 5.57e-6, 1.36e-7, 0.17, 1500.0, 0.005)
     assert (cf.m, cf.kt, cf.d, cf.n_max, cf.motor_tau, cf.c_d) == (0.03, 2.3e-8, 0.043, 2500.0, 0.072, 0.0)
     # The Crazyflie's rotors lift 1.95 times its weight (RotorPy: k_eta 2.3e-8 N/(rad/s)^2 at 2500 rad/s).
     assert 4 * cf.kt * cf.n_max ** 2 / (cf.m * 9.81) == pytest.approx(1.9538, abs=1e-4)
     assert all(load_vehicle(n).source for n in vehicle_names())
+
+
+def test_the_brushless_crazyflie_carries_the_benchmarks_stated_values():
+    cb = load_vehicle("crazyflie-brushless")
+    assert (cb.m, cb.Jxx, cb.Jyy, cb.Jzz, cb.kt, cb.kq) == (0.045, 2.3951e-5, 2.3951e-5, 3.2347e-6, 3.72e-8, 7.74e-12)
+    assert cb.d / 2 ** 0.5 == pytest.approx(0.0353, abs=1e-6)          # their arm is the lever, d / sqrt(2)
+    # n_max gives their thrust-to-weight 2.0
+    assert 4 * cb.kt * cb.n_max ** 2 / (cb.m * 9.81) == pytest.approx(2.0, abs=1e-3)
 
 
 def test_a_key_left_out_takes_its_default_and_n_max_follows_the_weight(tmp_path):
