@@ -101,6 +101,10 @@ def extended_weights(Q, n_extra: int) -> np.ndarray:
     return out
 
 
+#: Body-rate rows of B below this share of B's largest entry: no input turns the model.
+HELD_RATES_TOL = 1e-9
+
+
 def lqr(A, B, Q, R) -> tuple[np.ndarray, np.ndarray]:
     """Gain ``K`` (4, nx) and Riccati solution ``P`` (nx, nx) from ``control.dlqr`` (nx = 12 plus extra states).
 
@@ -114,6 +118,12 @@ def lqr(A, B, Q, R) -> tuple[np.ndarray, np.ndarray]:
     import control
 
     Q, R = _check_weights(Q, R, np.shape(A)[0])
+    Bn = np.asarray(B, dtype=float)
+    if Bn.shape[0] >= 9 and np.max(np.abs(Bn[6:9])) <= HELD_RATES_TOL * np.max(np.abs(Bn)):
+        raise ConfigurationError(
+            "no LQR gain for this hover linearization: no input changes the body rates (the model's angular "
+            "acceleration does not depend on the rotors, as in a model that holds its rates with omega-dot = 0); "
+            "it cannot turn, so no controller can fly it")
     try:
         K, P, _ = control.dlqr(A, B, Q, R)
     except Exception as e:  # python-control raises several types for a non-stabilizable pair

@@ -105,3 +105,24 @@ def test_the_study_on_the_real_benchmark(tmp_path):
     # the benchmark's Physics row (0.1235 m on its filtered run 1) is met within a few centimetres on raw data
     assert 0.08 < held["position"][-1] < 0.2
     assert Path(out / "realdata.md").is_file()
+
+
+def test_a_model_that_holds_its_rates_is_refused_by_every_controller_with_the_reason():
+    """The benchmark's Physics model (omega-dot = 0) as a prediction model: check-model's readiness says no controller
+    can fly it, because no input changes the body rates."""
+    from mpc.lqr import LQRController
+    from mpc.models import AnalyticModel, LinearModel
+    from mpc.readiness import CONTROLLERS, readiness
+
+    oracle = AnalyticModel()
+    lq = LQRController(None, oracle)
+    B = lq.B.copy()
+    A = lq.A.copy()
+    B[6:9] = 0.0                                   # rates held: the rotors no longer reach p, q, r
+    A[6:9] = 0.0
+    A[6:9, 6:9] = np.eye(3)
+    x0, u0 = lq.ff.linearization_point()
+    held = LinearModel(A, B, x0, u0, name="rates-held")
+    ready = readiness(held)
+    assert all(not ready[c].flies and "no input changes the body rates" in ready[c].reason for c in CONTROLLERS)
+    assert readiness(LinearModel(lq.A, lq.B, x0, u0))["sqp"].flies
