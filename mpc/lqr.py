@@ -101,8 +101,24 @@ def extended_weights(Q, n_extra: int) -> np.ndarray:
     return out
 
 
-#: Body-rate rows of B below this share of B's largest entry: no input turns the model.
+#: Body-rate rows of A^k B below this share of its largest entry, for every k: no input turns the model.
 HELD_RATES_TOL = 1e-9
+
+
+def _reaches_rates(A, B) -> bool:
+    """Whether some input reaches the body rates within ``nx`` periods (rows 6:9 of some ``A^k B``, k < nx).
+
+    Through ``A`` because a model with extra states (a register of past commands) reaches them only later.
+    """
+    A, M = np.asarray(A, dtype=float), np.asarray(B, dtype=float)
+    for _ in range(A.shape[0]):
+        scale = np.max(np.abs(M))
+        if not scale > 0 or not np.isfinite(scale):
+            return True        # nothing to tell (the Riccati solution's own checks speak)
+        if np.max(np.abs(M[6:9])) > HELD_RATES_TOL * scale:
+            return True
+        M = A @ M / scale
+    return False
 
 
 def lqr(A, B, Q, R) -> tuple[np.ndarray, np.ndarray]:
@@ -118,8 +134,7 @@ def lqr(A, B, Q, R) -> tuple[np.ndarray, np.ndarray]:
     import control
 
     Q, R = _check_weights(Q, R, np.shape(A)[0])
-    Bn = np.asarray(B, dtype=float)
-    if Bn.shape[0] >= 9 and np.max(np.abs(Bn[6:9])) <= HELD_RATES_TOL * np.max(np.abs(Bn)):
+    if not _reaches_rates(A, B):
         raise ConfigurationError(
             "no LQR gain for this hover linearization: no input changes the body rates (the model's angular "
             "acceleration does not depend on the rotors, as in a model that holds its rates with omega-dot = 0); "
