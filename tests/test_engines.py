@@ -44,6 +44,7 @@ def test_a_ray_sweep_gives_the_process_engines_results(reference, tmp_path):
     assert_same_runs(reference[0], results, reference[1], tmp_path)
 
 
+@pytest.mark.slow
 def test_an_interrupted_sweep_resumes_without_flying_any_run_twice(reference, tmp_path, monkeypatch):
     flown = []
     fly = runner.fly

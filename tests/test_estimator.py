@@ -78,6 +78,7 @@ def test_the_rotor_speeds_of_a_lagging_motor_are_estimated():
     np.testing.assert_allclose(est.x[12:], truth, rtol=TOL["rotor_rel"])
 
 
+@pytest.mark.slow
 def test_seeded_flights_with_the_estimator_are_exactly_equal():
     a = fly(RunSpec("hover", "lqr", "oracle", estimator="ekf"))[1]
     b = fly(RunSpec("hover", "lqr", "oracle", estimator="ekf"))[1]

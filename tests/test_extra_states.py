@@ -348,6 +348,7 @@ def test_the_high_fidelity_flatness_map_is_a_solution_of_the_equations():
     np.testing.assert_allclose(x0, flat_state(traj.flat(t), p)[0], rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_the_oracle_flies_figure8_fast_highfi_within_a_millimetre():
     """The plant's true equations, lag included, flown by the SQP (the nominal equations get about 39 mm)."""
     from scenarios.runner import RunSpec, fly

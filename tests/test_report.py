@@ -357,6 +357,7 @@ def test_the_zoo_study_leads_the_report(results_dir):
     assert "Not flown: 1 trained models" in _section(md, HEADINGS[3]) and "stuck (the stuck one" in md
 
 
+@pytest.mark.slow
 def test_the_threshold_with_the_estimator_sits_beside_the_one_without(results_dir):
     from scenarios.stats import wilson_interval
 
@@ -417,6 +418,7 @@ def _versus() -> dict:
             "command": "pinnmpc versus --members 10"}
 
 
+@pytest.mark.slow
 def test_learned_against_nominal_section_reads_versus_json(results_dir):
     h = "Learned against nominal on plants with unmodelled physics"
     assert "pinnmpc versus" in _section(build_report(results_dir).read_text(encoding="utf-8"), h)   # how to make one
