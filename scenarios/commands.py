@@ -41,6 +41,8 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder (realdata.json, .md)")
     p.add_argument("--vehicle", default="crazyflie-brushless", metavar="NAME|FILE.toml",
                    help="the vehicle (default crazyflie-brushless, the benchmark's stated values)")
+    p.add_argument("--plants", default="sim,rotorpy", metavar="LIST",
+                   help="plants of the closed-loop check, comma-separated (default sim,rotorpy; 'none': no flight)")
     p.set_defaults(handler=cmd_realdata)
 
     p = sub.add_parser("fly", help="fly one closed-loop run and print its metrics",
@@ -189,8 +191,14 @@ def cmd_realdata(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc realdata``."""
     from .realdata import run_realdata, summary_lines
 
+    from sim.plants import PLANTS
+
     check_writable(args.out, "--out", folder=True)
-    r = run_realdata(args.logs, args.out, args.vehicle,
+    plants = () if args.plants == "none" else tuple(p.strip() for p in args.plants.split(",") if p.strip())
+    bad = [p for p in plants if p not in PLANTS]
+    if bad:
+        raise ValueError(f"--plants: unknown plant {bad[0]!r}; choose from {', '.join(PLANTS)}, or none")
+    r = run_realdata(args.logs, args.out, args.vehicle, plants=plants,
                      progress=(lambda line: print(line, file=sys.stderr, flush=True)))
     print("\n".join(summary_lines(r)))
     print(f"wrote {args.out / 'realdata.json'} and {args.out / 'realdata.md'}")

@@ -109,8 +109,49 @@ def _physics_candidates(ident, vehicle):
     return out
 
 
-def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=print) -> dict:
-    """Run the study and write ``OUT/realdata.json`` and ``OUT/realdata.md``; returns the JSON's content."""
+#: The closed-loop check: the scenario flown by the SQP with each vehicle's nominal equations, on each plant.
+CLOSED_LOOP_SCENARIO = "figure8-fast"
+
+
+def identified_vehicle(ident, vehicle):
+    """The vehicle file's vehicle with the identified rigid body: ``kt`` from ``kt/m`` (mass fixed), ``Jxx`` and
+    ``Jyy`` from the torque gains, ``Jzz`` from ``kq/Jzz`` with the file's ``kq``. The fitted drags are left out
+    (the plants have no linear body drag)."""
+    p = identified_model(ident, vehicle)["p"]
+    return vehicle.replace(name=f"{vehicle.name}-identified", kt=p.kt, Jxx=p.Jxx, Jyy=p.Jyy, Jzz=p.Jzz,
+                           source=f"{vehicle.name} with kt, Jxx, Jyy and Jzz identified from real flights "
+                                  f"(pinnmpc realdata); m and kq as stated")
+
+
+def fly_vehicles(vehicles: dict, plants, progress=print) -> list[dict]:
+    """Fly :data:`CLOSED_LOOP_SCENARIO` with the SQP on the nominal equations of each vehicle (name -> file), on each
+    plant set up with the same vehicle; a plant that is not installed is recorded as skipped."""
+    from sim.errors import PlantUnavailableError
+
+    from .runner import RunSpec, fly
+
+    out = []
+    for label, path in vehicles.items():
+        for plant in plants:
+            progress(f"flying {CLOSED_LOOP_SCENARIO} with the {label} vehicle on {plant}")
+            row = {"vehicle": label, "plant": plant, "scenario": CLOSED_LOOP_SCENARIO, "controller": "sqp",
+                   "model": "nominal equations of the vehicle"}
+            try:
+                result, _ = fly(RunSpec(CLOSED_LOOP_SCENARIO, "sqp", "nominal", plant=plant, vehicle=str(path)))
+            except PlantUnavailableError as e:
+                out.append({**row, "skipped": str(e)})
+                continue
+            out.append({**row, **{k: result[k] for k in ("rmse_position_m", "crashed", "crash_time_s",
+                                                          "crash_reason", "solve_ms", "deadline_misses")}})
+    return out
+
+
+def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=print,
+                 plants=("sim", "rotorpy")) -> dict:
+    """Run the study and write ``OUT/realdata.json`` and ``OUT/realdata.md``; returns the JSON's content.
+
+    ``plants``: where the closed-loop check flies (none: no flight).
+    """
     root = Path(logs_root)
     logs, skipped = find_logs(root)
     for line in skipped:
@@ -143,6 +184,14 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
                         "flyable": flyable, **({"why_not_flyable": why} if why else {})}
     # the choice among physics models is made on the validation flights only (None without any)
     best = min(validation, key=lambda n: validation[n]["position"][-1]) if validation else None
+    out = Path(out_dir)
+    flown = {}
+    if plants:
+        ident_file = out / "identified-vehicle.toml"
+        write_text(ident_file, identified_vehicle(ident, vehicle).to_toml())
+        stated_file = out / "stated-vehicle.toml"
+        write_text(stated_file, vehicle.to_toml())
+        flown = fly_vehicles({"stated": stated_file, "identified": ident_file}, plants, progress)
     result = {
         "source": {"logs": str(root), "commit": _commit(root), "format": fmt.name, "vehicle": vehicle.name},
         "horizons": list(HORIZONS),
@@ -163,8 +212,8 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
         "fisher": fisher,
         "delays": {f.name: f.report.delay_samples for f in flights},
         "import": {f.name: dataclasses.asdict(f.report) for f in flights},
+        "closed_loop": flown,
     }
-    out = Path(out_dir)
     write_json(out / "realdata.json", result)
     write_text(out / "realdata.md", realdata_markdown(result))
     return result
@@ -198,6 +247,17 @@ def realdata_markdown(r: dict) -> str:
               "|---|" + "---|" * (len(QUANTITIES) * len(r["horizons"]))]
     for name, m in r["models"].items():
         lines.append(f"| {name} | " + " | ".join(f"{v:.4f}" for q in QUANTITIES for v in m["raw"][q]) + " |")
+    if r.get("closed_loop"):
+        lines += ["", f"## Flown: {CLOSED_LOOP_SCENARIO}, SQP on the vehicle's nominal equations, each plant set up "
+                  f"with the same vehicle", "", "| vehicle | plant | RMSE (m) | crashed | median solve (ms) | "
+                  "deadline misses |", "|---|---|---|---|---|---|"]
+        for row in r["closed_loop"]:
+            if "skipped" in row:
+                lines.append(f"| {row['vehicle']} | {row['plant']} | skipped: {row['skipped']} | | | |")
+                continue
+            crash = f"at {row['crash_time_s']:.2f} s ({row['crash_reason']})" if row["crashed"] else "no"
+            lines.append(f"| {row['vehicle']} | {row['plant']} | {row['rmse_position_m']:.4g} | {crash} | "
+                         f"{row['solve_ms']['median']:.3g} | {row['deadline_misses']} |")
     lines += ["", "## Models that cannot be flown", ""]
     lines += [f"- {n}: {m['why_not_flyable']}" for n, m in r["models"].items() if not m["flyable"]] or ["- none"]
     ident = r["identification"]

@@ -38,7 +38,7 @@ def bench(tmp_path_factory):
     (folder / "multisine_20251017_run1.parquet").write_text(
         "version https://git-lfs.github.com/spec/v1\noid sha256:0\nsize 1\n")
     out = root / "out"
-    code = main(["realdata", "--logs", str(root), "--out", str(out), "--vehicle", "crazyflie"])
+    code = main(["realdata", "--logs", str(root), "--out", str(out), "--vehicle", "crazyflie", "--plants", "sim"])
     assert code == 0
     return json.loads((out / "realdata.json").read_text()), out
 
@@ -58,6 +58,19 @@ def test_the_plants_own_equations_predict_its_flights_exactly(bench):
     for q in ("position", "velocity", "rotation", "angular_velocity"):
         assert len(m["raw"][q]) == 3 and max(m["raw"][q]) <= EXACT, q
     assert all(d == 0 for d in r["delays"].values())
+
+
+def test_the_identified_vehicle_flies_like_the_stated_one(bench):
+    """On the plant's own flights the identified vehicle is the plant's: both fly figure8-fast on the nominal
+    equations within a millimetre, and the identified file holds the identified ratios."""
+    r, out = bench
+    rows = {row["vehicle"]: row for row in r["closed_loop"]}
+    assert set(rows) == {"stated", "identified"} and all(row["plant"] == "sim" for row in rows.values())
+    assert all(not row["crashed"] and row["rmse_position_m"] < 1e-3 for row in rows.values())
+    v = load_vehicle(out / "identified-vehicle.toml")
+    c = r["identification"]["coefficients"]
+    assert v.kt / v.m == pytest.approx(c["kt/m"]["value"], rel=1e-12)
+    assert v.kt / v.Jxx == pytest.approx(c["kt/Jxx"]["value"], rel=1e-12)
 
 
 def test_a_model_that_holds_the_rates_cannot_fly_and_says_why(bench):
