@@ -116,8 +116,6 @@ def _parse_splits(items: list[str]) -> dict[str, list[str]]:
 def cmd_import(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc import``: every log is read and checked before anything is written."""
     import dataclasses
-    import os
-    import tempfile
 
     from .flightlog import assign_splits, flights_to_dataset, read_flight
     from .logformat import load_format
@@ -140,15 +138,7 @@ def cmd_import(args: argparse.Namespace) -> int:
             print(f"[{i + 1}/{len(args.logs)}] {path}", file=sys.stderr, flush=True)
         flights.append(read_flight(path, fmt, vehicle))
     ds = flights_to_dataset(flights, vehicle, splits, fmt)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=args.out.parent, prefix=f".{args.out.stem}.", suffix=".npz")
-    os.close(fd)
-    try:
-        ds.save(tmp)
-        os.replace(tmp, args.out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    ds.save(args.out)                  # whole or not at all
     for f in flights:
         print("\n".join(f.report.lines()))
         for w in f.report.warnings():

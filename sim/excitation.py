@@ -334,21 +334,25 @@ class Dataset:
         return h.hexdigest()
 
     def save(self, path) -> Path:
-        """Write a ``.npz`` file; the same dataset always gives the same bytes."""
+        """Write a ``.npz`` file, whole or not at all; the same dataset always gives the same bytes."""
+        from .files import _replace_from_temp
+
         path = Path(path)
         if path.suffix != ".npz":
             raise SimInputError(f"out must end in .npz; found {str(path)!r}")
-        path.parent.mkdir(parents=True, exist_ok=True)
         items = {k: getattr(self, k) for k in self.ARRAYS}
         if self.valid is not None:
             items["valid"] = self.valid
         items["meta"] = np.array(json.dumps(self.meta, sort_keys=True))
-        with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as zf:
-            for name, arr in items.items():
-                info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-                with zf.open(info, "w", force_zip64=True) as fh:
-                    np.lib.format.write_array(fh, np.asarray(arr), allow_pickle=False)
-        return path
+
+        def write(f):
+            with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED) as zf:
+                for name, arr in items.items():
+                    info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+                    with zf.open(info, "w", force_zip64=True) as fh:
+                        np.lib.format.write_array(fh, np.asarray(arr), allow_pickle=False)
+
+        return _replace_from_temp(path, write)
 
 
 def load_dataset(path) -> Dataset:

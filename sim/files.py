@@ -32,6 +32,33 @@ def _replace_from_temp(path: Path, write) -> Path:
     return path
 
 
+def read_named_toml(spec, folder, kind: str, unknown: str, error=SimInputError) -> tuple[dict, Path]:
+    """The table of a TOML file and its path: a shipped one by name (``folder/NAME.toml``) or a ``.toml`` path.
+
+    ``kind`` starts the messages (``"vehicle"``: "vehicle file ... does not exist"), ``unknown`` names what a name
+    that is not shipped is (``"unknown vehicle ..."``); every failure raises ``error`` naming the file or the name.
+    """
+    import tomllib
+
+    folder = Path(folder)
+    names = sorted(p.stem for p in folder.glob("*.toml"))
+    if not isinstance(spec, (str, Path)) or not str(spec):
+        raise error(f"{kind} must be a name ({', '.join(names)}) or a .toml file; found {spec!r}")
+    path = Path(spec)
+    if path.suffix != ".toml":
+        if str(spec) not in names:
+            raise error(f"unknown {unknown} {str(spec)!r}; choose from {', '.join(names)}, or give a .toml file")
+        path = folder / f"{spec}.toml"
+    elif not path.is_file():
+        raise error(f"{kind} file {str(path)!r} does not exist")
+    try:
+        return tomllib.loads(path.read_text()), path
+    except (OSError, UnicodeDecodeError) as e:
+        raise error(f"{kind} file {str(path)!r} could not be read: {e}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise error(f"{kind} file {str(path)!r} is not valid TOML: {e}") from None
+
+
 def write_json(path, obj) -> Path:
     """Write ``obj`` to ``path`` as indented JSON with a final newline, creating the folder; the path."""
     path = Path(path)

@@ -245,14 +245,13 @@ def matrix_euler(R: np.ndarray) -> np.ndarray:
     return np.stack([phi, theta, psi], -1)
 
 
-def _rotation_log(R: np.ndarray) -> np.ndarray:
-    """Rotation vectors (n, 3) of rotation matrices (n, 3, 3) (angles below pi)."""
-    c = np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    ang = np.arccos(c)
-    v = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], -1)
-    s = np.sin(ang)
-    scale = np.where(s > 1e-9, ang / (2.0 * np.where(s > 1e-9, s, 1.0)), 0.5)
-    return v * scale[:, None]
+def rotation_vector(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (..., 3) of rotation matrices (..., 3, 3): the angle from ``atan2``, accurate near 0."""
+    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    s = 0.5 * np.linalg.norm(v, axis=-1)                                   # sin(angle)
+    ang = np.arctan2(s, (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0)
+    scale = np.where(s > 1e-12, ang / (2.0 * np.where(s > 1e-12, s, 1.0)), 0.5)
+    return v * scale[..., None]
 
 
 def _held(a: np.ndarray) -> np.ndarray:
@@ -347,8 +346,7 @@ def read_flight(path, fmt: LogFormat, vehicle: Vehicle, name: str | None = None)
     tg = np.arange(n_grid) * DT
     if len(t) == n_grid and np.max(np.abs(t - tg)) <= ON_GRID_TOL * DT:
         resampling = "on the 10 ms grid already"
-        grid = {g: a for g, a in groups.items()}
-        grid_ok = ok
+        grid, grid_ok = groups, ok
     else:
         jitter = float(np.std(np.diff(t)))
         resampling = (f"resampled from a {1e3 * period:.3g} ms median period (jitter {1e3 * jitter:.2g} ms rms) "
@@ -416,7 +414,7 @@ def read_flight(path, fmt: LogFormat, vehicle: Vehicle, name: str | None = None)
                              + f", less {fmt.margin_s:g} s at each end)")
 
     # --- motor-to-state delay
-    d, rss_ratio, coef = estimate_delay(x, x_ok, rot, rot_ok, start, stop, fmt.delay_search)
+    d, rss_ratio, coef = estimate_delay(x, x_ok, rot, start, stop, fmt.delay_search)
     shifted = np.full_like(rot, np.nan)
     shifted_ok = np.zeros_like(rot_ok)
     lo, hi = max(0, d), min(len(rot), len(rot) + d)
@@ -466,7 +464,7 @@ def _longest_run(mask: np.ndarray) -> tuple[int, int]:
     return int(starts[i]), int(stops[i])
 
 
-def estimate_delay(x, x_ok, rot, rot_ok, start, stop, search) -> tuple[int, float, np.ndarray]:
+def estimate_delay(x, x_ok, rot, start, stop, search) -> tuple[int, float, np.ndarray]:
     """Motor-to-state delay (samples) that best explains the measured thrust by the rotor speeds.
 
     The measured thrust per unit mass is ``-z_b . (dv/dt - g e3)`` with
@@ -476,13 +474,13 @@ def estimate_delay(x, x_ok, rot, rot_ok, start, stop, search) -> tuple[int, floa
     earlier. Both sides are smoothed alike (a centred mean over
     :data:`DELAY_SMOOTH` samples, which keeps the delay and averages out the
     noise a difference of velocities has) on the filled series of
-    ``[start, stop)``, and the residual is summed over the samples whose
-    state and next state were measured. Returns the delay with the least
+    ``[start, stop)`` (the rotor speeds filled where masked: requiring every
+    shift measured would drop most samples of a real log), and the residual
+    is summed over the samples whose state and next state were measured. Returns the delay with the least
     residual, the ratio of that residual to the next best one (near 1: the
     data hardly tell the delays apart), and the fit at that delay (slope in
     m/s^2 per rad^2/s^2, intercept in m/s^2).
     """
-    del rot_ok   # the rotor speeds are the filled ones: requiring every shift measured would drop most samples
     lo_d, hi_d = search
     n = len(x)
     k = np.arange(max(start, hi_d, 0), min(stop, n - 1, n + lo_d))
@@ -524,7 +522,7 @@ def _rates_check(x, ok) -> dict:
     if len(k) < 3:
         return {"slope": [math.nan] * 3, "rms_rad_s": math.nan}
     R0, R1 = euler_matrix(x[k, 3:6]), euler_matrix(x[k + 1, 3:6])
-    derived = _rotation_log(np.swapaxes(R0, 1, 2) @ R1) / DT
+    derived = rotation_vector(np.swapaxes(R0, 1, 2) @ R1) / DT
     measured = 0.5 * (x[k, 6:9] + x[k + 1, 6:9])
     return {"slope": _slope(measured, derived), "rms_rad_s": float(np.sqrt(np.mean((measured - derived) ** 2)))}
 

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .dynamics import rates, rk4_step, rotation_matrix
+from .flightlog import rotation_vector
 from .params import DT, QuadParams
 
 #: Horizons of the table, in 10 ms steps.
@@ -49,11 +50,7 @@ def rotation_angle(e_pred: np.ndarray, e_true: np.ndarray) -> np.ndarray:
     """Angle (rad) of the rotation between two attitudes given as ZYX Euler angles (..., 3)."""
     Rp = rotation_matrix(e_pred[..., 0], e_pred[..., 1], e_pred[..., 2])
     Rt = rotation_matrix(e_true[..., 0], e_true[..., 1], e_true[..., 2])
-    R = np.swapaxes(Rp, -1, -2) @ Rt
-    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
-    s = 0.5 * np.linalg.norm(np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
-                                       R[..., 1, 0] - R[..., 0, 1]], -1), axis=-1)
-    return np.arctan2(s, c)          # accurate near 0 and near pi, unlike arccos(c)
+    return np.linalg.norm(rotation_vector(np.swapaxes(Rp, -1, -2) @ Rt), axis=-1)
 
 
 def prediction_errors(step, flights, horizons=HORIZONS, batch: int = 4096) -> PredictionErrors:

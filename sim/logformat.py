@@ -65,13 +65,13 @@ log whose front-right rotor turns clockwise has its yaw torque reversed.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .errors import FlightLogError
+from .files import read_named_toml
 
 #: Folder of the shipped format files.
 FORMAT_DIR = Path(__file__).resolve().parent / "formats"
@@ -180,23 +180,8 @@ def load_format(spec) -> LogFormat:
         For a missing or unreadable file, an unknown table or key, a unit or frame that is not known, or a value
         of the wrong kind; the message names the file and the key.
     """
-    if not isinstance(spec, (str, Path)) or not str(spec):
-        raise FlightLogError(f"format must be a name ({', '.join(format_names())}) or a .toml file; found {spec!r}")
-    path = Path(spec)
-    if path.suffix != ".toml":
-        if str(spec) not in format_names():
-            raise FlightLogError(f"unknown log format {str(spec)!r}; choose from {', '.join(format_names())}, "
-                                 f"or give a .toml file")
-        path = FORMAT_DIR / f"{spec}.toml"
-    elif not path.is_file():
-        raise FlightLogError(f"format file {str(path)!r} does not exist")
+    data, path = read_named_toml(spec, FORMAT_DIR, "format", "log format", FlightLogError)
     where = f"format file {str(path)!r}"
-    try:
-        data = tomllib.loads(path.read_text())
-    except (OSError, UnicodeDecodeError) as e:
-        raise FlightLogError(f"{where} could not be read: {e}") from None
-    except tomllib.TOMLDecodeError as e:
-        raise FlightLogError(f"{where} is not valid TOML: {e}") from None
     return parse_format(data, where=where, name=path.stem, path=str(path))
 
 

@@ -27,12 +27,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 from ._validate import nonnegative_finite, positive_finite
 from .errors import SimInputError
+from .files import read_named_toml
 from .params import GRAVITY, HIGH_FIDELITY, Fidelity, QuadParams
 
 #: The least maximum thrust a vehicle may have, as a multiple of its weight: below it the rotors cannot hover it and
@@ -211,22 +211,7 @@ def load_vehicle(spec: "str | Path | Vehicle | None" = None) -> Vehicle:
         spec = DEFAULT_VEHICLE
     if isinstance(spec, Vehicle):
         return spec
-    if not isinstance(spec, (str, Path)) or not str(spec):
-        raise SimInputError(f"vehicle must be a name ({', '.join(vehicle_names())}) or a .toml file; found {spec!r}")
-    path = Path(spec)
-    if path.suffix != ".toml":
-        if str(spec) not in vehicle_names():
-            raise SimInputError(f"unknown vehicle {str(spec)!r}; choose from {', '.join(vehicle_names())}, "
-                                f"or give a .toml file")
-        path = VEHICLE_DIR / f"{spec}.toml"
-    elif not path.is_file():
-        raise SimInputError(f"vehicle file {str(path)!r} does not exist")
-    try:
-        data = tomllib.loads(path.read_text())
-    except (OSError, UnicodeDecodeError) as e:
-        raise SimInputError(f"vehicle file {str(path)!r} could not be read: {e}") from None
-    except tomllib.TOMLDecodeError as e:
-        raise SimInputError(f"vehicle file {str(path)!r} is not valid TOML: {e}") from None
+    data, path = read_named_toml(spec, VEHICLE_DIR, "vehicle", "vehicle")
     data.setdefault("name", path.stem)
     return vehicle_from_dict(data, where=f"vehicle file {str(path)!r}")
 
