@@ -92,14 +92,21 @@ def prediction_errors(step, flights, horizons=HORIZONS, batch: int = 4096) -> Pr
 
 
 def physics_step(p: QuadParams, hold_rates: bool = False, linear_drag=(0.0, 0.0, 0.0),
-                 quadratic_drag=(0.0, 0.0, 0.0), accel_bias=(0.0, 0.0, 0.0), substeps: int = 10):
+                 quadratic_drag=(0.0, 0.0, 0.0), accel_bias=(0.0, 0.0, 0.0), wrench_gain=(1.0, 1.0, 1.0, 1.0),
+                 substeps: int = 10):
     """A batched one-step predictor of the rigid-body equations with parameters ``p``.
+
+    ``wrench_gain`` multiplies the logged wrench ``u`` (computed from the rotor speeds with the vehicle file's
+    ``kt`` and ``kq``) before it enters the equations: an identified ``kt`` gives ``kt_identified / kt_stated`` for
+    the thrust and the roll and pitch torques.
 
     ``hold_rates`` keeps the body rates constant (the angular acceleration set to zero, as the benchmark's Physics
     model does). In the body frame, per axis, ``-linear_drag * v - quadratic_drag * v |v| + accel_bias`` (1/s,
     1/m, m/s^2) is added to the acceleration. RK4 with ``substeps`` substeps over the 10 ms period.
     """
     k, c, b = (np.asarray(a, dtype=float) for a in (linear_drag, quadratic_drag, accel_bias))
+    gain = np.asarray(wrench_gain, dtype=float)
+    scaled = bool(np.any(gain != 1.0))
     extra = bool(np.any(k) or np.any(c) or np.any(b))
 
     def f(x, u):
@@ -114,6 +121,8 @@ def physics_step(p: QuadParams, hold_rates: bool = False, linear_drag=(0.0, 0.0,
         return d
 
     def step(x, u):
+        if scaled:
+            u = u * gain
         return rk4_step(lambda z: f(z, u), x, DT / substeps, substeps)
 
     return step

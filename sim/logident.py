@@ -219,7 +219,8 @@ def identified_model(ident: RealIdentification, vehicle, hold_rates: bool = True
     The mass is the vehicle file's (the flights cannot tell it); ``kt`` follows from ``kt/m``, ``Jxx`` and ``Jyy``
     from ``kt/Jxx`` and ``kt/Jyy``, and ``Jzz`` from ``kq/Jzz`` with the vehicle file's ``kq``. The drags and the
     z bias are the fitted ones (x and y biases too). The inertia ratios of the fit are not used: the rigid body's
-    own are.
+    own are. The logged wrench was computed with the vehicle file's ``kt``: ``wrench_gain`` rescales its thrust and
+    roll and pitch torques to the identified ``kt`` (the yaw torque keeps the file's ``kq``).
     """
     import dataclasses
 
@@ -227,5 +228,7 @@ def identified_model(ident: RealIdentification, vehicle, hold_rates: bool = True
     kt = v("kt/m") * vehicle.m
     p = dataclasses.replace(vehicle.params, kt=kt, Jxx=kt / v("kt/Jxx"), Jyy=kt / v("kt/Jyy"),
                             Jzz=vehicle.kq / v("kq/Jzz"), c_d=0.0)
-    return {"p": p, "hold_rates": hold_rates, "linear_drag": (v("k_x"), v("k_y"), v("k_z")),
+    g = kt / vehicle.kt
+    return {"p": p, "hold_rates": hold_rates, "wrench_gain": (g, g, g, 1.0),
+            "linear_drag": (v("k_x"), v("k_y"), v("k_z")),
             "quadratic_drag": (v("c_x"), v("c_y"), v("c_z")), "accel_bias": (v("b_x"), v("b_y"), v("b_z"))}

@@ -17,6 +17,7 @@ from sim.vehicle import load_vehicle
 EXACT = 1e-9          # the plant's own equations predict its noise-free flight (RK4, same substeps)
 RATIO_RTOL = 2e-3     # identified ratios against the true ones (forward differences bias them by O(dt))
 SCALE_TOL = 1e-6      # the Fisher information's null direction against the common scale
+GAIN_TOL_M = 1e-4     # h=50 position error of the identified physics on a wrench logged with a 10 % wrong kt
 
 
 def _flights(ds):
@@ -102,3 +103,19 @@ def test_the_wrench_of_the_flights_is_the_rotor_speeds_through_the_mixer(crazyfl
     f = flights[0]
     assert np.allclose(wrench_from_rotor_sq(f.rotor_speed ** 2, vehicle.params), f.u, rtol=1e-12, atol=1e-15)
     assert DT == 0.01
+
+
+def test_identified_physics_rescales_a_wrench_logged_with_a_wrong_thrust_coefficient(crazyflie_flights):
+    """The wrench of a log is computed with the vehicle file's kt: when the file's kt is 10 % off, the identified
+    model rescales it (``wrench_gain``) and predicts the flight as the true equations do, while the file's kt
+    inside the same equations errs by the 10 %."""
+    from sim.logident import identified_model
+
+    vehicle, flights = crazyflie_flights
+    wrong = vehicle.replace(kt=1.1 * vehicle.kt)
+    logged = [SimpleNamespace(**{**vars(f), "u": f.u * np.array([1.1, 1.1, 1.1, 1.0])}) for f in flights]
+    kw = identified_model(identify(logged, wrong), wrong, hold_rates=False)
+    assert kw["wrench_gain"][0] == pytest.approx(1 / 1.1, rel=RATIO_RTOL)
+    good = prediction_errors(physics_step(**kw), logged)
+    bad = prediction_errors(physics_step(**{**kw, "wrench_gain": (1.0, 1.0, 1.0, 1.0)}), logged)
+    assert good.position[-1] < GAIN_TOL_M < 0.1 * bad.position[-1]
