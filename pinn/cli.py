@@ -100,9 +100,9 @@ def _dataset(args):
         ds = load_dataset(args.data)
         m = ds.meta
         if ds.valid is not None:
-            raise ValueError(f"--data {str(args.data)!r} holds imported flight logs (pinnmpc import); this version "
-                             f"trains on simulated datasets only: its training windows do not skip the samples a "
-                             f"real log did not measure")
+            raise ValueError(f"--data {str(args.data)!r} holds imported flight logs (pinnmpc import); pinnmpc train "
+                             f"takes simulated datasets (its test metrics assume every sample was measured): "
+                             f"pinnmpc realdata trains and evaluates models on real flight logs")
         noise = "default" if any(m["noise"].values()) else "none"
         spec = {"file": str(args.data), "regime": m["regime"], "n_traj": m["n_traj"], "duration_s": m["duration_s"],
                 "seed": m["seed"], "noise": noise, "fingerprint": ds.fingerprint()}

@@ -163,15 +163,34 @@ def sampling_probability(epoch: int, epochs: int) -> float:
 
 
 # --------------------------------------------------------------------- data
+def dataset_params(ds) -> QuadParams:
+    """The parameters a dataset was made with: the simulator's (``meta["params"]``), or for imported flight logs
+    the vehicle file's stated values (``meta["vehicle"]``). Training takes only g, c_d, d and n_max from them, and
+    the stated values as the prior of theta-hat."""
+    if "params" in ds.meta:
+        return QuadParams(**ds.meta["params"])
+    from sim.vehicle import Vehicle
+
+    return Vehicle(**ds.meta["vehicle"]).params
+
+
 def training_stats(ds) -> dict:
-    """Normalization and scales from the training split (numpy float64 arrays)."""
+    """Normalization and scales from the training split (numpy float64 arrays); only measured samples count."""
     tr = ds.split == 0
     x, u, xn = ds.x[tr], ds.u[tr], ds.x_next[tr]
+    n_all = ds.rotor_speed[tr]
+    if ds.valid is None:
+        n_inc = np.diff(n_all, axis=1).reshape(-1, 4)
+    else:     # imported flight logs: the usable samples only (state, rotors and next state measured)
+        use = ds.usable[tr]
+        n_inc = np.diff(n_all, axis=1)[use[:, 1:] & use[:, :-1]]
+        x, u, xn, n_all = x[use], u[use], xn[use], n_all[use]
     feats = np.concatenate([x[..., 3:12], u], axis=-1).reshape(-1, 13)
     dx = (xn - x).reshape(-1, 12)
     xu = np.concatenate([x, u], axis=-1).reshape(-1, 16)
     y = xn.reshape(-1, 12)
-    n_log = ds.rotor_speed[tr].reshape(-1, 4)
+    n_log = n_all.reshape(-1, 4)
+    p = dataset_params(ds)
     return {
         "in_mean": feats.mean(0), "in_std": feats.std(0) + 1e-8,
         # for the zoo's absolute-state variant: every state and input, and the next state itself
@@ -179,19 +198,24 @@ def training_stats(ds) -> dict:
         "abs_out_mean": y.mean(0), "abs_out_std": y.std(0) + 1e-8,
         "out_scale": dx.std(0) + 1e-8,
         "feat_min": feats.min(0), "feat_max": feats.max(0),
-        "n_sq_scale": (ds.rotor_speed[tr] ** 2).reshape(-1, 4).std(0) + 1e-12,
+        "n_sq_scale": (n_log ** 2).std(0) + 1e-12,
         "rate_max": 1.2 * np.abs(dx).max(0) / DT,
         # known constants of the physics-plus-network model: gravity (m/s^2) and the drag coefficient (1/m)
-        "physics": np.array([ds.meta["params"]["g"], ds.meta["params"]["c_d"]], dtype=float),
+        "physics": np.array([p.g, p.c_d], dtype=float),
         # ... with the motor lag: the rotor telemetry's spread and increments (RU), the rotor limit and lever arm
         "n_mean": n_log.mean(0), "n_std": n_log.std(0) + 1e-8,
-        "n_inc_scale": np.diff(ds.rotor_speed[tr], axis=1).reshape(-1, 4).std(0) + 1e-8,
-        "rotor": np.array([QuadParams(**ds.meta["params"]).n_max_sq, QuadParams(**ds.meta["params"]).lever]),
+        "n_inc_scale": n_inc.std(0) + 1e-8,
+        "rotor": np.array([p.n_max_sq, p.lever]),
     }
 
 
 class _TrainData:
-    """Training trajectories as float32 tensors and window sampling."""
+    """Training trajectories as float32 tensors and window sampling.
+
+    Imported flight logs (a dataset with ``valid``) carry which states were measured: a window then starts only
+    at a sample whose state and rotor speeds were measured, and :meth:`windows` returns the mask of its measured
+    states, which the rollout and the data loss use (an unmeasured state is neither an input nor a target).
+    """
 
     def __init__(self, ds, gen: torch.Generator):
         tr = ds.split == 0
@@ -204,24 +228,50 @@ class _TrainData:
         self.n = torch.as_tensor(ds.rotor_speed[tr], dtype=torch.float32)
         self.n_traj, self.n_steps = self.u.shape[:2]
         self.gen = gen
+        self.ok = self.starts_ok = None
+        if ds.valid is not None:
+            v = ds.valid[tr]
+            ok = np.concatenate([v[:, :, 0], v[:, -1:, 2]], axis=1)      # state k measured, k = 0 .. T
+            self.ok = torch.as_tensor(ok)
+            self.starts_ok = v[:, :, 0] & v[:, :, 1]                      # a window may start here
+            self._starts = {}
+
+    def _start_table(self, lo: int, horizon: int):
+        key = (lo, horizon)
+        if key not in self._starts:
+            allowed = self.starts_ok.copy()
+            allowed[:, :lo] = False
+            allowed[:, self.n_steps - horizon + 1:] = False
+            t, s = np.nonzero(allowed)
+            if not len(t):
+                raise ValueError(f"no training window of {horizon} steps starts at a measured sample")
+            self._starts[key] = (torch.as_tensor(t), torch.as_tensor(s))
+        return self._starts[key]
 
     def windows(self, count: int, horizon: int, history: int = 0):
-        """``count`` random windows: states (count, K+1, 12), inputs and rotor speeds (count, K, 4).
+        """``count`` random windows: states (count, K+1, 12), inputs and rotor speeds (count, K, 4), the
+        ``history`` commands before each window (count, history, 4) or None, and which states were measured
+        (count, K+1) bool or None (a simulated dataset: all).
 
-        With ``history`` > 0 the windows start after :data:`SETTLE_PERIODS` and a fourth array holds the
-        ``history`` commands before each window (count, history, 4), the first command repeated before a
+        With ``history`` > 0 the windows start after :data:`SETTLE_PERIODS`, the first command repeated before a
         flight's start (the rotors start at its speed).
         """
         lo = SETTLE_PERIODS if history else 0
-        ti = torch.randint(0, self.n_traj, (count,), generator=self.gen)
-        si = torch.randint(lo, self.n_steps - horizon + 1, (count,), generator=self.gen)
+        if self.ok is None:
+            ti = torch.randint(0, self.n_traj, (count,), generator=self.gen)
+            si = torch.randint(lo, self.n_steps - horizon + 1, (count,), generator=self.gen)
+        else:
+            t, s = self._start_table(lo, horizon)
+            j = torch.randint(0, len(t), (count,), generator=self.gen)
+            ti, si = t[j], s[j]
         idx = si[:, None] + torch.arange(horizon + 1)
         states = self.states[ti[:, None], idx]
-        out = (states, self.u[ti[:, None], idx[:, :-1]], self.n[ti[:, None], idx[:, :-1]])
-        if not history:
-            return out
-        past = torch.clamp(si[:, None] + torch.arange(-history, 0), min=0)
-        return out + (self.u[ti[:, None], past],)
+        ok = None if self.ok is None else self.ok[ti[:, None], idx]
+        hist = None
+        if history:
+            past = torch.clamp(si[:, None] + torch.arange(-history, 0), min=0)
+            hist = self.u[ti[:, None], past]
+        return states, self.u[ti[:, None], idx[:, :-1]], self.n[ti[:, None], idx[:, :-1]], hist, ok
 
 
 @dataclass
@@ -247,9 +297,13 @@ def validation_loss(model, ds, stats) -> float:
     va = ds.split == 1
     if not va.any():
         va = ds.split == 0
-    x = torch.as_tensor(ds.x[va].reshape(-1, 12), dtype=torch.float32)
-    u = torch.as_tensor(ds.u[va].reshape(-1, 4), dtype=torch.float32)
-    y = torch.as_tensor(ds.x_next[va].reshape(-1, 12), dtype=torch.float32)
+    xs, us_, ys = ds.x[va], ds.u[va], ds.x_next[va]
+    if ds.valid is not None:
+        use = ds.usable[va]
+        xs, us_, ys = xs[use], us_[use], ys[use]
+    x = torch.as_tensor(xs.reshape(-1, 12), dtype=torch.float32)
+    u = torch.as_tensor(us_.reshape(-1, 4), dtype=torch.float32)
+    y = torch.as_tensor(ys.reshape(-1, 12), dtype=torch.float32)
     was = model.training
     model.eval()
     with torch.no_grad():
@@ -283,11 +337,12 @@ def physics_residual(increment: torch.Tensor, x: torch.Tensor, u: torch.Tensor, 
     return (increment - rk4_increment(x, u, theta, p)) / scale
 
 
-def _rollout(model, start, states, us, p_ss: float, gen):
+def _rollout(model, start, states, us, p_ss: float, gen, ok=None):
     """Autoregressive rollout over a window (teacher forcing mixed with the model's own predictions).
 
     ``start`` (W, 12 + E) is the first input; each next input is the measured rigid-body state, or with
-    probability ``p_ss`` the model's own prediction of it, followed by the model's own extra states. Returns the
+    probability ``p_ss`` the model's own prediction of it, followed by the model's own extra states. Where ``ok``
+    (W, K + 1) says a state was not measured, the model's own prediction takes its place. Returns the
     inputs and predictions, step-major (K W, 12 + E).
     """
     K = us.shape[1]
@@ -302,12 +357,14 @@ def _rollout(model, start, states, us, p_ss: float, gen):
             if p_ss > 0:
                 own = torch.rand(nxt.shape[0], 1, generator=gen) < p_ss
                 nxt = torch.where(own, pred[:, :12], nxt)
+            if ok is not None:
+                nxt = torch.where(ok[:, k + 1, None], nxt, pred[:, :12])
             inp = torch.cat([nxt, pred[:, 12:]], dim=-1)
     return torch.cat(inputs), torch.cat(preds)
 
 
 def step_losses(model, states, us, ns, p_ss: float, colloc: torch.Tensor, p: QuadParams, scales: dict,
-                config: TrainConfig, gen: torch.Generator) -> dict:
+                config: TrainConfig, gen: torch.Generator, ok: torch.Tensor | None = None) -> dict:
     """Loss terms of one optimizer step (see the module docstring).
 
     Parameters
@@ -320,6 +377,9 @@ def step_losses(model, states, us, ns, p_ss: float, colloc: torch.Tensor, p: Qua
         Scheduled-sampling probability.
     colloc : torch.Tensor, shape (C, 13)
         Collocation features (phi .. vz, T, tau) in physical units.
+    ok : torch.Tensor, shape (W, K + 1), optional
+        Which states were measured (imported flight logs): the others are not targets of the data loss, and the
+        rollout goes on from its own prediction there. None: all.
 
     Returns
     -------
@@ -330,12 +390,17 @@ def step_losses(model, states, us, ns, p_ss: float, colloc: torch.Tensor, p: Qua
     K = us.shape[1]
     s = model.out_scale
     theta = model.theta
-    X, P = _rollout(model, states[:, 0], states, us, p_ss, gen)     # step-major: (K W, 12)
+    X, P = _rollout(model, states[:, 0], states, us, p_ss, gen, ok)     # step-major: (K W, 12)
     U = us.transpose(0, 1).reshape(-1, 4)
     Y = states[:, 1:].transpose(0, 1).reshape(-1, 12)
     inc = P - X
     r = (P - Y) / s
-    out = {"data": (r * r).mean()}
+    if ok is None:
+        out = {"data": (r * r).mean()}
+    else:
+        w = ok[:, 1:].transpose(0, 1).reshape(-1, 1)
+        r = torch.where(w, r, torch.zeros_like(r))
+        out = {"data": (r * r).sum() / (12.0 * w.sum().clamp(min=1))}
 
     # Physics: one RK4 evaluation for the rollout's points and the collocation points.
     xc = torch.zeros(colloc.shape[0], 12)
@@ -445,10 +510,10 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
     # The dataset's parameters: training takes only the known constants g, c_d and d from
     # them (inside the physics); theta-hat never sees m, J, kt, kq, which serve only to
     # display theta-hat errors.
-    p = QuadParams(**ds.meta["params"]) if truth is None else truth
+    p = dataset_params(ds) if truth is None else truth
     # The stated prior: the data's vehicle's datasheet values (the reference values for the Rolling Spider's data),
     # biased by config.theta_bias, so that data from another vehicle starts from that vehicle's datasheet.
-    ref = QuadParams(**ds.meta["params"])
+    ref = dataset_params(ds)
     theta0 = ref.theta * (1.0 + config.theta_bias)
 
     st = training_stats(ds)
@@ -456,6 +521,9 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
     data = _TrainData(ds, gen)
     T = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
     lag = bool(getattr(model, "extra_states", ()))
+    if lag and ds.valid is not None:
+        raise ValueError(f"arch {config.arch!r} (the motor-lag model) trains on simulated datasets only: its rotor "
+                         f"telemetry loss does not skip the samples a real log did not measure")
     feat_lo, feat_hi = T(st["feat_min"]), T(st["feat_max"])
     if lag:     # collocation points over the rotor telemetry's range too
         n_log = ds.rotor_speed[ds.split == 0].reshape(-1, 4)
@@ -494,13 +562,12 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
         p_ss = sampling_probability(e, config.epochs) if config.scheduled_sampling else 0.0
         sums = {"data": 0.0, "phys": 0.0, "theta": 0.0, "rotor": 0.0, "energy": 0.0, "smooth": 0.0}
         for _ in range(config.steps_per_epoch):
+            states, us, ns, hist, ok = data.windows(max(1, config.batch // K), K,
+                                                    history=ROTOR_HISTORY if lag else 0)
             if lag:
-                states, us, ns, hist = data.windows(max(1, config.batch // K), K, history=ROTOR_HISTORY)
                 us = torch.cat([hist, us], dim=1)
-            else:
-                states, us, ns = data.windows(max(1, config.batch // K), K)
             f = feat_lo + (feat_hi - feat_lo) * torch.rand(config.n_colloc, len(feat_lo), generator=gen)
-            losses = step_losses(model, states, us, ns, p_ss, f, p, scales, config, gen)
+            losses = step_losses(model, states, us, ns, p_ss, f, p, scales, config, gen, ok)
             loss = (losses["data"] + config.lambda_p * (losses["phys"] + losses["theta"])
                     + config.lambda_rotor * losses["rotor"] + config.energy * losses["energy"]
                     + config.smooth * losses["smooth"])
