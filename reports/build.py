@@ -10,6 +10,7 @@ from .headline import correlation_text, headline_data
 from .html import markdown_to_html
 from .identification import highfi_table, table_six
 from .plants import plants_section, split_by_plant, where_sentence
+from .realflights import realdata_section
 from .inputs import load_inputs
 from .summary import summary_text
 from .versus import versus_section
@@ -37,6 +38,7 @@ SECTIONS = (
     "High-fidelity plant: models trained on its own data",
     "Learned against nominal on plants with unmodelled physics",
     "Other plants and vehicles",
+    "Real flights: the nano-drone benchmark",
     "State estimation and offset-free control",
     "Hover: settled error and gust recovery",
     "Speed ladder: maximum trackable speed",
@@ -124,6 +126,7 @@ def report_markdown(run_dir) -> str:
         inp.runs + members, inp.evaluation)
     body["Learned against nominal on plants with unmodelled physics"] = versus_section(inp.versus)
     body["Other plants and vehicles"] = plants_section(inp.runs, other_plants)
+    body["Real flights: the nano-drone benchmark"] = realdata_section(inp.realdata)
     body["State estimation and offset-free control"] = estimation_section(without, estimated)
     body["Hover: settled error and gust recovery"] = hover_table(inp.runs)
     body["Speed ladder: maximum trackable speed"] = ladder_table(inp.runs)

@@ -4,7 +4,7 @@ Required: ``results.json``, ``evaluation.json``, ``fisher.json`` (a missing or
 malformed one raises :class:`~reports.errors.ReportError` naming the file).
 Optional: ``ablation.json``, ``provenance.json``, ``study.json`` (the zoo
 study, copied by ``pinnmpc run``), ``versus.json`` (learned against nominal,
-copied likewise) and ``traces/<run_id>.npz`` (missing ones are reported in the
+copied likewise), ``realdata.json`` (``pinnmpc realdata --out`` this folder) and ``traces/<run_id>.npz`` (missing ones are reported in the
 text instead; a malformed ``study.json`` or ``versus.json`` raises).
 """
 
@@ -26,6 +26,8 @@ RUN_KEYS = ("scenario", "controller", "model")
 STUDY_KEYS = ("scenario", "members", "controllers", "ladder", "models", "scores", "oracle_rmse_m")
 #: Keys a versus.json must have.
 VERSUS_KEYS = ("scenario", "controller", "members", "ladder_members", "ladder", "goal", "plants")
+#: Keys a realdata.json must have.
+REALDATA_KEYS = ("source", "horizons", "splits", "models", "published_h50", "goal_h50", "identification")
 #: Trace arrays the figures use: t (K+1,) s, x and x_ref (K+1, 12), solve_s (K,) s.
 TRACE_KEYS = ("t", "x", "x_ref")
 
@@ -102,6 +104,8 @@ class Inputs:
         ``versus.json`` (learned models against the nominal equations), None when absent.
     study_ekf : dict or None
         ``study_ekf.json`` (the study's ensembles flown with the state estimator), None when absent.
+    realdata : dict or None
+        ``realdata.json`` (``pinnmpc realdata``: real flight logs under the benchmark's protocol), None when absent.
     """
 
     run_dir: Path
@@ -114,6 +118,7 @@ class Inputs:
     study: dict | None = None
     versus: dict | None = None
     study_ekf: dict | None = None
+    realdata: dict | None = None
     _traces: dict = field(default_factory=dict, repr=False)
 
     def models_by_name(self) -> dict:
@@ -173,8 +178,13 @@ def load_inputs(run_dir) -> Inputs:
         missing = [k for k in VERSUS_KEYS if not isinstance(versus, dict) or k not in versus]
         if missing:
             raise ReportError(f"'versus.json': not the output of pinnmpc versus (lacks {', '.join(missing)})")
+    realdata = _read_json(d / "realdata.json", False)
+    if realdata is not None:
+        missing = [k for k in REALDATA_KEYS if not isinstance(realdata, dict) or k not in realdata]
+        if missing:
+            raise ReportError(f"'realdata.json': not the output of pinnmpc realdata (lacks {', '.join(missing)})")
     plan = results.get("plan") if isinstance(results.get("plan"), dict) else {}
-    return Inputs(d, runs, plan, evaluation, fisher, ablation, provenance, study, versus, study_ekf)
+    return Inputs(d, runs, plan, evaluation, fisher, ablation, provenance, study, versus, study_ekf, realdata)
 
 
 def _read_study(d: Path, name: str) -> dict | None:

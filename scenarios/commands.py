@@ -34,8 +34,9 @@ def register(sub) -> None:
     names = scenario_names()
     p = sub.add_parser("realdata", help="the real-data study on a copy of the nano-drone benchmark",
                        description="Import the benchmark's raw flights, hold the melon flights out, identify the "
-                                   "vehicle on the training flights, choose on the validation flights, and evaluate "
-                                   "every model under the benchmark's protocol (docs/real-flights.md).")
+                                   "vehicle and train the learned models on the training flights, choose on the "
+                                   "validation flights, evaluate every model under the benchmark's protocol and fly "
+                                   "the best flyable learned model (docs/real-flights.md).")
     p.add_argument("--logs", required=True, type=Path, metavar="DIR",
                    help="the benchmark's root (branch model_export) or a copy with its data/real/ layout")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder (realdata.json, .md)")
@@ -43,6 +44,9 @@ def register(sub) -> None:
                    help="the vehicle (default crazyflie-brushless, the benchmark's stated values)")
     p.add_argument("--plants", default="sim,rotorpy", metavar="LIST",
                    help="plants of the closed-loop check, comma-separated (default sim,rotorpy; 'none': no flight)")
+    p.add_argument("--learn", default="full", choices=("full", "quick", "none"),
+                   help="training budget of the learned models (default full, about 10 minutes on 2 cores; quick: "
+                        "seconds, for a trial run; none: physics models only)")
     p.set_defaults(handler=cmd_realdata)
 
     p = sub.add_parser("fly", help="fly one closed-loop run and print its metrics",
@@ -198,7 +202,13 @@ def cmd_realdata(args: argparse.Namespace) -> int:
     bad = [p for p in plants if p not in PLANTS]
     if bad:
         raise ValueError(f"--plants: unknown plant {bad[0]!r}; choose from {', '.join(PLANTS)}, or none")
-    r = run_realdata(args.logs, args.out, args.vehicle, plants=plants,
+    if args.learn != "none":
+        import importlib.util
+
+        if importlib.util.find_spec("torch") is None:
+            raise ValueError(f"--learn {args.learn}: training the learned models needs torch "
+                             f"(pip install -e '.[train]'); --learn none evaluates the physics models only")
+    r = run_realdata(args.logs, args.out, args.vehicle, plants=plants, learn=args.learn,
                      progress=(lambda line: print(line, file=sys.stderr, flush=True)))
     print("\n".join(summary_lines(r)))
     print(f"wrote {args.out / 'realdata.json'} and {args.out / 'realdata.md'}")

@@ -14,12 +14,14 @@ import math
 import subprocess
 from pathlib import Path
 
+import numpy as np
+
 from sim.errors import SimInputError
 from sim.files import write_json, write_text
 from sim.flightlog import assign_splits, read_flight
 from sim.logbench import HORIZONS, QUANTITIES, physics_step, prediction_errors
 from sim.logformat import load_format
-from sim.logident import fisher_table, identified_model, identify
+from sim.logident import fisher_table, identified_model, identified_vehicle, identify
 from sim.vehicle import load_vehicle
 
 #: Where the benchmark keeps its raw logs, under its root.
@@ -93,51 +95,89 @@ def _commit(root: Path) -> str | None:
 
 
 def _physics_candidates(ident, vehicle):
-    """Physics models: name -> (physics_step keyword arguments, flyable, why not)."""
+    """Physics models: name -> physics_step keyword arguments."""
     p = vehicle.params
-    out = {
-        "nominal physics": ({"p": p}, True, ""),
-        "nominal physics, rates held": ({"p": p, "hold_rates": True}, False,
-                                        "holds the body rates: no input turns it (the benchmark's Physics model)"),
-    }
+    out = {"nominal physics": {"p": p}, "nominal physics, rates held": {"p": p, "hold_rates": True}}
     for hold in (True, False):
-        kw = identified_model(ident, vehicle, hold_rates=hold)
-        out[f"identified physics{', rates held' if hold else ''}"] = (
-            kw, not hold, "holds the body rates: no input turns it" if hold else "")
-    lin = dict(identified_model(ident, vehicle, hold_rates=True), quadratic_drag=(0.0, 0.0, 0.0))
-    out["identified physics, rates held, linear drag only"] = (lin, False, "holds the body rates: no input turns it")
+        out[f"identified physics{', rates held' if hold else ''}"] = identified_model(ident, vehicle, hold_rates=hold)
+    out["identified physics, rates held, linear drag only"] = dict(identified_model(ident, vehicle, hold_rates=True),
+                                                                   quadratic_drag=(0.0, 0.0, 0.0))
     return out
 
 
-#: The closed-loop check: the scenario flown by the SQP with each vehicle's nominal equations, on each plant.
+#: The closed-loop check: the scenario flown by the SQP, on each plant.
 CLOSED_LOOP_SCENARIO = "figure8-fast"
+#: Periods over which a perturbed input must move the body rates (or, for the thrust, the velocity), and the
+#: smallest change that counts (rad/s, m/s).
+RESPONSE_PERIODS = 5
+RESPONSE_TOL = 1e-9
+INPUT_LABELS = ("thrust", "roll torque", "pitch torque", "yaw torque")
 
 
-def identified_vehicle(ident, vehicle):
-    """The vehicle file's vehicle with the identified rigid body: ``kt`` from ``kt/m`` (mass fixed), ``Jxx`` and
-    ``Jyy`` from the torque gains, ``Jzz`` from ``kq/Jzz`` with the file's ``kq``. The fitted drags are left out
-    (the plants have no linear body drag)."""
-    p = identified_model(ident, vehicle)["p"]
-    return vehicle.replace(name=f"{vehicle.name}-identified", kt=p.kt, Jxx=p.Jxx, Jyy=p.Jyy, Jzz=p.Jzz,
-                           source=f"{vehicle.name} with kt, Jxx, Jyy and Jzz identified from real flights "
-                                  f"(pinnmpc realdata); m and kq as stated")
+def why_not_flyable(step, start, u0, du) -> str:
+    """Empty when each input moves the model: a torque the body rates, the thrust the velocity, within
+    :data:`RESPONSE_PERIODS` periods from rest at the mean logged input; else the reason.
+
+    ``u0``, ``du``: the input held and the size of the perturbation of each input (4,), in the log's units.
+    """
+    from types import SimpleNamespace
+
+    u0, du = np.asarray(u0, dtype=float), np.asarray(du, dtype=float)
+    rest = SimpleNamespace(x=np.zeros((RESPONSE_PERIODS + 1, 12)), u=np.tile(u0, (RESPONSE_PERIODS + 1, 1)))
+    z0 = rest.x[-1:] if start is None else np.asarray(start(rest, np.array([RESPONSE_PERIODS])), dtype=float)
+    z = np.repeat(z0, 5, axis=0)
+    for k in range(RESPONSE_PERIODS):
+        u = np.tile(u0, (5, 1))
+        if k == 0:
+            u[1:] += np.diag(du)
+        z = step(z, u)
+    moved = [np.max(np.abs(z[j + 1, 9:12] - z[0, 9:12])) if j == 0 else np.max(np.abs(z[j + 1, 6:9] - z[0, 6:9]))
+             for j in range(4)]
+    dead = [INPUT_LABELS[j] for j in range(4) if not moved[j] > RESPONSE_TOL]
+    if not dead:
+        return ""
+    if all(d in dead for d in INPUT_LABELS[1:]):
+        return "holds the body rates: no input turns it"
+    return "does not respond to its " + ", ".join(dead)
 
 
-def fly_vehicles(vehicles: dict, plants, progress=print) -> list[dict]:
-    """Fly :data:`CLOSED_LOOP_SCENARIO` with the SQP on the nominal equations of each vehicle (name -> file), on each
-    plant set up with the same vehicle; a plant that is not installed is recorded as skipped."""
+#: Sampling of the logged reference in the melon scenario file, s.
+MELON_SAMPLE_S = 0.5
+
+
+def reference_scenario(flight, path, every_s: float = MELON_SAMPLE_S) -> Path:
+    """Write a scenario file whose reference is ``flight``'s logged position reference (NED): a ``[flat]`` table of
+    its samples every ``every_s`` seconds, times from the flight's first sample; the flight ends 1 s after it."""
+    if flight.reference is None:
+        raise SimInputError(f"flight {flight.name!r} has no reference columns")
+    k = np.arange(0, len(flight.t), max(1, round(every_s / 0.01)))
+    t = flight.t[k] - flight.t[0]
+    ref = flight.reference[k]
+    fmt = lambda a: "[" + ", ".join(f"{v:.4f}" for v in a) + "]"  # noqa: E731
+    text = (f'name = "{flight.name}-reference"\n'
+            f'description = "the logged position reference of {flight.name}, every {every_s:g} s"\n'
+            f"[flat]\nt = {fmt(t)}\nx = {fmt(ref[:, 0])}\ny = {fmt(ref[:, 1])}\nz = {fmt(ref[:, 2])}\n")
+    write_text(path, text)
+    return Path(path)
+
+
+def fly_models(rows: list[tuple[str, str, Path, str]], plants, progress=print) -> list[dict]:
+    """Fly with the SQP each ``(label, model, vehicle file, scenario)`` (model: ``nominal``, the vehicle's own
+    equations, or an ONNX file; scenario: a name or a file), on each plant set up with that vehicle; a plant that is
+    not installed is recorded as skipped."""
     from sim.errors import PlantUnavailableError
 
     from .runner import RunSpec, fly
 
     out = []
-    for label, path in vehicles.items():
+    for label, model, vehicle, scenario in rows:
         for plant in plants:
-            progress(f"flying {CLOSED_LOOP_SCENARIO} with the {label} vehicle on {plant}")
-            row = {"vehicle": label, "plant": plant, "scenario": CLOSED_LOOP_SCENARIO, "controller": "sqp",
-                   "model": "nominal equations of the vehicle"}
+            name = Path(scenario).stem
+            progress(f"flying {name}: {label} on {plant}")
+            row = {"vehicle": label, "plant": plant, "scenario": name, "controller": "sqp",
+                   "model": "nominal equations of the vehicle" if model == "nominal" else Path(model).name}
             try:
-                result, _ = fly(RunSpec(CLOSED_LOOP_SCENARIO, "sqp", "nominal", plant=plant, vehicle=str(path)))
+                result, _ = fly(RunSpec(str(scenario), "sqp", str(model), plant=plant, vehicle=str(vehicle)))
             except PlantUnavailableError as e:
                 out.append({**row, "skipped": str(e)})
                 continue
@@ -146,11 +186,17 @@ def fly_vehicles(vehicles: dict, plants, progress=print) -> list[dict]:
     return out
 
 
+def _score(errors: dict) -> float:
+    """Mean over the four columns of the h=50 error over its goal (1 = the goal; lower is better)."""
+    return float(np.mean([errors[q][-1] / g for q, g in zip(QUANTITIES, GOAL_H50)]))
+
+
 def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=print,
-                 plants=("sim", "rotorpy")) -> dict:
+                 plants=("sim", "rotorpy"), learn: str = "full") -> dict:
     """Run the study and write ``OUT/realdata.json`` and ``OUT/realdata.md``; returns the JSON's content.
 
-    ``plants``: where the closed-loop check flies (none: no flight).
+    ``plants``: where the closed-loop check flies (none: no flight). ``learn``: the training budget of the learned
+    models (:data:`pinn.flights.BUDGETS`: ``full`` or ``quick``), or ``none`` (physics models only; no torch).
     """
     root = Path(logs_root)
     logs, skipped = find_logs(root)
@@ -170,28 +216,53 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
             raise SimInputError(f"--logs {str(root)!r}: no {s} flight (test flights are named melon*)")
     ident = identify(by_split["train"], vehicle)
     fisher = fisher_table(by_split["train"], vehicle, ident)
-    candidates = _physics_candidates(ident, vehicle)
     melon1 = [f for f in by_split["test"] if f.name.endswith("run1")]
     filtered = [benchmark_filter(f) for f in melon1]
+    train_u = np.concatenate([f.u[f.rotor_ok] for f in by_split["train"]])
+    u0, du = train_u.mean(0), 0.1 * train_u.std(0)
+    # (name, kind, step, start, learned-model record or None)
+    candidates = [(name, "physics", physics_step(**kw), None, None)
+                  for name, kw in _physics_candidates(ident, vehicle).items()]
+    if learn != "none":
+        from pinn.flights import learned_models
+
+        candidates += [(m.name, "learned", m.step, m.start, m)
+                       for m in learned_models(by_split, vehicle, ident, fmt, learn, progress)]
     models, validation = {}, {}
-    for name, (kw, flyable, why) in candidates.items():
+    for name, kind, step, start, rec in candidates:
         progress(f"evaluating {name}")
-        step = physics_step(**kw)
         if by_split["val"]:
-            validation[name] = prediction_errors(step, by_split["val"]).to_dict()
-        models[name] = {"raw": prediction_errors(step, by_split["test"]).to_dict(),
-                        "filtered_run1": prediction_errors(step, filtered).to_dict() if filtered else None,
-                        "flyable": flyable, **({"why_not_flyable": why} if why else {})}
-    # the choice among physics models is made on the validation flights only (None without any)
-    best = min(validation, key=lambda n: validation[n]["position"][-1]) if validation else None
+            validation[name] = prediction_errors(step, by_split["val"], start=start).to_dict()
+        why = why_not_flyable(step, start, u0, du)
+        models[name] = {"kind": kind, "raw": prediction_errors(step, by_split["test"], start=start).to_dict(),
+                        "filtered_run1": prediction_errors(step, filtered, start=start).to_dict() if filtered else None,
+                        "flyable": not why, **({"why_not_flyable": why} if why else {}),
+                        **({"validation_score": _score(validation[name])} if name in validation else {})}
+        if rec is not None:
+            models[name]["training"] = {"epoch": rec.epoch, "epochs": rec.epochs, "seconds": round(rec.seconds, 1),
+                                        "validation_scores": rec.validation_scores}
+    # every choice is made on the validation flights only (None without any)
+    best_physics = (min((n for n in validation if models[n]["kind"] == "physics"),
+                        key=lambda n: validation[n]["position"][-1]) if validation else None)
+    best = min(validation, key=lambda n: models[n]["validation_score"]) if validation else None
+    flyable_learned = [n for n in validation if models[n]["kind"] == "learned" and models[n]["flyable"]]
+    best_flyable = min(flyable_learned, key=lambda n: models[n]["validation_score"]) if flyable_learned else None
     out = Path(out_dir)
-    flown = {}
+    flown = []
     if plants:
         ident_file = out / "identified-vehicle.toml"
         write_text(ident_file, identified_vehicle(ident, vehicle).to_toml())
         stated_file = out / "stated-vehicle.toml"
         write_text(stated_file, vehicle.to_toml())
-        flown = fly_vehicles({"stated": stated_file, "identified": ident_file}, plants, progress)
+        rows = [("stated", "nominal", stated_file), ("identified", "nominal", ident_file)]
+        if best_flyable is not None:
+            rec = next(c[4] for c in candidates if c[0] == best_flyable)
+            onnx = rec.export(out / "best-learned.onnx")
+            rows.append((f"identified, flying the learned model ({best_flyable})", onnx, ident_file))
+        scenarios = [CLOSED_LOOP_SCENARIO]
+        if melon1 and melon1[0].reference is not None:
+            scenarios.append(reference_scenario(melon1[0], out / f"{melon1[0].name}-reference.toml"))
+        flown = fly_models([r + (sc,) for sc in scenarios for r in rows], plants, progress)
     result = {
         "source": {"logs": str(root), "commit": _commit(root), "format": fmt.name, "vehicle": vehicle.name},
         "horizons": list(HORIZONS),
@@ -199,7 +270,11 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
         "skipped": skipped,
         "models": models,
         "validation": validation,
-        "best_physics_on_validation": best,
+        "best_physics_on_validation": best_physics,
+        "best_on_validation": best,
+        "best_flyable_learned_on_validation": best_flyable,
+        "goal_met_by_best": ({q: models[best]["raw"][q][-1] <= g for q, g in zip(QUANTITIES, GOAL_H50)}
+                             if best else None),
         "published_h50": {k: dict(zip(QUANTITIES, v)) for k, v in PUBLISHED_H50.items()},
         "published_note": PUBLISHED_NOTE,
         "goal_h50": dict(zip(QUANTITIES, GOAL_H50)),
@@ -234,7 +309,7 @@ def realdata_markdown(r: dict) -> str:
              "| model | position (m) | velocity (m/s) | rotation (rad) | angular velocity (rad/s) |",
              "|---|---|---|---|---|"]
     for name, m in r["models"].items():
-        lines.append(_row(f"{name}, raw melon (all)", m["raw"]))
+        lines.append(_row(f"{name} ({m.get('kind', 'physics')}), raw melon (all)", m["raw"]))
         if m["filtered_run1"]:
             lines.append(_row(f"{name}, melon run 1 filtered", m["filtered_run1"]))
     for name, v in r["published_h50"].items():
@@ -242,22 +317,41 @@ def realdata_markdown(r: dict) -> str:
                      + " |")
     lines.append("| goal (below every published model) | " + " | ".join(f"{r['goal_h50'][q]:.2f}" for q in QUANTITIES)
                  + " |")
-    lines += ["", r["published_note"] + ".", "", "## Every horizon, raw melon flights", "",
+    lines += ["", r["published_note"] + "."]
+    if r.get("best_on_validation"):
+        best = r["best_on_validation"]
+        met = r["goal_met_by_best"]
+        lines += ["", f"Chosen on the validation flights (the mean of the four h=50 errors over their goals): "
+                  f"**{best}**; the best flyable learned model: {r['best_flyable_learned_on_validation'] or 'none'}. "
+                  f"On the raw melon flights the chosen model "
+                  + ("meets the goal in every column." if all(met.values()) else
+                     "misses the goal in " + ", ".join(q.replace("_", " ") for q, ok in met.items() if not ok) + ".")]
+    learned = {n: m for n, m in r["models"].items() if m.get("kind") == "learned"}
+    if learned:
+        lines += ["", "## Learned models: training", "", "| model | epoch kept (of) | training (s) | validation score "
+                  "(1 = goal) | 1-step position (m) | 50-step position (m) |", "|---|---|---|---|---|---|"]
+        for n, m in learned.items():
+            t = m["training"]
+            lines.append(f"| {n} | {t['epoch']} ({t['epochs']}) | {t['seconds']:.0f} | {m['validation_score']:.3f} | "
+                         f"{m['raw']['position'][0]:.4f} | {m['raw']['position'][-1]:.4f} |")
+    lines += ["", "## Every horizon, raw melon flights", "",
               "| model | " + " | ".join(f"{q} h={h}" for q in QUANTITIES for h in r["horizons"]) + " |",
               "|---|" + "---|" * (len(QUANTITIES) * len(r["horizons"]))]
     for name, m in r["models"].items():
         lines.append(f"| {name} | " + " | ".join(f"{v:.4f}" for q in QUANTITIES for v in m["raw"][q]) + " |")
     if r.get("closed_loop"):
-        lines += ["", f"## Flown: {CLOSED_LOOP_SCENARIO}, SQP on the vehicle's nominal equations, each plant set up "
-                  f"with the same vehicle", "", "| vehicle | plant | RMSE (m) | crashed | median solve (ms) | "
-                  "deadline misses |", "|---|---|---|---|---|---|"]
+        lines += ["", "## Flown with the SQP, each plant set up with the vehicle", "",
+                  "| scenario | vehicle | prediction model | plant | RMSE (m) | crashed | median solve (ms) | "
+                  "deadline misses |", "|---|---|---|---|---|---|---|---|"]
         for row in r["closed_loop"]:
             if "skipped" in row:
-                lines.append(f"| {row['vehicle']} | {row['plant']} | skipped: {row['skipped']} | | | |")
+                lines.append(f"| {row['scenario']} | {row['vehicle']} | {row['model']} | {row['plant']} | skipped: "
+                             f"{row['skipped']} | | | |")
                 continue
             crash = f"at {row['crash_time_s']:.2f} s ({row['crash_reason']})" if row["crashed"] else "no"
-            lines.append(f"| {row['vehicle']} | {row['plant']} | {row['rmse_position_m']:.4g} | {crash} | "
-                         f"{row['solve_ms']['median']:.3g} | {row['deadline_misses']} |")
+            lines.append(f"| {row['scenario']} | {row['vehicle']} | {row['model']} | {row['plant']} | "
+                         f"{row['rmse_position_m']:.4g} | "
+                         f"{crash} | {row['solve_ms']['median']:.3g} | {row['deadline_misses']} |")
     lines += ["", "## Models that cannot be flown", ""]
     lines += [f"- {n}: {m['why_not_flyable']}" for n, m in r["models"].items() if not m["flyable"]] or ["- none"]
     ident = r["identification"]

@@ -53,7 +53,8 @@ def rotation_angle(e_pred: np.ndarray, e_true: np.ndarray) -> np.ndarray:
     return np.linalg.norm(rotation_vector(np.swapaxes(Rp, -1, -2) @ Rt), axis=-1)
 
 
-def prediction_errors(step, flights, horizons=HORIZONS, batch: int = 4096) -> PredictionErrors:
+def prediction_errors(step, flights, horizons=HORIZONS, batch: int = 4096, start=None,
+                      stride: int = 1) -> PredictionErrors:
     """Mean open-loop errors of ``step`` on ``flights`` at ``horizons`` (all windows of all flights pooled).
 
     Parameters
@@ -65,16 +66,21 @@ def prediction_errors(step, flights, horizons=HORIZONS, batch: int = 4096) -> Pr
         :class:`sim.flightlog.Flight`).
     horizons : tuple of int
         Steps ahead at which errors are taken (the longest sets the window).
+    start : callable, optional
+        ``start(flight, idx) -> (B, 12 + E)``: the model's state at the window starts ``idx`` for a model with
+        extra states (a register of past periods); default: the logged state ``x[idx]``. Errors use the first 12.
+    stride : int
+        Keep every ``stride``-th window start (1: all, the protocol; more: a cheaper estimate).
     """
     H = max(horizons)
     sums = {q: np.zeros(len(horizons)) for q in QUANTITIES}
     counts = np.zeros(len(horizons), dtype=np.int64)
     for f in flights:
         x, u, ok = np.asarray(f.x), np.asarray(f.u), np.asarray(f.x_ok)
-        starts = np.flatnonzero(ok[: len(x) - H])
+        starts = np.flatnonzero(ok[: len(x) - H])[::stride]
         for b in range(0, len(starts), batch):
             i = starts[b:b + batch]
-            xp = x[i].copy()
+            xp = x[i].copy() if start is None else np.asarray(start(f, i), dtype=float)
             for k in range(1, H + 1):
                 xp = step(xp, u[i + k - 1])
                 if k in horizons:

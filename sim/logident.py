@@ -232,3 +232,13 @@ def identified_model(ident: RealIdentification, vehicle, hold_rates: bool = True
     return {"p": p, "hold_rates": hold_rates, "wrench_gain": (g, g, g, 1.0),
             "linear_drag": (v("k_x"), v("k_y"), v("k_z")),
             "quadratic_drag": (v("c_x"), v("c_y"), v("c_z")), "accel_bias": (v("b_x"), v("b_y"), v("b_z"))}
+
+
+def identified_vehicle(ident, vehicle):
+    """The vehicle file's vehicle with the identified rigid body: ``kt`` from ``kt/m`` (mass fixed), ``Jxx`` and
+    ``Jyy`` from the torque gains, ``Jzz`` from ``kq/Jzz`` with the file's ``kq``. The fitted drags are left out
+    (the plants have no linear body drag)."""
+    p = identified_model(ident, vehicle)["p"]
+    return vehicle.replace(name=f"{vehicle.name}-identified", kt=p.kt, Jxx=p.Jxx, Jyy=p.Jyy, Jzz=p.Jzz,
+                           source=f"{vehicle.name} with kt, Jxx, Jyy and Jzz identified from real flights "
+                                  f"(pinnmpc realdata); m and kq as stated")

@@ -38,7 +38,8 @@ def bench(tmp_path_factory):
     (folder / "multisine_20251017_run1.parquet").write_text(
         "version https://git-lfs.github.com/spec/v1\noid sha256:0\nsize 1\n")
     out = root / "out"
-    code = main(["realdata", "--logs", str(root), "--out", str(out), "--vehicle", "crazyflie", "--plants", "sim"])
+    code = main(["realdata", "--logs", str(root), "--out", str(out), "--vehicle", "crazyflie", "--plants", "sim",
+                 "--learn", "quick"])
     assert code == 0
     return json.loads((out / "realdata.json").read_text()), out
 
@@ -64,13 +65,37 @@ def test_the_identified_vehicle_flies_like_the_stated_one(bench):
     """On the plant's own flights the identified vehicle is the plant's: both fly figure8-fast on the nominal
     equations within a millimetre, and the identified file holds the identified ratios."""
     r, out = bench
-    rows = {row["vehicle"]: row for row in r["closed_loop"]}
+    rows = {row["vehicle"]: row for row in r["closed_loop"]
+            if row["model"] == "nominal equations of the vehicle" and row["scenario"] == "figure8-fast"}
     assert set(rows) == {"stated", "identified"} and all(row["plant"] == "sim" for row in rows.values())
     assert all(not row["crashed"] and row["rmse_position_m"] < 1e-3 for row in rows.values())
     v = load_vehicle(out / "identified-vehicle.toml")
     c = r["identification"]["coefficients"]
     assert v.kt / v.m == pytest.approx(c["kt/m"]["value"], rel=1e-12)
     assert v.kt / v.Jxx == pytest.approx(c["kt/Jxx"]["value"], rel=1e-12)
+
+
+def test_learned_models_keep_the_epoch_their_validation_score_chose(bench):
+    """Every learned model is evaluated at the epoch with the lowest validation score, and the chosen and the flown
+    models are the validation's choices: melon never decides."""
+    r, out = bench
+    learned = {n: m for n, m in r["models"].items() if m["kind"] == "learned"}
+    assert set(learned) == {"baseline", "modular", "fourier", "proposed", "hybrid", "identified physics + network",
+                            "identified physics + network, history 4"}
+    for n, m in learned.items():
+        t = m["training"]
+        assert t["epoch"] == int(np.argmin(t["validation_scores"])) + 1, n
+    scores = {n: m["validation_score"] for n, m in r["models"].items()}
+    assert r["best_on_validation"] == min(scores, key=scores.get)
+    flyable = {n: s for n, s in scores.items() if n in learned and r["models"][n]["flyable"]}
+    assert r["best_flyable_learned_on_validation"] == min(flyable, key=flyable.get)
+    flown = [row for row in r["closed_loop"] if row["model"] == "best-learned.onnx"]
+    assert [(row["scenario"], row["plant"]) for row in flown] == [
+        ("figure8-fast", "sim"), ("melon_20251017_run1-reference", "sim")]
+    assert (out / "best-learned.onnx").is_file()
+    met = r["goal_met_by_best"]
+    best = r["models"][r["best_on_validation"]]["raw"]
+    assert all(met[q] == (best[q][-1] <= r["goal_h50"][q]) for q in met)
 
 
 def test_a_model_that_holds_the_rates_cannot_fly_and_says_why(bench):
@@ -139,3 +164,49 @@ def test_a_model_that_holds_its_rates_is_refused_by_every_controller_with_the_re
     ready = readiness(held)
     assert all(not ready[c].flies and "no input changes the body rates" in ready[c].reason for c in CONTROLLERS)
     assert readiness(LinearModel(lq.A, lq.B, x0, u0))["sqp"].flies
+
+
+def test_the_reference_scenario_passes_through_the_logged_reference(tmp_path):
+    """The scenario file made from a log's reference columns follows them: its reference passes through every
+    sampled point at its time (to the 0.1 mm the file's four decimals keep), and the flight lasts the log plus 1 s."""
+    from types import SimpleNamespace
+
+    from scenarios import get_scenario
+    from scenarios.realdata import MELON_SAMPLE_S, reference_scenario
+
+    t = 0.37 + 0.01 * np.arange(801)
+    ref = np.c_[np.sin(0.5 * t), 0.3 * np.cos(0.7 * t), -1.0 - 0.2 * np.sin(t)]
+    f = SimpleNamespace(name="melon_x_run1", t=t, reference=ref)
+    sc = get_scenario(str(reference_scenario(f, tmp_path / "melon.toml")))
+    k = np.arange(0, len(t), round(MELON_SAMPLE_S / 0.01))
+    got = sc.reference()(t[k] - t[0])[:, 0:3]
+    assert np.max(np.abs(got - ref[k])) < 1e-4 + 1e-9
+    assert sc.duration_s == pytest.approx(t[k][-1] - t[0] + 1.0)
+
+
+def test_the_report_section_shows_every_model_beside_the_published_rows(bench):
+    from reports.realflights import NO_REALDATA, realdata_section
+
+    r, _ = bench
+    sec = realdata_section(r)
+    assert sec.count("(published, melon run 1 filtered)") == 4 and "\n# " not in "\n" + sec
+    assert "### h = 50 (0.5 s), mean error over every window" in sec
+    for name, m in r["models"].items():
+        row = next(ln for ln in sec.splitlines() if ln.startswith(f"| {name} ({m['kind']}), raw melon (all) |"))
+        assert row.endswith(" | ".join(f"{m['raw'][q][-1]:.4f}" for q in ("position", "velocity", "rotation",
+                                                                            "angular_velocity")) + " |")
+    assert realdata_section(None) == NO_REALDATA
+
+
+def test_without_torch_the_learned_models_are_refused_in_one_line(tmp_path):
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['torch'] = None\n"
+            "from scenarios.cli import main\n"
+            f"sys.exit(main(['realdata', '--logs', {str(tmp_path)!r}, '--out', {str(tmp_path / 'out')!r}]))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                       cwd=Path(__file__).resolve().parents[1])
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "needs torch" in r.stderr and "--learn none" in r.stderr
+    assert not (tmp_path / "out" / "realdata.json").exists()

@@ -33,6 +33,7 @@ HEADINGS = (
     "High-fidelity plant: models trained on its own data",
     "Learned against nominal on plants with unmodelled physics",
     "Other plants and vehicles",
+    "Real flights: the nano-drone benchmark",
     "State estimation and offset-free control",
     "Hover: settled error and gust recovery",
     "Speed ladder: maximum trackable speed",

@@ -1,0 +1,468 @@
+"""Learned models of imported flight logs: the identified physics with the body rates held, plus a network.
+
+A real log's rotor speeds explain little of the vehicle's angular acceleration, so the physics this model
+starts from is the one that predicts real flights best over half a second: the identified rigid body with the
+body rates held (``sim.logbench.physics_step`` with ``hold_rates``, its drags and biases). A network adds what
+that physics misses, to the body rates and to the velocity (in the body frame, so that the model does not depend
+on the heading)::
+
+    x_next = Phi(x, u) + (0, 0, s_w NN_w(f), R(x) s_v NN_v(f))
+
+with ``f`` the normalized roll, pitch, body rates, body-frame velocity, wrench and, for a model with history,
+a register of the last ``H`` wrenches and body rates. That register is the model's extra state (the model
+contract's shift register): it names ``u{k}_T``, ``u{k}_tx`` ... and ``p{k}``, ``q{k}``, ``r{k}`` for ``k`` =
+1 .. H periods back, and shifts exactly.
+
+Training fits the network to open-loop rollouts of the training flights (windows of 5, 10, 25, then 50 steps),
+weighting the errors as the benchmark's table does: position, velocity, rotation and body rates, each over its
+goal (0.07 m, 0.40 m/s, 0.15 rad, 0.40 rad/s). States a log did not measure are neither targets nor inputs.
+Each epoch's model is scored on the validation flights (the mean of the four h=50 errors over their goals) and
+the best epoch is kept: the test flights are never seen.
+
+The wrench the model takes is the identified one: the logged wrench (computed with the vehicle file's ``kt``)
+times the identification's ``wrench_gain``, so that a controller flying the model on a plant set up with the
+identified vehicle means the same thrust and torques.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from sim.params import DT
+
+#: Weights of the training loss and the validation score: the goal of each column (m, m/s, rad, rad/s).
+GOALS = {"position": 0.07, "velocity": 0.40, "rotation": 0.15, "angular_velocity": 0.40}
+HORIZONS = (5, 10, 25, 50)
+PHYSICS_SUBSTEPS = 1
+
+
+def rotation_torch(e: torch.Tensor) -> torch.Tensor:
+    """Body-to-world rotation of ZYX Euler angles ``e`` (B, 3) as (B, 3, 3), as :func:`sim.dynamics.rotation_matrix`."""
+    sphi, cphi = torch.sin(e[:, 0]), torch.cos(e[:, 0])
+    sth, cth = torch.sin(e[:, 1]), torch.cos(e[:, 1])
+    spsi, cpsi = torch.sin(e[:, 2]), torch.cos(e[:, 2])
+    row0 = torch.stack([cpsi * cth, cpsi * sth * sphi - spsi * cphi, cpsi * sth * cphi + spsi * sphi], -1)
+    row1 = torch.stack([spsi * cth, spsi * sth * sphi + cpsi * cphi, spsi * sth * cphi - cpsi * sphi], -1)
+    row2 = torch.stack([-sth, cth * sphi, cth * cphi], -1)
+    return torch.stack([row0, row1, row2], -2)
+
+
+class HeldRatesPhysics(nn.Module):
+    """:func:`sim.logbench.physics_step` with ``hold_rates=True`` in torch (RK4, :data:`PHYSICS_SUBSTEPS` substeps).
+
+    Parameters
+    ----------
+    m, g, c_d : float
+        Mass (kg), gravity (m/s^2) and the world-frame quadratic drag (1/m) of the rigid-body equations.
+    linear_drag, quadratic_drag, accel_bias : sequence of 3 float
+        Body-frame drags (1/s, 1/m) and acceleration bias (m/s^2).
+    """
+
+    def __init__(self, m: float, g: float, c_d: float, linear_drag, quadratic_drag, accel_bias):
+        super().__init__()
+        self.register_buffer("consts", torch.tensor([m, g, c_d], dtype=torch.float64))
+        self.register_buffer("drag", torch.tensor(np.array([linear_drag, quadratic_drag, accel_bias], dtype=float)))
+
+    def rates(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """dx/dt (B, 12) with the body rates held."""
+        c = self.consts.to(x.dtype)
+        k, q, b = self.drag.to(x.dtype)
+        phi, th = x[:, 3], x[:, 4]
+        wp, wq, wr = x[:, 6], x[:, 7], x[:, 8]
+        sphi, cphi, sth, cth = torch.sin(phi), torch.cos(phi), torch.sin(th), torch.cos(th)
+        qs_rc = wq * sphi + wr * cphi
+        R = rotation_torch(x[:, 3:6])
+        v = x[:, 9:12]
+        vb = torch.einsum("nji,nj->ni", R, v)
+        a = torch.einsum("nij,nj->ni", R, -k * vb - q * vb * vb.abs() + b)
+        a = a - (u[:, 0] / c[0])[:, None] * R[:, :, 2] - c[2] * v * v.abs()
+        a = a + torch.stack([torch.zeros_like(phi), torch.zeros_like(phi), c[1].expand_as(phi)], -1)
+        zero = torch.zeros_like(x[:, 6:9])
+        return torch.cat([v, torch.stack([wp + qs_rc * sth / cth, wq * cphi - wr * sphi, qs_rc / cth], -1), zero, a],
+                         -1)
+
+    def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """The state one period later (B, 12)."""
+        h = DT / PHYSICS_SUBSTEPS
+        for _ in range(PHYSICS_SUBSTEPS):
+            k1 = self.rates(x, u)
+            k2 = self.rates(x + 0.5 * h * k1, u)
+            k3 = self.rates(x + 0.5 * h * k2, u)
+            k4 = self.rates(x + h * k3, u)
+            x = x + (h / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
+        return x
+
+
+def register_names(history: int) -> tuple[str, ...]:
+    """Names of the extra states of a model with ``history`` periods of wrenches and body rates."""
+    return (tuple(f"u{k}_{n}" for k in range(1, history + 1) for n in ("T", "tx", "ty", "tz"))
+            + tuple(f"{n}{k}" for k in range(1, history + 1) for n in ("p", "q", "r")))
+
+
+def raw_features(z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """Unnormalized network features (B, 12 + 7 H): roll, pitch, body rates, body-frame velocity, wrench and the
+    register ``z[:, 12:]``."""
+    R = rotation_torch(z[:, 3:6])
+    vb = torch.einsum("nji,nj->ni", R, z[:, 9:12])
+    return torch.cat([z[:, 3:5], z[:, 6:9], vb, u, z[:, 12:]], -1)
+
+
+class FlightModel(nn.Module):
+    """Identified held-rates physics plus a network, optionally with a register of ``history`` past periods.
+
+    State ``z`` (B, 12 + 7 H): the rigid body, then the last ``H`` wrenches (newest first) and the last ``H``
+    body rates (newest first). ``forward(z, u)`` gives the next ``z``.
+    """
+
+    arch = "flight"
+
+    def __init__(self, physics: HeldRatesPhysics, stats: dict, history: int = 0, hidden: int = 64, layers: int = 3):
+        super().__init__()
+        self.physics = physics
+        self.history = int(history)
+        self.extra_states = register_names(self.history)
+        n_in = 2 + 3 + 3 + 4 + 7 * self.history
+        self.register_buffer("in_mean", torch.as_tensor(stats["in_mean"], dtype=torch.float32).clone())
+        self.register_buffer("in_std", torch.as_tensor(stats["in_std"], dtype=torch.float32).clone())
+        self.register_buffer("out_scale", torch.as_tensor(stats["out_scale"], dtype=torch.float32).clone())
+        mods, w = [], n_in
+        for _ in range(layers):
+            mods += [nn.Linear(w, hidden), nn.Tanh()]
+            w = hidden
+        self.body = nn.Sequential(*mods)
+        self.out = nn.Linear(w, 6)
+        with torch.no_grad():    # start as the physics
+            self.out.weight.zero_()
+            self.out.bias.zero_()
+
+    def forward(self, z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        x = z[:, :12]
+        f = (raw_features(z, u) - self.in_mean.to(z.dtype)) / self.in_std.to(z.dtype)
+        y = self.out(self.body(f)) * self.out_scale.to(z.dtype)
+        R = rotation_torch(x[:, 3:6])
+        nxt = self.physics(x, u)
+        dv = torch.einsum("nij,nj->ni", R, y[:, 3:6])
+        nxt = torch.cat([nxt[:, :6], nxt[:, 6:9] + y[:, :3], nxt[:, 9:12] + dv], -1)
+        if not self.history:
+            return nxt
+        H = self.history
+        reg_u, reg_w = z[:, 12:12 + 4 * H], z[:, 12 + 4 * H:]
+        return torch.cat([nxt, u, reg_u[:, :4 * (H - 1)], x[:, 6:9], reg_w[:, :3 * (H - 1)]], -1)
+
+
+def register(x: np.ndarray, u: np.ndarray, idx: np.ndarray, history: int) -> np.ndarray:
+    """The register (B, 7 H) at samples ``idx`` of a flight: wrenches and body rates 1 .. H periods back (the
+    first sample repeated before the flight's start)."""
+    if not history:
+        return np.zeros((len(idx), 0))
+    back = np.clip(idx[:, None] - np.arange(1, history + 1), 0, None)
+    return np.concatenate([u[back].reshape(len(idx), -1), x[back][:, :, 6:9].reshape(len(idx), -1)], axis=1)
+
+
+@dataclass(frozen=True)
+class FlightTrainConfig:
+    """Settings of :func:`train_flight_model` (the budget and the network)."""
+
+    history: int = 0
+    hidden: int = 64
+    layers: int = 3
+    epochs: int = 8
+    steps_per_epoch: int = 25
+    windows: int = 256           # windows per optimizer step
+    lr: float = 3e-3
+    seed: int = 0
+    validation_stride: int = 10  # every how many window starts of the validation flights are scored
+
+
+@dataclass
+class FlightTrainResult:
+    """A trained :class:`FlightModel`, the epoch kept and every epoch's validation score and errors."""
+
+    model: FlightModel
+    config: FlightTrainConfig
+    best_epoch: int
+    scores: list = field(default_factory=list)
+    validation: list = field(default_factory=list)
+    seconds: float = 0.0
+
+
+def score(errors: dict) -> float:
+    """Mean over the four columns of the h=50 error over its goal (lower is better; 1 is the goal)."""
+    return float(np.mean([errors[q][-1] / g for q, g in GOALS.items()]))
+
+
+def flight_stats(flights, gain, history: int) -> dict:
+    """Feature normalization and output scales from the measured samples of ``flights``."""
+    feats, dw, dv = [], [], []
+    for f in flights:
+        ok = np.flatnonzero(f.x_ok[:-1] & f.x_ok[1:])
+        z = np.concatenate([f.x[ok], register(f.x, f.u * gain, ok, history)], axis=1)
+        feats.append(raw_features(torch.as_tensor(z), torch.as_tensor(f.u[ok] * gain)).numpy())
+        dw.append(f.x[ok + 1, 6:9] - f.x[ok, 6:9])
+        dv.append(f.x[ok + 1, 9:12] - f.x[ok, 9:12])
+    F = np.concatenate(feats)
+    return {"in_mean": F.mean(0), "in_std": F.std(0) + 1e-8,
+            "out_scale": np.r_[np.concatenate(dw).std(0), np.concatenate(dv).std(0)] + 1e-8}
+
+
+def flight_step(model: FlightModel, gain):
+    """``(step, start)`` for :func:`sim.logbench.prediction_errors`: the model in float64, no gradient, on the
+    logged wrench times ``gain``; ``start`` builds the register from the log."""
+    m = copy.deepcopy(model).double().eval()
+    gain = np.asarray(gain, dtype=float)
+
+    def step(z, u):
+        with torch.no_grad():
+            return m(torch.as_tensor(z), torch.as_tensor(u * gain)).numpy()
+
+    def start(f, idx):
+        return np.concatenate([f.x[idx], register(f.x, f.u * gain, idx, m.history)], axis=1)
+
+    return step, start
+
+
+class _Windows:
+    """Random training windows of the flights (all flights stacked once, with the wrench times the gain)."""
+
+    def __init__(self, flights, gain, history: int):
+        self.x = np.concatenate([f.x for f in flights])
+        self.u = np.concatenate([f.u * gain for f in flights])
+        self.ok = np.concatenate([f.x_ok for f in flights])
+        ends = np.cumsum([len(f.x) for f in flights])
+        self.bounds = np.stack([ends - [len(f.x) for f in flights], ends], 1)
+        self.history = history
+        self._starts = {}
+
+    def starts(self, K: int) -> np.ndarray:
+        """Every sample a window of ``K`` steps may start at: measured, with ``K`` more samples of its flight."""
+        if K not in self._starts:
+            self._starts[K] = np.concatenate([lo + np.flatnonzero(self.ok[lo:hi - K]) for lo, hi in self.bounds])
+        return self._starts[K]
+
+    def draw(self, K: int, count: int, gen):
+        """z0 (W, 12 + 7H), states (W, K, 12), wrenches (W, K, 4), measured (W, K)."""
+        s = self.starts(K)[gen.integers(0, len(self.starts(K)), count)]
+        lo = self.bounds[np.searchsorted(self.bounds[:, 1], s, side="right"), 0]
+        back = np.maximum(s[:, None] - np.arange(1, self.history + 1), lo[:, None])
+        reg = np.concatenate([self.u[back].reshape(count, -1), self.x[back][:, :, 6:9].reshape(count, -1)], 1)
+        idx = s[:, None] + np.arange(1, K + 1)
+        T = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
+        return (T(np.concatenate([self.x[s], reg], 1)), T(self.x[idx]), T(self.u[idx - 1]),
+                torch.as_tensor(self.ok[idx]))
+
+
+def rollout_loss(model: FlightModel, z0, xs, us, ok) -> torch.Tensor:
+    """Mean over measured targets of the squared position, velocity, attitude and rate errors over their goals."""
+    z = z0
+    total, n = torch.zeros(()), ok.sum().clamp(min=1)
+    for k in range(us.shape[1]):
+        z = model(z, us[:, k])
+        e = z[:, :12] - xs[:, k]
+        ang = torch.atan2(torch.sin(e[:, 3:6]), torch.cos(e[:, 3:6]))
+        per = ((e[:, 0:3] ** 2).sum(-1) / GOALS["position"] ** 2 + (e[:, 9:12] ** 2).sum(-1) / GOALS["velocity"] ** 2
+               + (ang ** 2).sum(-1) / GOALS["rotation"] ** 2 + (e[:, 6:9] ** 2).sum(-1) / GOALS["angular_velocity"] ** 2)
+        total = total + torch.where(ok[:, k], per, torch.zeros_like(per)).sum()
+    return total / (4.0 * n)
+
+
+def train_flight_model(train_flights, val_flights, physics_kw: dict, config: FlightTrainConfig,
+                       progress=None) -> FlightTrainResult:
+    """Fit a :class:`FlightModel` on ``train_flights``; keep the epoch whose validation score is lowest.
+
+    Parameters
+    ----------
+    train_flights, val_flights : sequence of :class:`sim.flightlog.Flight`
+        Imported flights (their ``x``, ``u``, ``x_ok``).
+    physics_kw : dict
+        :func:`sim.logident.identified_model` with ``hold_rates=True``: ``p``, the drags, the bias and
+        ``wrench_gain``.
+    progress : callable, optional
+        Called with one line per epoch.
+    """
+    from sim.logbench import prediction_errors
+
+    torch.manual_seed(config.seed)
+    gen = np.random.default_rng(config.seed)
+    p = physics_kw["p"]
+    gain = np.asarray(physics_kw.get("wrench_gain", (1.0,) * 4), dtype=float)
+    physics = HeldRatesPhysics(p.m, p.g, p.c_d, physics_kw["linear_drag"], physics_kw["quadratic_drag"],
+                               physics_kw["accel_bias"])
+    model = FlightModel(physics, flight_stats(train_flights, gain, config.history), config.history, config.hidden,
+                        config.layers)
+    windows = _Windows(train_flights, gain, config.history)
+    params = [q for q in model.parameters() if q.requires_grad]
+    opt = torch.optim.Adam(params, lr=config.lr)
+    total = config.epochs * config.steps_per_epoch
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * k / total)))
+    best, best_state, scores, errors = math.inf, None, [], []
+    t0 = time.perf_counter()
+    for e in range(config.epochs):
+        K = HORIZONS[min(len(HORIZONS) - 1, (len(HORIZONS) * e) // config.epochs)]
+        model.train()
+        for _ in range(config.steps_per_epoch):
+            loss = rollout_loss(model, *windows.draw(K, config.windows, gen))
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(params, 10.0)
+            opt.step()
+            sched.step()
+        step, start = flight_step(model, gain)
+        err = prediction_errors(step, val_flights, start=start, stride=config.validation_stride).to_dict()
+        s = score(err)
+        scores.append(s)
+        errors.append(err)
+        if s < best:
+            best, best_state, best_epoch = s, copy.deepcopy(model.state_dict()), e + 1
+        if progress:
+            progress(f"  epoch {e + 1}/{config.epochs}: horizon {K}, training loss {float(loss.detach()):.3g}, validation "
+                     f"score {s:.3f} (1 = the goal)")
+    model.load_state_dict(best_state)
+    model.eval()
+    return FlightTrainResult(model=model, config=config, best_epoch=best_epoch, scores=scores, validation=errors,
+                             seconds=time.perf_counter() - t0)
+
+
+def export_flight_model(model: FlightModel, path, theta: dict, description: str) -> Path:
+    """Write ``model`` as an ONNX file of the model contract (float64; no derivative graph: the controllers take
+    central differences through onnxruntime).
+
+    Parameters
+    ----------
+    model : FlightModel
+    path : path
+        The ``.onnx`` file to write (its folder is created).
+    theta : dict
+        ``{m, Jxx, Jyy, Jzz, kt, kq}`` of the identified vehicle (the controllers' vehicle spec).
+    description : str
+        Stored as the file's ``architecture``.
+    """
+    import json
+
+    from mpc.contract import CONTRACT_VERSION
+    from sim import __version__ as code_version
+    from sim.params import INPUT_NAMES, STATE_NAMES
+
+    from .export import _export, _Next, _set_metadata
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    m64 = copy.deepcopy(model).double().eval()
+    _export(_Next(m64), path, ["x_next"], 12 + len(m64.extra_states))
+    meta = {"pinnmpc.contract": CONTRACT_VERSION, "architecture": description, "dt": repr(DT),
+            "state_names": json.dumps(list(STATE_NAMES)), "input_names": json.dumps(list(INPUT_NAMES)),
+            "theta": json.dumps({k: float(v) for k, v in theta.items()}), "code_version": code_version,
+            "torch_version": torch.__version__}
+    if m64.extra_states:
+        meta["extra_states"] = json.dumps(list(m64.extra_states))
+    _set_metadata(path, meta)
+    return path
+
+
+# ----------------------------------------------------------------- the real-data study's learned models
+#: The paper's architectures (trained by :func:`pinn.train.train`, unchanged) and the physics-plus-network model.
+PAPER_ARCHITECTURES = ("baseline", "modular", "fourier", "proposed", "hybrid")
+#: The register of the model with history: 4 periods, the largest motor-to-state delay measured on the benchmark.
+HISTORY = 4
+#: Training budgets: ``full`` for a study, ``quick`` for tests (seconds).
+BUDGETS = {
+    "full": {"paper": {"profile": "quick"}, "flight": {}},
+    "quick": {"paper": {"profile": "quick", "epochs": 2, "steps_per_epoch": 4, "batch": 128, "n_colloc": 32,
+                        "hidden": 32, "layers": 2},
+              "flight": {"epochs": 2, "steps_per_epoch": 4, "windows": 32, "hidden": 16, "layers": 2}},
+}
+
+
+@dataclass
+class LearnedModel:
+    """A model trained on the training flights, at the epoch its validation score chose.
+
+    ``step(z, u)`` and ``start(flight, idx)`` are :func:`sim.logbench.prediction_errors`'s (``start`` None: the
+    model's state is the rigid body's); ``export(path)`` writes it as an ONNX model file and returns the path.
+    """
+
+    name: str
+    step: object
+    start: object
+    epoch: int
+    epochs: int
+    validation_scores: list
+    seconds: float
+    export: object
+
+
+def _torch_step(model):
+    m = copy.deepcopy(model).double().eval()
+
+    def step(x, u):
+        with torch.no_grad():
+            return m(torch.as_tensor(x), torch.as_tensor(u)).numpy()
+
+    return step
+
+
+def learned_models(flights: dict, vehicle, ident, fmt, budget: str = "full", progress=print) -> list[LearnedModel]:
+    """Train the study's learned models on ``flights["train"]``, each at the epoch chosen on ``flights["val"]``.
+
+    The paper's four architectures and physics plus network (:data:`PAPER_ARCHITECTURES`) as they train on
+    simulated data (the ``quick`` profile, the stated vehicle as their prior, seed 0); then the identified
+    held-rates physics plus a network (:class:`FlightModel`), without and with a register of :data:`HISTORY`
+    periods.
+    """
+    from sim.flightlog import flights_to_dataset
+    from sim.logbench import prediction_errors
+    from sim.logident import identified_model, identified_vehicle
+
+    from .export import export_model
+    from .train import make_config, train
+
+    if budget not in BUDGETS:
+        raise ValueError(f"budget must be one of {', '.join(BUDGETS)}; found {budget!r}")
+    if not flights["val"]:
+        raise ValueError("the learned models need validation flights (their epoch is chosen on them)")
+    torch.set_num_threads(1)
+    b = BUDGETS[budget]
+    used = flights["train"] + flights["val"]
+    splits = {f.name: ("train" if f in flights["train"] else "val") for f in used}
+    ds = flights_to_dataset(used, vehicle, splits, fmt)
+    out = []
+    for arch in PAPER_ARCHITECTURES:
+        progress(f"training {arch} on the training flights")
+        overrides = {k: v for k, v in b["paper"].items() if k != "profile"}
+        cfg = make_config(arch, b["paper"]["profile"], 0, threads=1, **overrides)
+        res = train(ds, cfg, checkpoints=range(1, cfg.epochs + 1))
+        scores = [score(prediction_errors(_torch_step(m), flights["val"], stride=FlightTrainConfig.validation_stride)
+                        .to_dict()) for _, m in sorted(res.checkpoints.items())]
+        e = int(np.nanargmin(scores)) + 1
+        best = res.checkpoints[e]
+
+        def export(path, best=best, arch=arch, cfg=cfg):
+            path = Path(path)
+            return export_model(best, path.parent, path.stem, {"name": path.stem, "train": cfg.to_dict(),
+                                                                "data": "real flight logs"}, 0, {},
+                                torch_file=False)["onnx"]
+
+        out.append(LearnedModel(arch, _torch_step(best), None, e, cfg.epochs, scores, res.seconds, export))
+    kw = dict(identified_model(ident, vehicle, hold_rates=True), quadratic_drag=(0.0, 0.0, 0.0))
+    iv = identified_vehicle(ident, vehicle)
+    theta = {k: getattr(iv, k) for k in ("m", "Jxx", "Jyy", "Jzz", "kt", "kq")}
+    for history in (0, HISTORY):
+        name = "identified physics + network" + (f", history {history}" if history else "")
+        progress(f"training {name} on the training flights")
+        res = train_flight_model(flights["train"], flights["val"], kw,
+                                 FlightTrainConfig(history=history, **b["flight"]), progress)
+        step, start = flight_step(res.model, kw["wrench_gain"])
+
+        def export(path, model=res.model, name=name):
+            return export_flight_model(model, path, theta, name)
+
+        out.append(LearnedModel(name, step, start, res.best_epoch, res.config.epochs, res.scores, res.seconds,
+                                export))
+    return out
