@@ -38,12 +38,20 @@ def register(sub) -> None:
                                    "validation flights, evaluate every model under the benchmark's protocol and fly "
                                    "the best flyable learned model (docs/real-flights.md).")
     p.add_argument("--logs", required=True, type=Path, metavar="DIR",
-                   help="the benchmark's root (branch model_export) or a copy with its data/real/ layout")
+                   help="the benchmark's root (branch model_export), a copy with its data/real/ layout, or a folder "
+                        "of your own logs (.parquet, .csv; see --format)")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder (realdata.json, .md)")
     p.add_argument("--vehicle", default="crazyflie-brushless", metavar="NAME|FILE.toml",
                    help="the vehicle (default crazyflie-brushless, the benchmark's stated values)")
     p.add_argument("--plants", default="sim,rotorpy", metavar="LIST",
                    help="plants of the closed-loop check, comma-separated (default sim,rotorpy; 'none': no flight)")
+    p.add_argument("--format", default="nanodrone-raw", metavar="NAME|FILE.toml",
+                   help="format of the logs (default nanodrone-raw, the benchmark's raw Parquet files)")
+    p.add_argument("--test", default="melon*", metavar="PATTERNS",
+                   help="name patterns of the held-out test flights, comma-separated (default melon*)")
+    p.add_argument("--val", default=None, metavar="PATTERNS",
+                   help="name patterns of the validation flights, where every choice is made (default: run 4 of "
+                        "multisine, random1 and random2 and square run 5); the other flights train")
     p.add_argument("--learn", default="full", choices=("full", "quick", "none"),
                    help="training budget of the learned models (default full, about 10 minutes on 2 cores; quick: "
                         "seconds, for a trial run; none: physics models only)")
@@ -208,7 +216,11 @@ def cmd_realdata(args: argparse.Namespace) -> int:
         if importlib.util.find_spec("torch") is None:
             raise ValueError(f"--learn {args.learn}: training the learned models needs torch "
                              f"(pip install -e '.[train]'); --learn none evaluates the physics models only")
-    r = run_realdata(args.logs, args.out, args.vehicle, plants=plants, learn=args.learn,
+    from .realdata import VALIDATION
+
+    test, val = ([x.strip() for x in v.split(",") if x.strip()] for v in (args.test, args.val or ",".join(VALIDATION)))
+    r = run_realdata(args.logs, args.out, args.vehicle, plants=plants, learn=args.learn, fmt=args.format,
+                     test=test, val=val,
                      progress=(lambda line: print(line, file=sys.stderr, flush=True)))
     print("\n".join(summary_lines(r)))
     print(f"wrote {args.out / 'realdata.json'} and {args.out / 'realdata.md'}")

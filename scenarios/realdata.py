@@ -65,16 +65,18 @@ def benchmark_filter(flight):
 
 
 def find_logs(root) -> tuple[list[Path], list[str]]:
-    """The benchmark's raw logs under ``root`` and a line for each Git LFS pointer skipped."""
+    """The logs under ``root`` (the benchmark's raw folder below it, or else ``root`` itself: its Parquet and CSV
+    files) and a line for each Git LFS pointer skipped."""
     root = Path(root)
     folder = root / RAW_DIR
     if not folder.is_dir():
-        folder = root if any(root.glob("*.parquet")) else folder
+        folder = root if any(root.glob("*.parquet")) or any(root.glob("*.csv")) else folder
     if not folder.is_dir():
-        raise SimInputError(f"--logs {str(root)!r}: no folder {str(RAW_DIR)!r} (give the benchmark's root on branch "
-                            f"model_export, or a copy with its data/real/ layout)")
+        raise SimInputError(f"--logs {str(root)!r}: no folder {str(RAW_DIR)!r} and no .parquet or .csv log in it "
+                            f"(give the benchmark's root on branch model_export, a copy with its data/real/ layout, "
+                            f"or a folder of your logs)")
     logs, skipped = [], []
-    for p in sorted(folder.glob("*.parquet")):
+    for p in sorted([*folder.glob("*.parquet"), *folder.glob("*.csv")]):
         with open(p, "rb") as f:
             head = f.read(64)
         if head.startswith(b"version https://git-lfs"):
@@ -82,7 +84,7 @@ def find_logs(root) -> tuple[list[Path], list[str]]:
         else:
             logs.append(p)
     if not logs:
-        raise SimInputError(f"--logs {str(root)!r}: no Parquet log in {str(folder)!r}")
+        raise SimInputError(f"--logs {str(root)!r}: no Parquet or CSV log in {str(folder)!r}")
     return logs, skipped
 
 
@@ -192,8 +194,13 @@ def _score(errors: dict) -> float:
 
 
 def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=print,
-                 plants=("sim", "rotorpy"), learn: str = "full") -> dict:
+                 plants=("sim", "rotorpy"), learn: str = "full", fmt="nanodrone-raw", test=tuple(TEST),
+                 val=tuple(VALIDATION)) -> dict:
     """Run the study and write ``OUT/realdata.json`` and ``OUT/realdata.md``; returns the JSON's content.
+
+    ``fmt``: the logs' format (a shipped name or a file); ``test``, ``val``: name patterns of the held-out test
+    flights and of the validation flights (the others train). The filtered comparison and the reference flight use
+    the test flight whose name ends in ``run1``, else the first.
 
     ``plants``: where the closed-loop check flies (none: no flight). ``learn``: the training budget of the learned
     models (:data:`pinn.flights.BUDGETS`: ``full`` or ``quick``), or ``none`` (physics models only; no torch).
@@ -202,10 +209,10 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
     logs, skipped = find_logs(root)
     for line in skipped:
         progress(line)
-    fmt = load_format("nanodrone-raw")
+    fmt = load_format(fmt)
     vehicle = load_vehicle(vehicle)
     names = [p.stem for p in logs]
-    splits = assign_splits(names, {"test": TEST, "val": VALIDATION})
+    splits = assign_splits(names, {"test": list(test), "val": list(val)})
     flights = []
     for i, p in enumerate(logs):
         progress(f"[{i + 1}/{len(logs)}] importing {p.name}")
@@ -213,10 +220,11 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
     by_split = {s: [f for f in flights if splits[f.name] == s] for s in ("train", "val", "test")}
     for s in ("train", "test"):
         if not by_split[s]:
-            raise SimInputError(f"--logs {str(root)!r}: no {s} flight (test flights are named melon*)")
+            raise SimInputError(f"--logs {str(root)!r}: no {s} flight (test flights match {', '.join(test)}; the "
+                                f"flights matching neither the test nor the validation patterns train)")
     ident = identify(by_split["train"], vehicle)
     fisher = fisher_table(by_split["train"], vehicle, ident)
-    melon1 = [f for f in by_split["test"] if f.name.endswith("run1")]
+    melon1 = [f for f in by_split["test"] if f.name.endswith("run1")][:1] or by_split["test"][:1]
     filtered = [benchmark_filter(f) for f in melon1]
     train_u = np.concatenate([f.u[f.rotor_ok] for f in by_split["train"]])
     u0, du = train_u.mean(0), 0.1 * train_u.std(0)

@@ -143,6 +143,10 @@ def test_the_study_on_the_real_benchmark(tmp_path):
     # the benchmark's Physics row (0.1235 m on its filtered run 1) is met within a few centimetres on raw data
     assert 0.08 < held["position"][-1] < 0.2
     assert Path(out / "realdata.md").is_file()
+    learned = [n for n, m in r["models"].items() if m["kind"] == "learned"]
+    assert len(learned) == 7 and r["best_on_validation"] in r["models"]
+    assert all(len(r["models"][n]["raw"][q]) == 3 for n in r["models"] for q in held)
+    assert {row["scenario"] for row in r["closed_loop"]} == {"figure8-fast", "melon_20251017_run1-reference"}
 
 
 def test_a_model_that_holds_its_rates_is_refused_by_every_controller_with_the_reason():
@@ -210,3 +214,20 @@ def test_without_torch_the_learned_models_are_refused_in_one_line(tmp_path):
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "needs torch" in r.stderr and "--learn none" in r.stderr
     assert not (tmp_path / "out" / "realdata.json").exists()
+
+
+def test_your_own_logs_with_your_own_split_patterns(tmp_path):
+    """A flat folder of logs (not the benchmark's layout), split by the patterns given: the study holds the test
+    flights out and predicts them as the plant's own equations do."""
+    ds = make_dataset("small", 4, 3.0, 5, noise=NoiseModel.none(), vehicle="crazyflie")
+    names = ["hold_run1", "check_a", "fly_a", "fly_b"]
+    for i, name in enumerate(names):
+        write_nanodrone_parquet(tmp_path / f"{name}.parquet", np.concatenate([ds.x[i], ds.x_next[i, -1:]]),
+                                np.concatenate([ds.rotor_speed[i], ds.rotor_speed[i, -1:]]))
+    out = tmp_path / "out"
+    assert main(["realdata", "--logs", str(tmp_path), "--out", str(out), "--vehicle", "crazyflie", "--plants", "none",
+                 "--learn", "none", "--format", "nanodrone-raw", "--test", "hold*", "--val", "check*"]) == 0
+    r = json.loads((out / "realdata.json").read_text())
+    assert r["splits"] == {"train": ["fly_a", "fly_b"], "val": ["check_a"], "test": ["hold_run1"]}
+    m = r["models"]["nominal physics"]
+    assert max(m["raw"]["position"]) <= EXACT
