@@ -26,9 +26,12 @@ identified vehicle means the same thrust and torques.
 
 from __future__ import annotations
 
+import contextlib
 import copy
+import io
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -334,6 +337,10 @@ def export_flight_model(model: FlightModel, path, theta: dict, description: str)
     """Write ``model`` as an ONNX file of the model contract (float64; no derivative graph: the controllers take
     central differences through onnxruntime).
 
+    Exported with torch's TorchScript-based exporter: it keeps the float64 constants of the physics exactly (the
+    graph matches torch to 1e-16) and takes about a second, where the dynamo exporter took 20 s and stored the Python
+    floats of the RK4 step as float32 (3e-9 off).
+
     Parameters
     ----------
     model : FlightModel
@@ -350,12 +357,17 @@ def export_flight_model(model: FlightModel, path, theta: dict, description: str)
     from sim import __version__ as code_version
     from sim.params import INPUT_NAMES, STATE_NAMES
 
-    from .export import _export, _Next, _set_metadata
+    from .export import _Next, _set_metadata
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     m64 = copy.deepcopy(model).double().eval()
-    _export(_Next(m64), path, ["x_next"], 12 + len(m64.extra_states))
+    nx = 12 + len(m64.extra_states)
+    args = (torch.zeros(3, nx, dtype=torch.float64), torch.zeros(3, 4, dtype=torch.float64))
+    with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
+        warnings.simplefilter("ignore")     # the exporter's deprecation notice
+        torch.onnx.export(_Next(m64), args, str(path), input_names=["x", "u"], output_names=["x_next"],
+                          dynamic_axes={"x": {0: "batch"}, "u": {0: "batch"}, "x_next": {0: "batch"}}, dynamo=False)
     meta = {"pinnmpc.contract": CONTRACT_VERSION, "architecture": description, "dt": repr(DT),
             "state_names": json.dumps(list(STATE_NAMES)), "input_names": json.dumps(list(INPUT_NAMES)),
             "theta": json.dumps({k: float(v) for k, v in theta.items()}), "code_version": code_version,

@@ -19,6 +19,7 @@ torch.set_num_threads(1)
 # tolerances of this module
 STATS_RTOL = 1e-12     # statistics of the masked dataset against those of its measured samples alone
 LEARNED_GAIN = 0.8     # the trained model's validation score against the held-rates physics alone (at most)
+ONNX_TOL = 1e-12       # onnxruntime against torch, float64
 PHYSICS_TOL = 1e-12    # torch held-rates physics against the numpy protocol's, float64, one RK4 step
 UNMEASURED = 0.15      # share of states marked as not measured
 
@@ -145,3 +146,27 @@ def test_training_keeps_the_best_validation_epoch_and_reruns_exactly():
     assert min(a.scores) < LEARNED_GAIN * physics, (a.scores, physics)
     step, start = flight_step(a.model, np.ones(4))
     assert why_not_flyable(step, start, train_f[0].u.mean(0), 0.1 * train_f[0].u.std(0)) == ""
+
+
+def test_the_exported_model_is_the_torch_model(tmp_path):
+    """onnxruntime runs the exported flight model (with its register) as torch does, in float64, and check-model
+    finds its extra states."""
+    import onnxruntime as ort
+
+    from mpc.contract import check_model
+    from pinn.flights import export_flight_model
+
+    flights = _flights(1)
+    torch.manual_seed(0)
+    m = FlightModel(_physics(), flight_stats(flights, np.ones(4), 2), history=2, hidden=16, layers=2)
+    with torch.no_grad():
+        m.out.weight.normal_(0.0, 0.3)
+    theta = {"m": P.m, "Jxx": P.Jxx, "Jyy": P.Jyy, "Jzz": P.Jzz, "kt": P.kt, "kq": P.kq}
+    path = export_flight_model(m, tmp_path / "f.onnx", theta, "test")
+    f = flights[0]
+    idx = np.arange(3, 60)
+    z = np.concatenate([f.x[idx], register(f.x, f.u, idx, 2)], axis=1)
+    got = ort.InferenceSession(str(path)).run(None, {"x": z, "u": f.u[idx]})[0]
+    want = m.double()(torch.as_tensor(z), torch.as_tensor(f.u[idx])).detach().numpy()
+    np.testing.assert_allclose(got, want, rtol=0, atol=ONNX_TOL)
+    assert check_model(path).extra_states == m.extra_states
