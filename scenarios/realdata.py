@@ -145,15 +145,33 @@ def why_not_flyable(step, start, u0, du) -> str:
 
 #: Sampling of the logged reference in the melon scenario file, s.
 MELON_SAMPLE_S = 0.5
+#: The reference flown is the part between its first and its last sample at least this share of its median height
+#: high: take-off, the hover before the path and the landing are left out (their set-point steps and the descent
+#: would ask the smoothed path for more than the vehicle can do).
+REFERENCE_HEIGHT_SHARE = 0.8
+#: A reference sample farther than this from the running median of the 11 around it is a logging glitch (the melon
+#: run 1 log has a row of zeros in its reference columns) and is left out, m.
+REFERENCE_GLITCH_M = 0.2
 
 
 def reference_scenario(flight, path, every_s: float = MELON_SAMPLE_S) -> Path:
     """Write a scenario file whose reference is ``flight``'s logged position reference (NED): a ``[flat]`` table of
-    its samples every ``every_s`` seconds, times from the flight's first sample; the flight ends 1 s after it."""
+    its samples every ``every_s`` seconds, from its first to its last sample at least :data:`REFERENCE_HEIGHT_SHARE`
+    of its median height high, glitches (:data:`REFERENCE_GLITCH_M`) left out, times from the first; the flight ends
+    1 s after the last."""
     if flight.reference is None:
         raise SimInputError(f"flight {flight.name!r} has no reference columns")
-    k = np.arange(0, len(flight.t), max(1, round(every_s / 0.01)))
-    t = flight.t[k] - flight.t[0]
+    height = -flight.reference[:, 2]
+    high = np.flatnonzero(height >= REFERENCE_HEIGHT_SHARE * np.median(height))
+    if len(high) < 2 or not np.median(height) > 0:
+        raise SimInputError(f"flight {flight.name!r}: its reference does not fly above the ground")
+    from scipy.signal import medfilt
+
+    smooth = np.stack([medfilt(flight.reference[:, j], 11) for j in range(3)], -1)
+    clean = np.linalg.norm(flight.reference - smooth, axis=1) <= REFERENCE_GLITCH_M
+    k = np.arange(high[0], high[-1] + 1, max(1, round(every_s / 0.01)))
+    k = k[clean[k]]
+    t = flight.t[k] - flight.t[k[0]]
     ref = flight.reference[k]
     fmt = lambda a: "[" + ", ".join(f"{v:.4f}" for v in a) + "]"  # noqa: E731
     text = (f'name = "{flight.name}-reference"\n'
@@ -180,7 +198,8 @@ def fly_models(rows: list[tuple[str, str, Path, str]], plants, progress=print) -
                    "model": "nominal equations of the vehicle" if model == "nominal" else Path(model).name}
             try:
                 result, _ = fly(RunSpec(str(scenario), "sqp", str(model), plant=plant, vehicle=str(vehicle)))
-            except PlantUnavailableError as e:
+            except (PlantUnavailableError, ValueError) as e:
+                # a plant not installed, a scenario or model a controller refuses: recorded, the rest stays
                 out.append({**row, "skipped": str(e)})
                 continue
             out.append({**row, **{k: result[k] for k in ("rmse_position_m", "crashed", "crash_time_s",

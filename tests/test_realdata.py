@@ -186,6 +186,15 @@ def test_the_reference_scenario_passes_through_the_logged_reference(tmp_path):
     got = sc.reference()(t[k] - t[0])[:, 0:3]
     assert np.max(np.abs(got - ref[k])) < 1e-4 + 1e-9
     assert sc.duration_s == pytest.approx(t[k][-1] - t[0] + 1.0)
+    # take-off and landing low down are left out: the file starts and ends at the first and last sample at least
+    # 0.8 times the median height high
+    ref[:100, 2] = -0.1
+    ref[-50:, 2] = -0.05
+    ref[300] = 0.0                    # a row of zeros in the log's reference: a glitch, left out
+    sc = get_scenario(str(reference_scenario(f, tmp_path / "melon2.toml")))
+    k = np.arange(100, len(t) - 50, round(MELON_SAMPLE_S / 0.01))
+    k = k[k != 300]
+    assert np.max(np.abs(sc.reference()(t[k] - t[100])[:, 0:3] - ref[k])) < 1e-4 + 1e-9
 
 
 def test_the_report_section_shows_every_model_beside_the_published_rows(bench):
