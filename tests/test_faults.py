@@ -269,6 +269,7 @@ def fly_or_die(spec):
     return runner.fly_for_sweep(spec)             # in the worker: the real one
 
 
+@pytest.mark.slow
 def test_a_dead_worker_is_replaced_and_a_run_that_kills_it_twice_is_recorded_not_flown(tmp_path, monkeypatch,
                                                                                         capsys):
     from scenarios.sweep import sweep

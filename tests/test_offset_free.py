@@ -169,6 +169,7 @@ def _shipped_settle(name, scenario):
     assert r["settled_error_m"] < TOL["settled"], (name, scenario, r["settled_error_m"])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scenario", ["hover+payload", "hover+steadywind"])
 def test_the_shipped_model_with_the_worst_kinematics_settles_offset_free(scenario):
     """Proposed-aggressive (17 mm settled on hover+payload before its target was the model's own steady state)."""

@@ -280,6 +280,7 @@ def test_report_contents(results_dir):
     assert "Table III is not shown" in _section(md, "Table III: ablation")
 
 
+@pytest.mark.slow
 def test_report_is_deterministic(results_dir):
     build_report(results_dir)
     first = {p.name: p.read_bytes() for p in [results_dir / "report.md", results_dir / "report.html"]}

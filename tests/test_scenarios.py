@@ -276,6 +276,7 @@ def test_a_wrong_model_crashes_as_data_and_the_sweep_goes_on(reversed_model, tmp
     assert saved["crashed"] is True
 
 
+@pytest.mark.slow
 def test_same_seed_gives_identical_results_and_another_seed_does_not(tmp_path):
     spec = RunSpec("hover+noise", "ltv", str(MODELS / "proposed.onnx"), seed=3)
     r1, t1 = fly(spec)
