@@ -145,6 +145,9 @@ def why_not_flyable(step, start, u0, du) -> str:
 
 #: Sampling of the logged reference in the melon scenario file, s.
 MELON_SAMPLE_S = 0.5
+#: Length of the reference flight, s: the first part of the logged path (a learned model with a register and no
+#: derivative graph takes the SQP about 0.35 s a period by central differences: 6 s of flight take 3.5 minutes).
+MELON_FLIGHT_S = 6.0
 #: The reference flown is the part between its first and its last sample at least this share of its median height
 #: high: take-off, the hover before the path and the landing are left out (their set-point steps and the descent
 #: would ask the smoothed path for more than the vehicle can do).
@@ -154,11 +157,12 @@ REFERENCE_HEIGHT_SHARE = 0.8
 REFERENCE_GLITCH_M = 0.2
 
 
-def reference_scenario(flight, path, every_s: float = MELON_SAMPLE_S) -> Path:
+def reference_scenario(flight, path, every_s: float = MELON_SAMPLE_S,
+                       length_s: float | None = MELON_FLIGHT_S) -> Path:
     """Write a scenario file whose reference is ``flight``'s logged position reference (NED): a ``[flat]`` table of
     its samples every ``every_s`` seconds, from its first to its last sample at least :data:`REFERENCE_HEIGHT_SHARE`
-    of its median height high, glitches (:data:`REFERENCE_GLITCH_M`) left out, times from the first; the flight ends
-    1 s after the last."""
+    of its median height high, glitches (:data:`REFERENCE_GLITCH_M`) left out, times from the first, at most
+    ``length_s`` of it (None: all); the flight ends 1 s after the last."""
     if flight.reference is None:
         raise SimInputError(f"flight {flight.name!r} has no reference columns")
     height = -flight.reference[:, 2]
@@ -171,6 +175,8 @@ def reference_scenario(flight, path, every_s: float = MELON_SAMPLE_S) -> Path:
     clean = np.linalg.norm(flight.reference - smooth, axis=1) <= REFERENCE_GLITCH_M
     k = np.arange(high[0], high[-1] + 1, max(1, round(every_s / 0.01)))
     k = k[clean[k]]
+    if length_s is not None:
+        k = k[flight.t[k] - flight.t[k[0]] <= length_s + 1e-9]
     t = flight.t[k] - flight.t[k[0]]
     ref = flight.reference[k]
     fmt = lambda a: "[" + ", ".join(f"{v:.4f}" for v in a) + "]"  # noqa: E731

@@ -181,7 +181,7 @@ def test_the_reference_scenario_passes_through_the_logged_reference(tmp_path):
     t = 0.37 + 0.01 * np.arange(801)
     ref = np.c_[np.sin(0.5 * t), 0.3 * np.cos(0.7 * t), -1.0 - 0.2 * np.sin(t)]
     f = SimpleNamespace(name="melon_x_run1", t=t, reference=ref)
-    sc = get_scenario(str(reference_scenario(f, tmp_path / "melon.toml")))
+    sc = get_scenario(str(reference_scenario(f, tmp_path / "melon.toml", length_s=None)))
     k = np.arange(0, len(t), round(MELON_SAMPLE_S / 0.01))
     got = sc.reference()(t[k] - t[0])[:, 0:3]
     assert np.max(np.abs(got - ref[k])) < 1e-4 + 1e-9
@@ -191,9 +191,13 @@ def test_the_reference_scenario_passes_through_the_logged_reference(tmp_path):
     ref[:100, 2] = -0.1
     ref[-50:, 2] = -0.05
     ref[300] = 0.0                    # a row of zeros in the log's reference: a glitch, left out
-    sc = get_scenario(str(reference_scenario(f, tmp_path / "melon2.toml")))
+    sc = get_scenario(str(reference_scenario(f, tmp_path / "melon2.toml", length_s=None)))
     k = np.arange(100, len(t) - 50, round(MELON_SAMPLE_S / 0.01))
     k = k[k != 300]
+    assert np.max(np.abs(sc.reference()(t[k] - t[100])[:, 0:3] - ref[k])) < 1e-4 + 1e-9
+    # the study flies the first MELON_FLIGHT_S of it
+    sc = get_scenario(str(reference_scenario(f, tmp_path / "melon3.toml", length_s=2.0)))
+    assert sc.duration_s == pytest.approx(1.5 + 1.0)     # 2.0 s in is the glitch, left out
     assert np.max(np.abs(sc.reference()(t[k] - t[100])[:, 0:3] - ref[k])) < 1e-4 + 1e-9
 
 
