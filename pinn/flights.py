@@ -39,10 +39,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from sim.logbench import GOAL_H50 as GOALS, goal_score as score
 from sim.params import DT
 
-#: Weights of the training loss and the validation score: the goal of each column (m, m/s, rad, rad/s).
-GOALS = {"position": 0.07, "velocity": 0.40, "rotation": 0.15, "angular_velocity": 0.40}
+
 HORIZONS = (5, 10, 25, 50)
 PHYSICS_SUBSTEPS = 1
 
@@ -161,12 +161,12 @@ class FlightModel(nn.Module):
         return torch.cat([nxt, u, reg_u[:, :4 * (H - 1)], x[:, 6:9], reg_w[:, :3 * (H - 1)]], -1)
 
 
-def register(x: np.ndarray, u: np.ndarray, idx: np.ndarray, history: int) -> np.ndarray:
+def register(x: np.ndarray, u: np.ndarray, idx: np.ndarray, history: int, lo=0) -> np.ndarray:
     """The register (B, 7 H) at samples ``idx`` of a flight: wrenches and body rates 1 .. H periods back (the
-    first sample repeated before the flight's start)."""
+    flight's first sample, ``lo``: a scalar or one per sample, repeated before its start)."""
     if not history:
         return np.zeros((len(idx), 0))
-    back = np.clip(idx[:, None] - np.arange(1, history + 1), 0, None)
+    back = np.maximum(idx[:, None] - np.arange(1, history + 1), np.asarray(lo)[..., None])
     return np.concatenate([u[back].reshape(len(idx), -1), x[back][:, :, 6:9].reshape(len(idx), -1)], axis=1)
 
 
@@ -197,11 +197,6 @@ class FlightTrainResult:
     seconds: float = 0.0
 
 
-def score(errors: dict) -> float:
-    """Mean over the four columns of the h=50 error over its goal (lower is better; 1 is the goal)."""
-    return float(np.mean([errors[q][-1] / g for q, g in GOALS.items()]))
-
-
 def flight_stats(flights, gain, history: int) -> dict:
     """Feature normalization and output scales from the measured samples of ``flights``."""
     feats, dw, dv = [], [], []
@@ -216,18 +211,28 @@ def flight_stats(flights, gain, history: int) -> dict:
             "out_scale": np.r_[np.concatenate(dw).std(0), np.concatenate(dv).std(0)] + 1e-8}
 
 
+def _torch_step(model):
+    """``step(x, u)`` of a torch model for :func:`sim.logbench.prediction_errors`: float64, no gradient."""
+    m = copy.deepcopy(model).double().eval()
+
+    def step(x, u):
+        with torch.no_grad():
+            return m(torch.as_tensor(x), torch.as_tensor(u)).numpy()
+
+    return step
+
+
 def flight_step(model: FlightModel, gain):
     """``(step, start)`` for :func:`sim.logbench.prediction_errors`: the model in float64, no gradient, on the
     logged wrench times ``gain``; ``start`` builds the register from the log."""
-    m = copy.deepcopy(model).double().eval()
+    inner = _torch_step(model)
     gain = np.asarray(gain, dtype=float)
 
     def step(z, u):
-        with torch.no_grad():
-            return m(torch.as_tensor(z), torch.as_tensor(u * gain)).numpy()
+        return inner(z, u * gain)
 
     def start(f, idx):
-        return np.concatenate([f.x[idx], register(f.x, f.u * gain, idx, m.history)], axis=1)
+        return np.concatenate([f.x[idx], register(f.x, f.u * gain, idx, model.history)], axis=1)
 
     return step, start
 
@@ -254,8 +259,7 @@ class _Windows:
         """z0 (W, 12 + 7H), states (W, K, 12), wrenches (W, K, 4), measured (W, K)."""
         s = self.starts(K)[gen.integers(0, len(self.starts(K)), count)]
         lo = self.bounds[np.searchsorted(self.bounds[:, 1], s, side="right"), 0]
-        back = np.maximum(s[:, None] - np.arange(1, self.history + 1), lo[:, None])
-        reg = np.concatenate([self.u[back].reshape(count, -1), self.x[back][:, :, 6:9].reshape(count, -1)], 1)
+        reg = register(self.x, self.u, s, self.history, lo)
         idx = s[:, None] + np.arange(1, K + 1)
         T = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
         return (T(np.concatenate([self.x[s], reg], 1)), T(self.x[idx]), T(self.u[idx - 1]),
@@ -408,16 +412,6 @@ class LearnedModel:
     validation_scores: list
     seconds: float
     export: object
-
-
-def _torch_step(model):
-    m = copy.deepcopy(model).double().eval()
-
-    def step(x, u):
-        with torch.no_grad():
-            return m(torch.as_tensor(x), torch.as_tensor(u)).numpy()
-
-    return step
 
 
 def learned_models(flights: dict, vehicle, ident, fmt, budget: str = "full", progress=print) -> list[LearnedModel]:

@@ -19,7 +19,7 @@ import numpy as np
 from sim.errors import SimInputError
 from sim.files import write_json, write_text
 from sim.flightlog import assign_splits, read_flight
-from sim.logbench import HORIZONS, QUANTITIES, physics_step, prediction_errors
+from sim.logbench import GOAL_H50, HORIZONS, QUANTITIES, goal_score, physics_step, prediction_errors
 from sim.logformat import load_format
 from sim.logident import fisher_table, identified_model, identified_vehicle, identify
 from sim.vehicle import load_vehicle
@@ -38,8 +38,6 @@ PUBLISHED_NOTE = ("published h=50 figures of the benchmark (melon run 1, filtere
                   "Butterworth applied forward and backward); its notebook prints the angular-velocity column under "
                   "the rotation header and the other way round, swapped back here; its Physics model holds the body "
                   "rates constant")
-#: The goal: every column below the best published model's (m, m/s, rad, rad/s).
-GOAL_H50 = (0.07, 0.40, 0.15, 0.40)
 #: Test and validation flights, by name pattern.
 TEST = ["melon*"]
 VALIDATION = ["multisine_*_run4", "random1_*_run4", "random2_*_run4", "square_*_run5"]
@@ -213,11 +211,6 @@ def fly_models(rows: list[tuple[str, str, Path, str]], plants, progress=print) -
     return out
 
 
-def _score(errors: dict) -> float:
-    """Mean over the four columns of the h=50 error over its goal (1 = the goal; lower is better)."""
-    return float(np.mean([errors[q][-1] / g for q, g in zip(QUANTITIES, GOAL_H50)]))
-
-
 def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=print,
                  plants=("sim", "rotorpy"), learn: str = "full", fmt="nanodrone-raw", test=tuple(TEST),
                  val=tuple(VALIDATION)) -> dict:
@@ -270,7 +263,7 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
         models[name] = {"kind": kind, "raw": prediction_errors(step, by_split["test"], start=start).to_dict(),
                         "filtered_run1": prediction_errors(step, filtered, start=start).to_dict() if filtered else None,
                         "flyable": not why, **({"why_not_flyable": why} if why else {}),
-                        **({"validation_score": _score(validation[name])} if name in validation else {})}
+                        **({"validation_score": goal_score(validation[name])} if name in validation else {})}
         if rec is not None:
             models[name]["training"] = {"epoch": rec.epoch, "epochs": rec.epochs, "seconds": round(rec.seconds, 1),
                                         "validation_scores": rec.validation_scores}
@@ -306,11 +299,11 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
         "best_physics_on_validation": best_physics,
         "best_on_validation": best,
         "best_flyable_learned_on_validation": best_flyable,
-        "goal_met_by_best": ({q: models[best]["raw"][q][-1] <= g for q, g in zip(QUANTITIES, GOAL_H50)}
+        "goal_met_by_best": ({q: models[best]["raw"][q][-1] <= g for q, g in GOAL_H50.items()}
                              if best else None),
         "published_h50": {k: dict(zip(QUANTITIES, v)) for k, v in PUBLISHED_H50.items()},
         "published_note": PUBLISHED_NOTE,
-        "goal_h50": dict(zip(QUANTITIES, GOAL_H50)),
+        "goal_h50": dict(GOAL_H50),
         "identification": {
             "samples": ident.samples,
             "coefficients": {n: dataclasses.asdict(c) for n, c in ident.coefficients.items()},

@@ -29,6 +29,15 @@ from .params import DT, QuadParams
 #: Horizons of the table, in 10 ms steps.
 HORIZONS = (1, 10, 50)
 QUANTITIES = ("position", "velocity", "rotation", "angular_velocity")
+#: The goal at h=50 in each column (m, m/s, rad, rad/s): below every model the benchmark published.
+GOAL_H50 = {"position": 0.07, "velocity": 0.40, "rotation": 0.15, "angular_velocity": 0.40}
+
+
+def goal_score(errors: dict) -> float:
+    """Mean over the four columns of the h=50 error over its goal (:data:`GOAL_H50`; 1 = the goal, lower is better).
+
+    ``errors``: ``{"position": [..., h50], ...}`` (:meth:`PredictionErrors.to_dict`)."""
+    return float(np.mean([errors[q][-1] / g for q, g in GOAL_H50.items()]))
 
 
 @dataclass(frozen=True)

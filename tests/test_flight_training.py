@@ -141,7 +141,7 @@ def test_training_keeps_the_best_validation_epoch_and_reruns_exactly():
         assert torch.equal(va, vb), k
     a = train_flight_model(train_f, val_f, kw, cfg)
     assert a.best_epoch == int(np.argmin(a.scores)) + 1
-    from pinn.flights import score
+    from sim.logbench import goal_score as score
     physics = score(prediction_errors(physics_step(**kw), val_f, stride=5).to_dict())
     assert min(a.scores) < LEARNED_GAIN * physics, (a.scores, physics)
     step, start = flight_step(a.model, np.ones(4))
