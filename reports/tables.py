@@ -319,7 +319,7 @@ def provenance_section(prov: dict | None, plan: dict | None = None) -> str:
         return "No `provenance.json` in this results folder."
     out = []
     top = [(k, f"`{prov[k]}`" if k in ("git_commit", "command") else prov[k])
-           for k in ("git_commit", "command", "started", "finished", "jobs", "full", "evaluation")
+           for k in ("git_commit", "command", "started", "finished", "jobs", "full", "evaluation", "fisher")
            if prov.get(k) is not None]
     if prov.get("wall_time_s") is not None:
         untimed = isinstance(prov.get("stage_seconds"), dict) and "report" not in prov["stage_seconds"]

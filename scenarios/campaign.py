@@ -3,7 +3,9 @@
 Layout of a results folder ``DIR``::
 
     DIR/provenance.json     versions, machine, git commit, model hashes, seeds, command, wall times
-    DIR/fisher.json         Fisher information / CRLB table (as ``pinnmpc fisher --json``)
+    DIR/fisher.json         Fisher information / CRLB table (as ``pinnmpc fisher --json``, with the SHA-256 of
+                            sim/'s code); reused from an earlier run or from models/fisher.json when the code
+                            is the same
     DIR/evaluation.json     Tables I, II and VI of the shipped models and the identification study's (as
                             ``pinnmpc evaluate --json``, with the SHA-256 of its inputs); reused from an earlier
                             run or from models/evaluation.json when models and code are the same
@@ -314,11 +316,11 @@ def provenance(models_dir) -> dict:
             "command": " ".join(["pinnmpc"] + sys.argv[1:]) if sys.argv else None}
 
 
-def precompile_job(jobs: int, evaluation: bool = True) -> int:
+def precompile_job(jobs: int, evaluation: bool = True, fisher: bool = True) -> int:
     """Compile the CasADi functions the job will need (the sensitivities of the Fisher, evaluation and estimator
     stages, the lag-aware estimator's, the oracles' steps and Jacobians), ``jobs`` compilers at a time; those in
-    the cache are skipped. Without ``evaluation`` (a stored evaluation is reused), only those of the Fisher stage
-    and the oracles.
+    the cache are skipped. Without ``evaluation`` (a stored evaluation is reused) the evaluation's are left out,
+    without ``fisher`` (a stored Fisher table is reused) the Fisher stage's.
 
     Without this they are compiled one after the other where first used, the oracle's by each sweep worker at
     once. Returns how many were compiled.
@@ -333,7 +335,7 @@ def precompile_job(jobs: int, evaluation: bool = True) -> int:
 
     p = QuadParams()
     actuated = list(numeric_sources(p, load_vehicle(None).fidelity))     # the oracle of the +highfi scenarios
-    used = USED_SENSITIVITIES if evaluation else FISHER_SENSITIVITIES
+    used = USED_SENSITIVITIES if evaluation else FISHER_SENSITIVITIES if fisher else ()
     lag = [lag_sensitivity_function(p, s) for s in (True, False)] if evaluation else []
     return precompile([sensitivity_function(p, i, s) for i, s in used] + list(numeric_sources(p)) + actuated + lag,
                       jobs)
@@ -351,6 +353,33 @@ def _stored(path) -> dict | None:
 
 #: A stored evaluation of the shipped models (see :func:`reusable_evaluation`), under the models folder.
 SHIPPED_EVALUATION = "evaluation.json"
+#: A stored Fisher table (see :func:`reusable_fisher`), under the models folder.
+SHIPPED_FISHER = "fisher.json"
+
+
+def fisher_key() -> str:
+    """The key of a Fisher table: the digest of ``sim/``'s code, the only code it reads (it reads no file)."""
+    from sim.files import source_digest
+
+    return source_digest(("sim",)).hexdigest()
+
+
+def reusable_fisher(out_dir, models_dir) -> tuple[Path, dict] | None:
+    """A stored Fisher table the main job can reuse: ``(its path, its content)``, or None.
+
+    The table is deterministic: one stored with the key of the same code (:func:`fisher_key`) is what it would
+    compute again. Looked for in ``out_dir`` (an earlier run of the job) and then in ``models_dir``
+    (:data:`SHIPPED_FISHER`, kept current by a test).
+    """
+    key = None
+    for path in (Path(out_dir) / "fisher.json", Path(models_dir) / SHIPPED_FISHER):
+        data = _stored(path)
+        if data is None:
+            continue
+        key = fisher_key() if key is None else key
+        if data["inputs_sha256"] == key:
+            return path, data
+    return None
 
 
 def reusable_evaluation(out_dir, models_dir, folders) -> tuple[Path, dict] | None:
@@ -405,18 +434,19 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
 
     folders = [models_dir] + ([Path(models_dir) / IDENTIFICATION_DIR] if identification_models(models_dir) else [])
     reused = reusable_evaluation(out, models_dir, folders) if resume else None
+    fisher = reusable_fisher(out, models_dir) if resume else None
     stage("compiling the analytic model's derivatives (once per machine)")
-    precompile_job(jobs, evaluation=reused is None)
-    from sim.files import source_digest
-
-    fisher_key = source_digest(("sim",)).hexdigest()        # the Fisher table reads nothing but sim/'s code
-    stored_fisher = _stored(out / "fisher.json") if resume else None
-    if stored_fisher is not None and stored_fisher["inputs_sha256"] == fisher_key:
-        stage("Fisher information and Cramer-Rao bounds: reused (same code)")
+    precompile_job(jobs, evaluation=reused is None, fisher=fisher is None)
+    if fisher is not None:
+        stage(f"Fisher information and Cramer-Rao bounds: reused {fisher[0]} (same code)")
+        if fisher[0] != out / "fisher.json":
+            write_json(out / "fisher.json", fisher[1])
+        prov["fisher"] = f"reused {fisher[0]}"
     else:
         stage("Fisher information and Cramer-Rao bounds")
         from sim.fisher import fisher_table
-        write_json(out / "fisher.json", {**fisher_table(progress=False), "inputs_sha256": fisher_key})
+        write_json(out / "fisher.json", {**fisher_table(progress=False), "inputs_sha256": fisher_key()})
+        prov["fisher"] = "computed"
     if reused is None:
         stage("open-loop evaluation and identification (Tables I, II, VI; the classical estimator on each dataset)")
         from pinn.evaluate import EFFECT_SPECS, evaluate_dir, evaluation_key

@@ -1,4 +1,4 @@
-"""The main job reuses an open-loop evaluation only when its models and code are those it would evaluate now."""
+"""The main job reuses an open-loop evaluation or a Fisher table only when its inputs are those it would use now."""
 
 import json
 import shutil
@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 
 from pinn.evaluate import EFFECT_SPECS, evaluate_dir, evaluation_key
-from scenarios.campaign import IDENTIFICATION_DIR, SHIPPED_EVALUATION, reusable_evaluation
+from scenarios.campaign import (IDENTIFICATION_DIR, SHIPPED_EVALUATION, SHIPPED_FISHER, fisher_key,
+                                reusable_evaluation, reusable_fisher)
 
 ROOT = Path(__file__).resolve().parents[1]
 MODELS = ROOT / "models"
@@ -68,26 +69,60 @@ def test_the_key_covers_the_evaluations_code_and_extra_datasets(tmp_path, monkey
     assert evaluation_key([d], EFFECT_SPECS) != one
 
 
+def test_the_shipped_fisher_table_is_current():
+    stored = json.loads((MODELS / SHIPPED_FISHER).read_text())
+    assert stored["inputs_sha256"] == fisher_key(), (
+        "models/fisher.json was computed from other code: run `pinnmpc run --fresh` and copy "
+        "results/main/fisher.json to models/")
+    assert reusable_fisher(ROOT / "no-such-folder", MODELS)[0] == MODELS / SHIPPED_FISHER
+
+
+def test_a_fisher_table_is_reused_only_with_the_key_of_this_code(tmp_path):
+    out, models = tmp_path / "out", tmp_path / "models"
+    out.mkdir()
+    models.mkdir()
+    assert reusable_fisher(out, models) is None
+    (models / SHIPPED_FISHER).write_text(json.dumps({"cases": [1], "inputs_sha256": fisher_key()}))
+    assert reusable_fisher(out, models)[0] == models / SHIPPED_FISHER
+    # The results folder's own table comes first; one of other code, without a key or damaged is not reused.
+    (out / "fisher.json").write_text(json.dumps({"cases": [2], "inputs_sha256": fisher_key()}))
+    assert reusable_fisher(out, models) == (out / "fisher.json", {"cases": [2], "inputs_sha256": fisher_key()})
+    for text in (json.dumps({"cases": [], "inputs_sha256": "0" * 64}), json.dumps({"cases": []}), '{"cases": ['):
+        (out / "fisher.json").write_text(text)
+        (models / SHIPPED_FISHER).write_text(text)
+        assert reusable_fisher(out, models) is None
+
+
+@pytest.mark.slow
+def test_the_shipped_fisher_table_is_what_the_table_computes_again():
+    """The reuse rests on the table being deterministic: computed again (about 12 s), it is the shipped one."""
+    from sim.fisher import fisher_table
+
+    stored = json.loads((MODELS / SHIPPED_FISHER).read_text())
+    stored.pop("inputs_sha256")
+    _compare(json.loads(json.dumps(fisher_table())), stored, "fisher")
+
+
+def _compare(a, b, where):
+    if isinstance(a, dict):
+        assert set(a) == set(b), where
+        for k in a:
+            if k not in TIMING_KEYS:
+                _compare(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, list):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _compare(x, y, f"{where}[{i}]")
+    elif isinstance(a, float):
+        assert a == pytest.approx(b, rel=TOL["rel"], abs=1e-300, nan_ok=True), where
+    else:
+        assert a == b, where
+
+
 @pytest.mark.slow
 def test_the_shipped_evaluation_is_what_the_evaluation_computes_again():
     """The reuse rests on the evaluation being deterministic: computed again (about 100 s), it is the shipped one."""
     stored = json.loads((MODELS / SHIPPED_EVALUATION).read_text())
     again = json.loads(json.dumps(evaluate_dir(FOLDERS, jobs=2, extra_specs=EFFECT_SPECS)))
     stored.pop("inputs_sha256")
-
-    def compare(a, b, where):
-        if isinstance(a, dict):
-            assert set(a) == set(b), where
-            for k in a:
-                if k not in TIMING_KEYS:
-                    compare(a[k], b[k], f"{where}.{k}")
-        elif isinstance(a, list):
-            assert len(a) == len(b), where
-            for i, (x, y) in enumerate(zip(a, b)):
-                compare(x, y, f"{where}[{i}]")
-        elif isinstance(a, float):
-            assert a == pytest.approx(b, rel=TOL["rel"], abs=1e-300), where
-        else:
-            assert a == b, where
-
-    compare(again, stored, "evaluation")
+    _compare(again, stored, "evaluation")
