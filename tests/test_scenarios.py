@@ -382,10 +382,15 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     assert {s.scenario for s in main_plan(MODELS, full=True) if s.controller == "sqp"} == set(scenario_names())
     models = {m for _, m in sqp}
     assert len(models) == 1 + len(list(MODELS.glob("*.jac.onnx")))
-    from scenarios.campaign import EVERY_MODEL_SCENARIOS, LTV_EVERY_MODEL_SCENARIOS, LTV_SCENARIOS
+    from scenarios.campaign import (EVERY_MODEL_SCENARIOS, LTV_EVERY_MODEL_SCENARIOS, LTV_SCENARIOS, SUBSET_MODELS,
+                                    SUBSET_SCENARIOS)
 
-    # Every model on the cases the report compares models on, the oracle alone on the others (all with --full).
-    assert sqp == {(sc, m) for sc, _ in sqp for m in (models if sc in EVERY_MODEL_SCENARIOS else {"oracle"})}
+    # Every model on the cases the report compares models on, the oracle and the paper's Baseline and Proposed on
+    # the disturbances, the oracle alone on the others (all with --full).
+    pair = {"oracle"} | {Path(m).stem for m in SUBSET_MODELS}
+    assert pair == {"oracle", "baseline", "proposed"} and pair <= models
+    assert sqp == {(sc, m) for sc, _ in sqp for m in (models if sc in EVERY_MODEL_SCENARIOS
+                                                      else pair if sc in SUBSET_SCENARIOS else {"oracle"})}
     ltv = {(s.scenario, s.model_name) for s in ideal if s.controller == "ltv"}
     assert ltv == {(sc, m) for sc in LTV_SCENARIOS
                    for m in (models if sc in LTV_EVERY_MODEL_SCENARIOS else {"oracle"})}
@@ -397,18 +402,23 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
                   if s.timing == "ideal" and s.member is None}
     assert {(sc, c, m) for sc in scenario_names() for c in ("sqp", "ltv", "nmpc") for m in models} <= full_ideal
     realtime = {(s.scenario, s.controller, s.model_name) for s in specs if s.timing == "realtime"}
-    assert realtime == {("figure8-fast", c, m) for c in ("sqp", "ltv") for m in models} | {
+    assert realtime == {("figure8-fast", c, m) for c in ("sqp", "ltv") for m in pair} | {
         ("figure8-fast", "nmpc", "oracle")}
+    assert {(s.controller, s.model_name) for s in main_plan(MODELS, full=True) if s.timing == "realtime"} == {
+        (c, m) for c in ("sqp", "ltv", "nmpc") for m in models}
     assert {s.scenario for s in main_plan(MODELS, full=True) if s.controller == "nmpc"} == set(scenario_names())
-    # With the state estimator: the disturbance and noise variants of the plan with every model (their twins without
-    # it are in the plan), and the offset-free hover cases with the oracle, both ways.
+    # With the state estimator: the disturbance and noise variants of the plan with the models of their twins without
+    # it, and the offset-free hover cases with the oracle, both ways.
     cases = {(s.scenario, s.model_name) for s in estimated}
     variants = {sc for sc, _ in sqp if "+" in sc and sc.split("+", 1)[1] in ESTIMATOR_VARIANTS}
-    from scenarios.campaign import ESTIMATOR_VARIANTS_EVERY_MODEL
+    from scenarios.campaign import ESTIMATOR_VARIANTS_SUBSET
 
-    every = {sc for sc in variants if sc.split("+", 1)[1] in ESTIMATOR_VARIANTS_EVERY_MODEL}
-    assert every and cases == ({(sc, m) for sc in every for m in models}
+    every = {sc for sc in variants if sc.split("+", 1)[1] in ESTIMATOR_VARIANTS_SUBSET}
+    assert every and cases == ({(sc, m) for sc in every for m in pair}
                                | {(sc, "oracle") for sc in (variants - every) | set(OFFSET_FREE_SCENARIOS)})
+    assert every <= {sc for sc, m in sqp if m == "baseline"}       # each beside its twin without the estimator
+    assert {(s.scenario, s.model_name) for s in main_plan(MODELS, full=True) if s.estimator == "ekf"} >= {
+        (sc, m) for sc in every for m in models}
     hovers = {(s.scenario, s.model_name, s.estimator) for s in main_plan(MODELS) if s.scenario in OFFSET_FREE_SCENARIOS}
     assert hovers == {(sc, "oracle", e) for sc in OFFSET_FREE_SCENARIOS for e in ("none", "ekf")}
     assert {(s.controller, s.estimator, s.timing) for s in estimated} == {("sqp", "ekf", "ideal")}
