@@ -173,14 +173,17 @@ def _position_error(tr: dict) -> np.ndarray:
     return np.where(np.isfinite(e), np.maximum(e, LOG_FLOOR_M), np.nan)
 
 
-def trajectory_figures(inputs, run_dir: Path, colors: dict | None = None) -> tuple[list[FigureOut], list[str]]:
+def trajectory_figures(inputs, run_dir: Path, colors: dict | None = None,
+                       jobs: int | None = None) -> tuple[list[FigureOut], list[str]]:
     """One figure per base scenario: horizontal path, height and position error of every run.
 
     Rows are controllers; columns the path (east y against north x, m, equal
     aspect), the height h = -z (m) against time (s) and the position error
     (m, log) against time (s) from the first control period on. Only runs of
     the base scenario itself are drawn. ``colors`` maps model name to colour
-    (default: :func:`model_colors` of the runs' models).
+    (default: :func:`model_colors` of the runs' models). The figures are
+    drawn by ``jobs`` processes (default: up to 2, by the CPUs; 1: in this
+    process); each is the same file either way.
 
     Returns
     -------
@@ -192,6 +195,7 @@ def trajectory_figures(inputs, run_dir: Path, colors: dict | None = None) -> tup
     present = sorted_unique((r["scenario"] for r in inputs.runs), lambda s: (s not in BASE_SCENARIOS, s))
     bases = [b for b in BASE_SCENARIOS if b in present]
     colors = colors or model_colors([r["model"] for r in inputs.runs])
+    todo = []
     for base in bases:
         rows = {}
         for r in inputs.runs:
@@ -202,46 +206,10 @@ def trajectory_figures(inputs, run_dir: Path, colors: dict | None = None) -> tup
                 skipped.append(f"{r['scenario']} / {controller_label(r['controller'])} / {r['model']} ({why})")
                 continue
             rows.setdefault(r["controller"], []).append((r, tr))
-        if not rows:
-            continue
+        if rows:
+            todo.append((base, rows))
+    for (base, rows), rel in zip(todo, _draw_all(todo, run_dir, colors, jobs)):
         ctrls = sorted(rows, key=controller_key)
-        with plt.style.context("default"), plt.rc_context(STYLE):
-            fig, axes = plt.subplots(len(ctrls), 3, figsize=(14.0, 3.9 * len(ctrls)), squeeze=False,
-                                     gridspec_kw={"width_ratios": [1.0, 1.3, 1.3]})
-            for i, c in enumerate(ctrls):
-                ax_p, ax_h, ax_e = axes[i]
-                ref = max(rows[c], key=lambda rt: len(rt[1]["t"]))[1]
-                ax_p.plot(ref["x_ref"][:, 1], ref["x_ref"][:, 0], color="gray", ls="--", lw=1.5, label="reference")
-                ax_p.plot(ref["x_ref"][-1, 1], ref["x_ref"][-1, 0], "P", color="gray", ms=8, mfc="none", zorder=5)
-                ax_h.plot(ref["t"], -ref["x_ref"][:, 2], color="gray", ls="--", lw=1.5, label="reference")
-                for r, tr in rows[c]:
-                    col, t, x = colors[r["model"]], tr["t"], tr["x"]
-                    crashed = bool(r.get("crashed"))
-                    lab = r["model"] + (" (crashed)" if crashed else "")
-                    ax_p.plot(x[:, 1], x[:, 0], color=col, lw=1.1, label=lab)
-                    ax_h.plot(t, -x[:, 2], color=col, lw=1.1, label=lab)
-                    ax_e.plot(t[1:], _position_error(tr)[1:], color=col, lw=1.1, label=lab)
-                    if crashed:
-                        fin = np.flatnonzero(np.all(np.isfinite(x[:, 0:3]), axis=1))
-                        if len(fin):
-                            k = fin[-1]
-                            ax_p.plot(x[k, 1], x[k, 0], "x", color="red", ms=9, mew=2)
-                            ax_h.plot(t[k], -x[k, 2], "x", color="red", ms=9, mew=2)
-                            ax_e.plot(t[k], _position_error(tr)[k], "x", color="red", ms=9, mew=2)
-                ax_p.set_aspect("equal", adjustable="datalim")
-                ax_p.set_xlabel("east y (m)")
-                ax_p.set_ylabel("north x (m)")
-                ax_p.set_title(f"{base}, {controller_label(c)}: horizontal path")
-                ax_h.set_xlabel("time (s)")
-                ax_h.set_ylabel("height h = -z (m)")
-                ax_h.set_title(f"{base}, {controller_label(c)}: height")
-                ax_e.set_yscale("log")
-                ax_e.set_xlabel("time (s)")
-                ax_e.set_ylabel("position error |p - p_ref| (m)")
-                ax_e.set_title(f"{base}, {controller_label(c)}: position error")
-                ax_h.legend(loc="best")
-            fig.tight_layout()
-            rel = _save(fig, run_dir, f"trajectories_{safe_name(base)}")
         n = sum(len(v) for v in rows.values())
         cap = (f"Scenario {base}: {n} runs, one row per controller ({', '.join(controller_label(c) for c in ctrls)}). "
                f"Left: horizontal path (north x against east y, NED); middle: height h = -z; right: position "
@@ -259,6 +227,67 @@ def trajectory_figures(inputs, run_dir: Path, colors: dict | None = None) -> tup
         notes.insert(0, "No run of a base scenario (" + ", ".join(BASE_SCENARIOS) + ") has a usable trace, "
                      "so there are no trajectory figures.")
     return figs, notes
+
+
+#: Fewest trajectory figures worth a process pool (starting one costs about 0.5 s; a figure about 1 s).
+POOL_MIN_FIGURES = 4
+
+
+def _draw_all(todo, run_dir: Path, colors: dict, jobs: int | None) -> list[str]:
+    """The relative paths of the trajectory figures of ``todo`` (``(base, rows)`` pairs), drawn in order."""
+    import os
+
+    jobs = min(2, os.cpu_count() or 1) if jobs is None else jobs
+    if jobs < 2 or len(todo) < POOL_MIN_FIGURES:
+        return [_trajectory_figure(base, rows, run_dir, colors) for base, rows in todo]
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    # Forked workers: the figures' data are already in memory, and nothing here holds a lock a child could need.
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("fork")) as pool:
+        return list(pool.map(_trajectory_figure, *zip(*todo), [run_dir] * len(todo), [colors] * len(todo)))
+
+
+def _trajectory_figure(base: str, rows: dict, run_dir: Path, colors: dict) -> str:
+    """Draw and save one scenario's trajectory figure (see :func:`trajectory_figures`); its relative path."""
+    ctrls = sorted(rows, key=controller_key)
+    with plt.style.context("default"), plt.rc_context(STYLE):
+        fig, axes = plt.subplots(len(ctrls), 3, figsize=(14.0, 3.9 * len(ctrls)), squeeze=False,
+                                 gridspec_kw={"width_ratios": [1.0, 1.3, 1.3]})
+        for i, c in enumerate(ctrls):
+            ax_p, ax_h, ax_e = axes[i]
+            ref = max(rows[c], key=lambda rt: len(rt[1]["t"]))[1]
+            ax_p.plot(ref["x_ref"][:, 1], ref["x_ref"][:, 0], color="gray", ls="--", lw=1.5, label="reference")
+            ax_p.plot(ref["x_ref"][-1, 1], ref["x_ref"][-1, 0], "P", color="gray", ms=8, mfc="none", zorder=5)
+            ax_h.plot(ref["t"], -ref["x_ref"][:, 2], color="gray", ls="--", lw=1.5, label="reference")
+            for r, tr in rows[c]:
+                col, t, x = colors[r["model"]], tr["t"], tr["x"]
+                crashed = bool(r.get("crashed"))
+                lab = r["model"] + (" (crashed)" if crashed else "")
+                ax_p.plot(x[:, 1], x[:, 0], color=col, lw=1.1, label=lab)
+                ax_h.plot(t, -x[:, 2], color=col, lw=1.1, label=lab)
+                ax_e.plot(t[1:], _position_error(tr)[1:], color=col, lw=1.1, label=lab)
+                if crashed:
+                    fin = np.flatnonzero(np.all(np.isfinite(x[:, 0:3]), axis=1))
+                    if len(fin):
+                        k = fin[-1]
+                        ax_p.plot(x[k, 1], x[k, 0], "x", color="red", ms=9, mew=2)
+                        ax_h.plot(t[k], -x[k, 2], "x", color="red", ms=9, mew=2)
+                        ax_e.plot(t[k], _position_error(tr)[k], "x", color="red", ms=9, mew=2)
+            ax_p.set_aspect("equal", adjustable="datalim")
+            ax_p.set_xlabel("east y (m)")
+            ax_p.set_ylabel("north x (m)")
+            ax_p.set_title(f"{base}, {controller_label(c)}: horizontal path")
+            ax_h.set_xlabel("time (s)")
+            ax_h.set_ylabel("height h = -z (m)")
+            ax_h.set_title(f"{base}, {controller_label(c)}: height")
+            ax_e.set_yscale("log")
+            ax_e.set_xlabel("time (s)")
+            ax_e.set_ylabel("position error |p - p_ref| (m)")
+            ax_e.set_title(f"{base}, {controller_label(c)}: position error")
+            ax_h.legend(loc="best")
+        fig.tight_layout()
+        return _save(fig, run_dir, f"trajectories_{safe_name(base)}")
 
 
 def rollout_figure(evaluation: dict, run_dir: Path, colors: dict | None = None) -> FigureOut | None:

@@ -288,6 +288,20 @@ def test_report_is_deterministic(results_dir):
     assert first == {p.name: p.read_bytes() for p in [results_dir / "report.md", results_dir / "report.html"]}
 
 
+def test_trajectory_figures_drawn_by_two_processes_are_those_drawn_by_one(results_dir, monkeypatch):
+    import reports.figures as figures
+    from reports.inputs import load_inputs
+
+    inputs = load_inputs(results_dir)
+    monkeypatch.setattr(figures, "POOL_MIN_FIGURES", 1)
+    drawn = {}
+    for jobs in (1, 2):
+        out = results_dir / f"jobs{jobs}"
+        figs, notes = figures.trajectory_figures(inputs, out, jobs=jobs)
+        drawn[jobs] = ([f.path for f in figs], notes, {f.path: (out / f.path).read_bytes() for f in figs})
+    assert len(drawn[1][0]) == 2 and drawn[1] == drawn[2]
+
+
 def test_missing_optional_pieces(results_dir):
     """One scenario, no NMPC, no traces, no provenance: the report still builds."""
     data = json.loads((results_dir / "results.json").read_text())
