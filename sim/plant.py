@@ -14,6 +14,11 @@ flies a period in pieces). Disturbances are options of the plant: a payload
 acceleration ``wind(t) -> (3,)`` (m/s^2), evaluated at the start of each
 call to ``advance``.
 
+``advance_ticks(u, duration)`` flies the same as ``advance(u, 1 ms)`` once
+per millisecond and returns the state after every millisecond (what sensors
+sampled every millisecond read, :mod:`sim.sensors`): any plant makes those
+calls, the reference simulator flies them in one call with the same numbers.
+
 Names (:data:`sim.plants.PLANTS`, built by :func:`sim.plants.make_plant`):
 
 * ``sim``: the reference simulator of this package (:class:`SimPlant`),
@@ -52,6 +57,20 @@ class PlantOutput(NamedTuple):
     rotor_speed: np.ndarray  # (4,) rotor speeds, RU (telemetry), rotors in this project's order
     wrench: np.ndarray       # (4,) wrench the rotors realized at the start of the call, N and N m
     saturated: np.ndarray    # (4,) bool: rotor command clipped at 0 or at n_max
+
+
+class TickTrace(NamedTuple):
+    """The plant after every tick of a call of :meth:`Plant.advance_ticks` (K ticks; units in comments)."""
+
+    x: np.ndarray            # (K + 1, 12) true state at the start of the call and after each tick
+    rotor_speed: np.ndarray  # (K, 4) rotor speeds after each tick, RU
+    out: PlantOutput         # the plant after the last tick (what advance returns)
+
+
+def plant_time(ticks: int) -> float:
+    """Time after ``ticks`` ticks from t = 0, s: whole periods exactly as ``k * DT`` (the wind of a period is
+    evaluated at that time), plus the ticks of the period begun."""
+    return (ticks // SUBSTEPS) * DT + (ticks % SUBSTEPS) * PLANT_TICK_S
 
 
 class Plant:
@@ -109,6 +128,37 @@ class Plant:
 
     def advance(self, u, duration_s: float = DT) -> PlantOutput:
         """Hold the wrench command ``u`` (4,) for ``duration_s`` (a whole number of ms); the plant after it."""
+        u, ticks = self._call(u, duration_s)
+        self._out = self._advance(u, ticks)
+        self._ticks += ticks
+        self.t = plant_time(self._ticks)
+        return self._out
+
+    def advance_ticks(self, u, duration_s: float = DT) -> TickTrace:
+        """Hold ``u`` (4,) for ``duration_s`` as ``advance(u, tick)`` once per tick (1 ms); the plant after each.
+
+        The plant ends exactly as after those calls (state, time, rotor speeds, last output), and the states
+        are theirs. A plant may fly them faster than one call per tick (the reference simulator flies them in
+        one); the others make the calls.
+
+        Parameters
+        ----------
+        u : array_like, shape (4,)
+            Wrench command ``[T, tau_x, tau_y, tau_z]``, N and N m.
+        duration_s : float
+            A whole number of ticks, s.
+
+        Returns
+        -------
+        TickTrace
+            The states (K + 1, 12) at the start and after each of the K ticks, the rotor speeds (K, 4) after
+            each, and the last output.
+        """
+        u, ticks = self._call(u, duration_s)
+        return self._advance_ticks(u, ticks)
+
+    def _call(self, u, duration_s: float) -> tuple[np.ndarray, int]:
+        """The checked command (4,) and number of ticks of a call of :meth:`advance`."""
         if self._out is None:
             raise SimInputError(f"plant {self.name!r}: call reset(x0) before advance")
         u = np.asarray(u, dtype=float)
@@ -117,11 +167,7 @@ class Plant:
         ticks = int(round(duration_s / PLANT_TICK_S))
         if ticks < 1 or abs(ticks * PLANT_TICK_S - duration_s) > 1e-12:
             raise SimInputError(f"duration_s must be a whole number of {PLANT_TICK_S * 1e3:g} ms; found {duration_s}")
-        self._out = self._advance(u, ticks)
-        self._ticks += ticks
-        # Whole periods exactly as k * DT (the wind of a period is evaluated at that time).
-        self.t = (self._ticks // SUBSTEPS) * DT + (self._ticks % SUBSTEPS) * PLANT_TICK_S
-        return self._out
+        return u, ticks
 
     def step(self, u) -> PlantOutput:
         """One control period: ``advance(u, DT)``."""
@@ -137,6 +183,15 @@ class Plant:
 
     def _advance(self, u: np.ndarray, ticks: int) -> PlantOutput:  # pragma: no cover - interface
         raise NotImplementedError
+
+    def _advance_ticks(self, u: np.ndarray, ticks: int) -> TickTrace:
+        """``ticks`` calls of ``advance(u, tick)`` (any plant); an implementation may do the same faster."""
+        xs, ns = [self.x], []
+        for _ in range(ticks):
+            out = self.advance(u, PLANT_TICK_S)
+            xs.append(out.x)
+            ns.append(out.rotor_speed)
+        return TickTrace(np.array(xs), np.array(ns), out)
 
 
 class SimPlant(Plant):
@@ -184,6 +239,29 @@ class SimPlant(Plant):
             res = self._sim(ticks).step_full(self.x, u, rotor_speed=self._n, t=self.t)
         self._n = res.rotor_speed
         return PlantOutput(res.x, res.rotor_speed, res.wrench, res.saturated)
+
+    def _advance_ticks(self, u, ticks):
+        # The one-tick step chained `ticks` times in one CasADi call: the numbers of `ticks` calls of advance(u,
+        # tick), without their checks and Python work per tick. Where those calls would stop with an error (a
+        # command, state or rotor speed that is not finite, a wind that fails), they are made instead, and fail
+        # where they failed.
+        x0, n0 = self.x, self._n
+        if not (np.all(np.isfinite(u)) and np.all(np.isfinite(x0)) and (n0 is None or np.all(np.isfinite(n0)))):
+            return super()._advance_ticks(u, ticks)
+        sim = self._sim(1)
+        try:
+            accel = sim._wind_accels([plant_time(self._ticks + j) for j in range(ticks)])
+        except Exception:  # noqa: BLE001 - a wind that fails: the ticks one at a time raise it at its tick
+            return super()._advance_ticks(u, ticks)
+        with np.errstate(all="ignore"):     # a diverging flight is the crash test's business, not an error
+            xs, ns, res = sim._step_chain(x0, u, accel, n0)
+        if not (np.all(np.isfinite(xs[:-1])) and np.all(np.isfinite(ns[:-1]))):
+            return super()._advance_ticks(u, ticks)    # a tick would start from a state that is not finite
+        self._n = res.rotor_speed
+        self._out = PlantOutput(res.x, res.rotor_speed, res.wrench, res.saturated)
+        self._ticks += ticks
+        self.t = plant_time(self._ticks)
+        return TickTrace(np.concatenate([x0[None], xs]), ns, self._out)
 
     def describe(self) -> dict:
         import dataclasses

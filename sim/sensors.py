@@ -13,7 +13,9 @@ flown against either the reference simulator or RotorPy::
     r = suite.read(plant.t)                                   # the readings that arrived since the last read
 
 :class:`SensedPlant` advances the plant one millisecond (its time
-resolution) at a time and hands each tick to the sensors:
+resolution) at a time and hands each tick to the sensors (the reference
+simulator flies a call's ticks in one, and the sensors take them together,
+with the numbers of one tick at a time):
 
 * **IMU** (1 kHz by default): the gyroscope reads the body rates at the end
   of the tick plus a bias and white noise; the accelerometer reads the
@@ -44,6 +46,7 @@ from ._validate import nonnegative_finite, positive_finite
 from .dynamics import rotation_matrix
 from .errors import SimInputError
 from .params import DT, NX, SUBSTEPS
+from .plant import Plant, TickTrace
 
 #: The plant's time resolution and the sensors' clock, s.
 TICK_S = DT / SUBSTEPS
@@ -58,8 +61,13 @@ def _whole_ms(value: float, name: str, minimum: int) -> int:
     return n
 
 
-def _samples_by(t_ms: int, rate_hz: float) -> int:
-    """Samples of a clock at ``rate_hz`` started at 0 whose times are at or before ``t_ms`` (ms)."""
+def _samples_by(t_ms, rate_hz: float):
+    """Samples of a clock at ``rate_hz`` started at 0 whose times are at or before ``t_ms`` (ms).
+
+    ``t_ms`` an int, or an int array (K,): the count of each, the same numbers.
+    """
+    if np.ndim(t_ms):
+        return np.floor(t_ms * rate_hz / 1e3 + 1e-9).astype(np.int64)
     return int(np.floor(t_ms * rate_hz / 1e3 + 1e-9))
 
 
@@ -86,8 +94,11 @@ class MocapConfig:
                                 f"is {TICK_MS} ms); found {self.rate_hz!r}")
         _whole_ms(self.latency_s, "MocapConfig.latency_s", 0)
 
-    def due(self, t_ms: int) -> bool:
-        """True when a sample is taken at tick ``t_ms`` (ms): the sample clock passed a sample time in it."""
+    def due(self, t_ms):
+        """True when a sample is taken at tick ``t_ms`` (ms): the sample clock passed a sample time in it.
+
+        ``t_ms`` an int, or an int array (K,) of ticks: a bool array (K,).
+        """
         return _samples_by(t_ms, self.rate_hz) > _samples_by(t_ms - TICK_MS, self.rate_hz)
 
     @property
@@ -150,15 +161,35 @@ def wrap_angle(a):
 
 
 def specific_force(x0: np.ndarray, x1: np.ndarray, dt: float, g: float) -> np.ndarray:
-    """Mean specific force (3,) in body axes over an interval of ``dt`` s from state ``x0`` to ``x1`` (12,).
+    """Mean specific force in body axes over intervals of ``dt`` s from states ``x0`` to ``x1``.
 
     ``R^T (dv/dt - g e_z)`` with the mean acceleration ``dv/dt`` (NED) and the
     attitude halfway (the mean of the two ends' Euler angles).
+
+    Parameters
+    ----------
+    x0, x1 : numpy.ndarray, shape (12,) or (K, 12)
+        States at the start and at the end of each interval.
+    dt : float
+        Length of the intervals, s.
+    g : float
+        Gravity, m/s^2.
+
+    Returns
+    -------
+    numpy.ndarray, shape (3,) or (K, 3)
+        Specific force, m/s^2, body FRD. A stack of intervals gives each the numbers it gets alone.
     """
-    a = (x1[9:12] - x0[9:12]) / dt
-    eta = 0.5 * (x0[3:6] + x1[3:6])
-    R = rotation_matrix(*eta)
-    return R.T @ (a - np.array([0.0, 0.0, g]))
+    if np.ndim(x0) == 1:
+        a = (x1[9:12] - x0[9:12]) / dt
+        eta = 0.5 * (x0[3:6] + x1[3:6])
+        R = rotation_matrix(*eta)
+        return R.T @ (a - np.array([0.0, 0.0, g]))
+    a = (x1[:, 9:12] - x0[:, 9:12]) / dt
+    eta = 0.5 * (x0[:, 3:6] + x1[:, 3:6])
+    R = rotation_matrix(eta[:, 0], eta[:, 1], eta[:, 2])
+    # One matrix-vector product per interval, as above (the same product on each, not a reordered sum).
+    return np.matmul(R.transpose(0, 2, 1), (a - np.array([0.0, 0.0, g]))[:, :, None])[:, :, 0]
 
 
 @dataclass
@@ -227,6 +258,63 @@ class SensorSuite:
         if self.mocap is not None and self.mocap.due(t_ms):
             self._take_mocap(t_ms, x1)
 
+    def tick_all(self, states: np.ndarray) -> None:
+        """The ticks of flight through ``states``: ``tick(states[i], states[i + 1])`` for each i, at once.
+
+        The same samples, biases and random numbers as those calls: the normals
+        of all ticks come from one call of the generator, in the order the
+        calls draw them (a generator gives the same numbers in one draw as in
+        consecutive draws of the same total).
+
+        Parameters
+        ----------
+        states : array_like, shape (K + 1, 12)
+            The state at the start of the first tick and at the end of each of
+            the K ticks (1 ms each).
+        """
+        xs = np.asarray(states, dtype=float)
+        if xs.ndim != 2 or xs.shape[1] != NX or len(xs) < 1:
+            raise SimInputError(f"states must have shape (K + 1, {NX}); found {xs.shape}")
+        k = len(xs) - 1
+        if k == 0:
+            return
+        imu, mocap = self.imu, self.mocap
+        t = self._t_ms + TICK_MS * np.arange(1, k + 1)                 # each tick's end, ms
+        imu_due = np.zeros(k, dtype=bool) if imu is None else t % imu.period_ms == 0
+        mocap_due = np.zeros(k, dtype=bool) if mocap is None else mocap.due(t)
+        # Each tick draws rows of three normals, in this order: the gyroscope's and the accelerometer's bias
+        # steps, their noise when the IMU samples, the position's and the attitude's noise when motion capture does.
+        walk_rows = 0 if imu is None else 2
+        rows = walk_rows + 2 * imu_due + 2 * mocap_due
+        first = np.cumsum(rows) - rows
+        z = self.rng.standard_normal(3 * int(rows.sum())).reshape(-1, 3)
+        t_list = t.tolist()
+        x0, x1 = xs[:-1], xs[1:]
+        if imu is not None:
+            s = np.sqrt(TICK_S)
+            # The random walk: an accumulation adds one step at a time, in order, as tick does.
+            gyro_bias = np.cumsum(np.vstack([self.gyro_bias, imu.gyro_bias_walk * s * z[first]]), axis=0)[1:]
+            accel_bias = np.cumsum(np.vstack([self.accel_bias, imu.accel_bias_walk * s * z[first + 1]]), axis=0)[1:]
+            self.gyro_bias, self.accel_bias = gyro_bias[-1].copy(), accel_bias[-1].copy()
+            due = np.flatnonzero(imu_due)
+            if len(due):
+                noise = first[due] + 2
+                gyro = x1[due, 6:9] + gyro_bias[due] + imu.gyro_std * z[noise]
+                f = specific_force(x0[due], x1[due], TICK_S, self.g)
+                accel = f + accel_bias[due] + imu.accel_std * z[noise + 1]
+                self._imu.extend(zip([t_list[i] * 1e-3 for i in due.tolist()], gyro, accel))
+        taken = np.flatnonzero(mocap_due)
+        if len(taken):
+            c = mocap
+            seen = first[taken] + walk_rows + 2 * imu_due[taken]
+            pos = x1[taken, 0:3] + c.position_std * z[seen]
+            att = wrap_angle(x1[taken, 3:6] + c.attitude_std * z[seen + 1])
+            latency = c.latency_ms
+            when = [t_list[i] for i in taken.tolist()]
+            self._mocap.extend(zip([w + latency for w in when], [w * 1e-3 for w in when],
+                                   np.concatenate([pos, att], axis=1)))
+        self._t_ms = t_list[-1]
+
     def read(self, t: float) -> Readings:
         """The samples that have arrived by time ``t`` (s) and were not read before."""
         t_ms = int(round(t * 1e3))
@@ -249,7 +337,7 @@ class SensedPlant:
 
     It has the plant interface (:class:`sim.plant.Plant`: ``reset``,
     ``advance``, ``x``, ``t``, ``hover_input``, ``describe``) and flies the
-    wrapped plant in 1 ms calls, handing each to the :class:`SensorSuite`.
+    wrapped plant as in 1 ms calls, handing each to the :class:`SensorSuite`.
     Flying in 1 ms pieces is the same flight for the reference simulator up
     to the wind, which is then evaluated every millisecond instead of at the
     start of each call.
@@ -275,15 +363,49 @@ class SensedPlant:
         return out
 
     def advance(self, u, duration_s: float = DT):
+        """Hold ``u`` (4,) for ``duration_s`` (whole ms), sampling the sensors every millisecond; the plant after it.
+
+        The plant's :class:`sim.plant.PlantOutput` after the last millisecond; see :meth:`advance_ticks`.
+        """
+        return self.advance_ticks(u, duration_s).out
+
+    def advance_ticks(self, u, duration_s: float = DT) -> TickTrace:
+        """:meth:`advance`, returning the plant after every millisecond (:meth:`sim.plant.Plant.advance_ticks`).
+
+        A :class:`sim.plant.Plant` flies the ticks with its ``advance_ticks`` (the reference simulator in one
+        call) and the sensors take them all at once (:meth:`SensorSuite.tick_all`); any other plant is advanced
+        one tick at a time, each handed to :meth:`SensorSuite.tick`. Either way the states, samples and random
+        numbers are those of one ``advance(u, 1 ms)`` and one ``tick`` per millisecond. When the plant raises
+        partway through a call, the sensors have not sampled its ticks.
+
+        Parameters
+        ----------
+        u : array_like, shape (4,)
+            Wrench command ``[T, tau_x, tau_y, tau_z]``, N and N m.
+        duration_s : float
+            A whole number of milliseconds, s.
+
+        Returns
+        -------
+        sim.plant.TickTrace
+            States (K + 1, 12) at the start and after each of the K ticks, rotor speeds (K, 4) after each, and
+            the plant's output after the last.
+        """
         ticks = int(round(duration_s / TICK_S))
         if ticks < 1 or abs(ticks * TICK_S - duration_s) > 1e-12:
             raise SimInputError(f"duration_s must be a whole number of {TICK_S * 1e3:g} ms; found {duration_s}")
-        out = None
+        if isinstance(self.plant, Plant):
+            trace = self.plant.advance_ticks(u, duration_s)
+            self.sensors.tick_all(trace.x)
+            return trace
+        xs, ns, out = [self.plant.x], [], None
         for _ in range(ticks):
             x0 = self.plant.x
             out = self.plant.advance(u, TICK_S)
             self.sensors.tick(x0, out.x)
-        return out
+            xs.append(out.x)
+            ns.append(out.rotor_speed)
+        return TickTrace(np.array(xs), np.array(ns), out)
 
     def step(self, u):
         return self.advance(u, DT)

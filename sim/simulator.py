@@ -17,7 +17,7 @@ from ._validate import as_batch, broadcast_batch, nonnegative_finite, positive_f
 from .dynamics import rates, rk4_step, rotation_matrix
 from .errors import SimInputError
 from .params import DT, NOMINAL, NU, NX, SUBSTEPS, Fidelity, NoiseModel, QuadParams
-from .rotors import SPIN, realize, wrench_from_rotor_sq
+from .rotors import SPIN, RotorOutput, realize, wrench_from_rotor_sq
 
 WindFn = Callable[[float], np.ndarray]
 
@@ -29,6 +29,35 @@ class StepResult(NamedTuple):
     rotor_speed: np.ndarray  # (..., 4) rotor speeds at the end of the period, RU (telemetry)
     wrench: np.ndarray       # (..., 4) realized wrench at the start of the period, N and N m
     saturated: np.ndarray    # (..., 4) bool, rotor command clipped at 0 or at n_max
+
+
+class _BufferedFunction:
+    """A CasADi function evaluated on numpy buffers bound to it once (``Function.buffer``).
+
+    The same evaluation as calling the function, without converting the
+    arguments and results at each call (for a function called a thousand
+    times a second of flight, most of the cost). Dense inputs and outputs;
+    each is passed and returned flat, in column-major order.
+    """
+
+    def __init__(self, fn):
+        self.fn = fn
+        self._args = [np.zeros(fn.nnz_in(i)) for i in range(fn.n_in())]
+        self._res = [np.zeros(fn.nnz_out(i)) for i in range(fn.n_out())]
+        self._buf, self._eval = fn.buffer()
+        for i, a in enumerate(self._args):
+            self._buf.set_arg(i, memoryview(a))
+        for i, r in enumerate(self._res):
+            self._buf.set_res(i, memoryview(r))
+
+    def __call__(self, *args) -> list[np.ndarray]:
+        """The results (flat copies) for ``args`` (arrays of each input's number of values, column-major)."""
+        for a, v in zip(self._args, args):
+            a[:] = v
+        self._eval()
+        if self._buf.ret() != 0:
+            raise RuntimeError(f"CasADi function {self.fn.name()!r} failed (return code {self._buf.ret()})")
+        return [r.copy() for r in self._res]
 
 
 class _MassParams:
@@ -77,6 +106,7 @@ class Simulator:
         self._body = _MassParams(self.p, self.payload_kg) if self.payload_kg else self.p
         self._single = None   # CasADi step of one vehicle, built on first use
         self._single_hifi = None
+        self._chains: dict[tuple[str, int], _BufferedFunction] = {}   # periods chained in one call (kind, number)
 
     # ------------------------------------------------------------------ API
     def step(self, x, u, t: float = 0.0) -> np.ndarray:
@@ -136,16 +166,7 @@ class Simulator:
     def _step(self, x: np.ndarray, u: np.ndarray, n0, t: float) -> StepResult:
         """Unchecked step (the data generator calls this in its hot loop)."""
         p, fid = self.p, self.fidelity
-        # One vehicle flown in short ticks under one held command (a plant read by sensors every millisecond): the
-        # allocation is the same for every tick of the period, so it is computed once (the same numbers).
-        key = u.tobytes() if u.ndim == 1 else None
-        memo = getattr(self, "_realized", None)
-        if key is not None and memo is not None and memo[0] == key and memo[1] is p:
-            rot = memo[2]
-        else:
-            rot = realize(u, p)
-            if key is not None:
-                self._realized = (key, p, rot)
+        rot = self._realize(u)
         n_cmd = np.sqrt(rot.n_sq)
         wind = self._wind(t)
         h = self.dt / self.substeps
@@ -182,6 +203,114 @@ class Simulator:
 
         x1 = rk4_step(lambda s: self._rates_hifi(s, w, n_cmd, wind), x, h, self.substeps)
         return StepResult(x1, np.broadcast_to(n_cmd, x1.shape[:-1] + (4,)).copy(), w, rot.saturated)
+
+    def _realize(self, u: np.ndarray) -> RotorOutput:
+        """The rotor layer's answer to the command ``u`` (..., 4), N and N m (:func:`sim.rotors.realize`).
+
+        One vehicle flown in short ticks under one held command (a plant read by sensors every millisecond): the
+        allocation is the same for every tick of the period, so it is computed once (the same numbers).
+        """
+        p = self.p
+        key = u.tobytes() if u.ndim == 1 else None
+        memo = getattr(self, "_realized", None)
+        if key is not None and memo is not None and memo[0] == key and memo[1] is p:
+            return memo[2]
+        rot = realize(u, p)
+        if key is not None:
+            self._realized = (key, p, rot)
+        return rot
+
+    def _wind_accels(self, times) -> np.ndarray:
+        """The wind (3, K) at each of ``times`` (K,), s, as :meth:`step_full` applies it over a period from there."""
+        accel = np.zeros((3, len(times)))
+        if self.wind is not None:
+            for j, t in enumerate(times):
+                wind = self._wind(float(t))
+                accel[:, j] = wind if wind.shape == (3,) else np.broadcast_to(wind, (3,))
+        return accel
+
+    def _step_chain(self, x: np.ndarray, u: np.ndarray, accel: np.ndarray,
+                    n0=None) -> tuple[np.ndarray, np.ndarray, StepResult]:
+        """K periods of one vehicle in a row under the held command ``u``, in one CasADi call.
+
+        The same numbers as K calls of :meth:`step_full`, each from the state and rotor speeds the one before
+        returned (the same CasADi step function, chained), without their argument checks: the caller passes
+        finite arrays and checks the states it gets back.
+
+        Parameters
+        ----------
+        x : numpy.ndarray, shape (12,)
+            State at the start of the first period.
+        u : numpy.ndarray, shape (4,)
+            Commanded wrench held over every period, N and N m.
+        accel : numpy.ndarray, shape (3, K)
+            The wind over each period, m/s^2 (:meth:`_wind_accels` of the periods' start times).
+        n0 : numpy.ndarray, shape (4,), optional
+            Rotor speeds at the start of the first period, RU (only used with motor lag; as in
+            :meth:`step_full`).
+
+        Returns
+        -------
+        states : numpy.ndarray, shape (K, 12)
+            State at the end of each period.
+        rotor_speed : numpy.ndarray, shape (K, 4)
+            Rotor speeds at the end of each period, RU.
+        last : StepResult
+            What :meth:`step_full` returns for the last period.
+        """
+        p, fid = self.p, self.fidelity
+        rot = self._realize(u)
+        n_cmd = np.sqrt(rot.n_sq)
+        w = rot.wrench
+        k = accel.shape[1]
+        a = accel.T.ravel()                 # column-major (3, K): each period's three values in turn
+        if fid.is_nominal:
+            xs = self._chain("nominal", k)(x, w, a)[0].reshape(k, NX)
+            ns = np.broadcast_to(n_cmd, (k, 4)).copy()
+            return xs, ns, StepResult(xs[-1].copy(), n_cmd.copy(), w.copy(), rot.saturated.copy())
+        lag = fid.motor_tau > 0.0
+        n = n_cmd if n0 is None or not lag else np.asarray(n0, dtype=float).reshape(4)
+        xs, ns = self._chain("high_fidelity", k)(x, n, n_cmd, w, a)
+        xs, ns = xs.reshape(k, NX), ns.reshape(k, 4)
+        n_start = n if k == 1 else ns[-2].copy()          # the rotor speeds at the start of the last period
+        w0 = wrench_from_rotor_sq(n_start * n_start, p) if lag else w
+        return xs, ns, StepResult(xs[-1].copy(), ns[-1].copy(), w0, rot.saturated)
+
+    def _chain(self, kind: str, k: int):
+        """``k`` periods of the one-vehicle step in a row: one CasADi function, built once per simulator and ``k``.
+
+        ``kind`` "nominal": ``G(x (12), w (4), accel (3, k)) -> states (12, k)``, chaining :meth:`_single_step`;
+        "high_fidelity": ``G(x, n0 (4), n_cmd (4), w, accel) -> (states (12, k), rotor speeds (4, k))``,
+        chaining :meth:`_single_step_hifi` with the rotor speeds carried (with motor lag; else each period
+        starts at ``n_cmd``, as :meth:`step_full` does). Each period is a call of the same step function, so
+        the chain computes exactly what separate calls compute. Called with flat arrays, column-major
+        (:class:`_BufferedFunction`).
+        """
+        import casadi as ca
+
+        if (kind, k) not in self._chains:
+            x0, w, accel = ca.MX.sym("x", NX), ca.MX.sym("w", NU), ca.MX.sym("accel", 3, k)
+            x, xs = x0, []
+            if kind == "nominal":
+                step = self._single_step()
+                for j in range(k):
+                    x = step(x, w, accel[:, j])
+                    xs.append(x)
+                fn = ca.Function(f"step_chain{k}", [x0, w, accel], [ca.horzcat(*xs)], ["x", "w", "accel"],
+                                 ["states"])
+            else:
+                step, lag = self._single_step_hifi(), self.fidelity.motor_tau > 0.0
+                n0, n_cmd = ca.MX.sym("n0", 4), ca.MX.sym("n_cmd", 4)
+                n, ns = n0, []
+                for j in range(k):
+                    x, n = step(x, n if lag else n_cmd, n_cmd, w, accel[:, j])
+                    xs.append(x)
+                    ns.append(n)
+                fn = ca.Function(f"step_chain_high_fidelity{k}", [x0, n0, n_cmd, w, accel],
+                                 [ca.horzcat(*xs), ca.horzcat(*ns)], ["x", "n0", "n_cmd", "w", "accel"],
+                                 ["states", "rotor_speeds"])
+            self._chains[kind, k] = _BufferedFunction(fn)
+        return self._chains[kind, k]
 
     def _carried_params(self) -> QuadParams:
         """The vehicle's parameters with the payload added to the mass (for the CasADi forms of the step)."""
