@@ -80,6 +80,35 @@ def wrench_from_rotor_sq_casadi(n_sq, p=None):
     return ca.vertcat(*[sum(r[i] * n_sq[i] for i in range(4)) for r in rows])
 
 
+#: Built step functions by their arguments (see :func:`_memo`), at most MEMO_SIZE (then forgotten at once).
+_BUILT: dict = {}
+MEMO_SIZE = 128
+
+
+def _memo(build):
+    """``build`` (a function of hashable arguments returning a CasADi function) remembered per process.
+
+    A period's step takes 0.1-0.3 s to build and every flight builds its plant's and its model's; CasADi
+    functions are immutable, so flights with the same vehicle share one. Arguments that cannot be hashed build
+    anew.
+    """
+    import functools
+
+    @functools.wraps(build)
+    def remembered(*args, **kwargs):
+        key = (build.__name__, args, tuple(sorted(kwargs.items())))
+        try:
+            hash(key)
+        except TypeError:
+            return build(*args, **kwargs)
+        if key not in _BUILT:
+            if len(_BUILT) >= MEMO_SIZE:
+                _BUILT.clear()
+            _BUILT[key] = build(*args, **kwargs)
+        return _BUILT[key]
+    return remembered
+
+
 def rk4_casadi(f, x, h, n):
     """``n`` classical RK4 steps of size ``h`` of ``x' = f(x)`` (symbolic)."""
     for _ in range(n):
@@ -91,6 +120,7 @@ def rk4_casadi(f, x, h, n):
     return x
 
 
+@_memo
 def step_function(p: QuadParams | None = None, *, symbolic_theta: bool = False,
                   inputs: str = "wrench", dt: float = DT, substeps: int = SUBSTEPS,
                   accel_input: bool = False) -> ca.Function:
@@ -189,6 +219,7 @@ def lagged_rates_casadi(z, n_cmd, p, fidelity, tau, accel=None):
     return ca.vertcat(high_fidelity_rates_casadi(x, w_now, n, p, fidelity, accel), (n_cmd - n) / tau)
 
 
+@_memo
 def high_fidelity_step_function(p: QuadParams, fidelity, *, dt: float = DT, substeps: int = SUBSTEPS) -> ca.Function:
     """CasADi function for one period of the high-fidelity simulator (one vehicle), as ``Simulator.step_full``.
 
@@ -228,6 +259,7 @@ def rotor_command_casadi(u, p, n_max_sq):
     return ca.sqrt(n_sq)
 
 
+@_memo
 def actuated_step_function(p: QuadParams, fidelity, *, symbolic_theta: bool = False, dt: float = DT,
                            substeps: int = SUBSTEPS, composed: bool = False) -> ca.Function:
     """One control period of the high-fidelity simulator's equations as a prediction model (CasADi).
