@@ -19,7 +19,7 @@ Layout of a results folder ``DIR``::
                             long for the main job)
     DIR/results.json        {"plan": ..., "runs": [one result per closed-loop run, as ``fly --json``]}
     DIR/runs/<id>.json      the same results, one file per run
-    DIR/traces/<id>.npz     the trace of each run (t, x, x_ref, x_measured, u, u_command, solve_s, ...)
+    DIR/traces/<id>.npz     the trace of each run (t, x, x_ref, x_measured, u, u_command, rotor_speed, solve_s, ...)
     DIR/report.md, DIR/report.html, DIR/figures/*.png
 
 Which runs (``main_plan``): every scenario of :func:`main_scenarios` (hover,

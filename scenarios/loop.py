@@ -214,6 +214,7 @@ class Trace:
     status: np.ndarray        # (K,) the controller's status string
     solver_failed: np.ndarray  # (K,) bool: a fallback produced the input
     lqr_fallback: np.ndarray  # (K,) bool: the LQR fallback produced it
+    rotor_speed: np.ndarray | None = None     # (K + 1, 4) the plant's rotor speeds at each period boundary, RU
     steps: int = 0            # periods flown
     # With an estimator (else None): its output where the controller was called (NaN elsewhere).
     x_estimate: np.ndarray | None = None      # (K, nx) the model's state as estimated
@@ -234,7 +235,8 @@ class Trace:
                    u=np.full((K, NU), np.nan), u_command=np.full((K, NU), np.nan), solve_s=np.zeros(K),
                    latency_s=np.full(K, np.nan), called=np.zeros(K, dtype=bool),
                    iterations=np.zeros(K, dtype=np.int64), status=np.full(K, "", dtype="<U40"),
-                   solver_failed=np.zeros(K, dtype=bool), lqr_fallback=np.zeros(K, dtype=bool))
+                   solver_failed=np.zeros(K, dtype=bool), lqr_fallback=np.zeros(K, dtype=bool),
+                   rotor_speed=np.full((K + 1, 4), np.nan))
 
 
 def _estimate_fields(tr: Trace, steps: int, nx: int, nz: int) -> None:
@@ -271,6 +273,7 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
 
     tr = Trace.empty(steps)
     tr.x[0] = plant.x
+    tr.rotor_speed[0] = plant.rotor_speed
     tell = getattr(controller, "applied", None)
     # In real time, a controller that can keep a deadline (the MPCs on OSQP) is told when its input must be out.
     set_deadline = getattr(controller, "set_deadline", None) if clock.realtime else None
@@ -329,6 +332,7 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
             estimator.applied(clock.in_effect)
         x = plant.x
         tr.x[k + 1] = x
+        tr.rotor_speed[k + 1] = plant.rotor_speed
         tr.steps = k + 1
         why = crash_reason(x, x_ref[k + 1])
         if why is not None:

@@ -480,7 +480,7 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
              "x_measured": tr.x_measured[:k_end], "u": tr.u[:k_end], "u_command": tr.u_command[:k_end],
              "solve_s": tr.solve_s[:k_end], "latency_s": tr.latency_s[:k_end], "called": tr.called[:k_end],
              "iterations": tr.iterations[:k_end], "status": tr.status[:k_end], "solver_failed": failed,
-             "lqr_fallback": lqr_fb}
+             "lqr_fallback": lqr_fb, "rotor_speed": tr.rotor_speed[:k_end + 1]}
     if tr.x_estimate is not None:
         est_ms = 1e3 * tr.estimator_s[:k_end][tr.called[:k_end]]
         result["estimator_ms"] = {"median": float(np.median(est_ms)), "max": float(np.max(est_ms))} \

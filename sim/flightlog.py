@@ -137,6 +137,9 @@ class Flight:
     rotor_ok: np.ndarray      # (n,) bool, rotor speeds measured (not filled)
     reference: np.ndarray | None   # (n, 3) position reference, NED, m (if the format names one)
     report: ImportReport = field(repr=False)
+    # (n, 4) the wrench command in effect from each sample to the next, N and N m (a flight of this project's
+    # plants, :func:`flown_flight`; a log has none): the dataset's input, with ``u`` its realized wrench
+    command: np.ndarray | None = None
 
 
 # ------------------------------------------------------------------ reading
@@ -527,6 +530,72 @@ def _rates_check(x, ok) -> dict:
     return {"slope": _slope(measured, derived), "rms_rad_s": float(np.sqrt(np.mean((measured - derived) ** 2)))}
 
 
+def flown_flight(name: str, t, x, rotor_speed, vehicle: Vehicle, command=None, reference=None,
+                 source: str = "a flight of this project's plants") -> Flight:
+    """A flight flown here (a closed-loop run's trace) as a :class:`Flight`, as the import would give it.
+
+    The samples are already on the 10 ms grid, in this project's conventions, with nothing held, missing or
+    delayed, so the import's cleaning, resampling and delay search have nothing to do; its checks (velocity,
+    rates, thrust) are made and reported as for a log. A flight that crashed is cut before its first
+    non-finite state.
+
+    Parameters
+    ----------
+    name : str
+        The flight's name (its split is chosen by name, as for logs).
+    t : array_like, shape (n,)
+        Times, s, every 10 ms.
+    x : array_like, shape (n, 12)
+        States (NED, FRD, ZYX Euler angles).
+    rotor_speed : array_like, shape (n, 4)
+        Rotor speeds at each sample, in the vehicle's rotor unit.
+    vehicle : Vehicle
+        Gives the wrench from the rotor speeds (``u``) and the thrust check.
+    command : array_like, shape (n - 1, 4) or (n, 4), optional
+        The wrench command in effect over each period, N and N m (the dataset's input).
+    reference : array_like, shape (n, 3) or (n, 12), optional
+        The reference; its positions are kept.
+    source : str
+        Said in the report.
+
+    Returns
+    -------
+    Flight
+    """
+    t = np.asarray(t, dtype=float)
+    x = np.asarray(x, dtype=float)
+    rot = np.asarray(rotor_speed, dtype=float)
+    n = len(t)
+    if x.shape != (n, 12) or rot.shape != (n, 4):
+        raise FlightLogError(f"{name}: x must have shape ({n}, 12) and rotor_speed ({n}, 4) for {n} times; found "
+                             f"{x.shape} and {rot.shape}")
+    if n > 1 and not np.allclose(np.diff(t), DT, rtol=0.0, atol=1e-9):
+        raise FlightLogError(f"{name}: the samples must be {DT:g} s apart")
+    finite = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(rot), axis=1)
+    keep = n if finite.all() else int(np.argmin(finite))
+    if keep < MIN_SAMPLES:
+        raise FlightLogError(f"{name}: fewer than {MIN_SAMPLES} finite samples ({keep})")
+    t, x, rot = t[:keep], x[:keep], rot[:keep]
+    if command is not None:
+        command = np.asarray(command, dtype=float)
+        if command.shape not in ((n - 1, 4), (n, 4)):
+            raise FlightLogError(f"{name}: command must have shape ({n - 1}, 4) or ({n}, 4); found {command.shape}")
+        command = np.vstack([command, command[-1:]])[:keep] if len(command) == n - 1 else command[:keep]
+    if reference is not None:
+        reference = np.asarray(reference, dtype=float)[:keep, 0:3]
+    ok = np.ones(keep, dtype=bool)
+    u = rot ** 2 @ mixer_matrix(vehicle.params).T
+    _, _, coef = estimate_delay(x, ok, rot, 0, keep, (0, 0))
+    report = ImportReport(
+        name=name, source=source, rows=n, duplicate_times=0, nan_rows={}, held_rows={}, spikes=0,
+        resampling="none: on the 10 ms grid", log_period_s=DT, airborne_s=(float(t[0]), float(t[-1])),
+        samples=int(keep), valid_state_fraction=1.0, valid_rotor_fraction=1.0, delay_samples=0,
+        delay_rss_ratio=0.0, velocity_check=_velocity_check(x, ok), rates_check=_rates_check(x, ok),
+        thrust_check={"slope": float(coef[0] * vehicle.m / vehicle.kt), "intercept_m_s2": float(coef[1])})
+    return Flight(name=name, t=t, x=x, rotor_speed=rot, u=u, x_ok=ok, rotor_ok=ok.copy(), reference=reference,
+                  report=report, command=command)
+
+
 # ------------------------------------------------------------------ many flights
 def assign_splits(names: list[str], splits: dict[str, list[str]]) -> dict[str, str]:
     """Each flight's split: the split whose pattern (``fnmatch``) matches its name, ``train`` if none does.
@@ -550,11 +619,14 @@ def assign_splits(names: list[str], splits: dict[str, list[str]]) -> dict[str, s
     return {n: out.get(n, "train") for n in names}
 
 
-def flights_to_dataset(flights: list[Flight], vehicle: Vehicle, splits: dict[str, str], fmt: LogFormat):
+def flights_to_dataset(flights: list[Flight], vehicle: Vehicle, splits: dict[str, str],
+                       fmt: LogFormat | None = None):
     """Stack flights into a :class:`~sim.excitation.Dataset` (padded to the longest; padding invalid).
 
     ``valid[i, k]`` holds (state at k measured, rotor speeds at k measured, state at k + 1 measured); a sample is
-    a usable one-step pair when all three are True.
+    a usable one-step pair when all three are True. The input ``u`` is each flight's command where it has one
+    (:func:`flown_flight`), else its wrench from the rotor speeds; ``wrench`` is always the latter. ``fmt``: the
+    logs' format (None for flights flown here).
     """
     from . import __version__
     from .excitation import FORMAT_VERSION, SPLIT_NAMES, Dataset
@@ -564,16 +636,21 @@ def flights_to_dataset(flights: list[Flight], vehicle: Vehicle, splits: dict[str
     x = np.zeros((n, n_steps, 12))
     x_next = np.zeros((n, n_steps, 12))
     u = np.zeros((n, n_steps, 4))
+    wrench = np.zeros((n, n_steps, 4))
     rs = np.zeros((n, n_steps, 4))
     valid = np.zeros((n, n_steps, 3), dtype=bool)
     for i, f in enumerate(flights):
         m = len(f.t) - 1
-        x[i, :m], x_next[i, :m], u[i, :m], rs[i, :m] = f.x[:-1], f.x[1:], f.u[:-1], f.rotor_speed[:-1]
-        x[i, m:], x_next[i, m:], u[i, m:], rs[i, m:] = f.x[-1], f.x[-1], f.u[-1], f.rotor_speed[-1]
+        cmd = f.u if f.command is None else f.command
+        x[i, :m], x_next[i, :m], rs[i, :m] = f.x[:-1], f.x[1:], f.rotor_speed[:-1]
+        u[i, :m], wrench[i, :m] = cmd[:-1], f.u[:-1]
+        x[i, m:], x_next[i, m:], rs[i, m:] = f.x[-1], f.x[-1], f.rotor_speed[-1]
+        u[i, m:], wrench[i, m:] = cmd[-1], f.u[-1]
         valid[i, :m] = np.stack([f.x_ok[:-1], f.rotor_ok[:-1], f.x_ok[1:]], -1)
     meta = {
         "format_version": FORMAT_VERSION, "regime": "flight logs", "source": "flight logs",
-        "log_format": fmt.name, "vehicle": vehicle.to_dict(), "dt": DT, "version": __version__,
+        "log_format": None if fmt is None else fmt.name, "vehicle": vehicle.to_dict(), "dt": DT,
+        "version": __version__,
         "flights": [asdict(f.report) for f in flights],
         "flight_names": [f.name for f in flights],
         "flight_samples": [int(len(f.t)) for f in flights],
@@ -581,7 +658,7 @@ def flights_to_dataset(flights: list[Flight], vehicle: Vehicle, splits: dict[str
         "envelope_deg": [0.0, 90.0],
         "valid_columns": ["state", "rotors", "next state"],
     }
-    return Dataset(x=x, u=u, rotor_speed=rs, x_next=x_next, wrench=u.copy(),
+    return Dataset(x=x, u=u, rotor_speed=rs, x_next=x_next, wrench=wrench,
                    saturated=rs >= vehicle.n_max_value,
                    split=np.array([SPLIT_NAMES.index(splits[f.name]) for f in flights], dtype=np.int8),
                    meta=meta, valid=valid)

@@ -126,6 +126,13 @@ class Plant:
         self._out = self._reset(x0.copy(), rotor_speed)
         return self._out
 
+    @property
+    def rotor_speed(self) -> np.ndarray:
+        """Rotor speeds (4,) now, RU: after the last call (at a reset, the plant's start value)."""
+        if self._out is None:
+            raise SimInputError(f"plant {self.name!r}: call reset(x0) before reading its rotor speeds")
+        return self._out.rotor_speed
+
     def advance(self, u, duration_s: float = DT) -> PlantOutput:
         """Hold the wrench command ``u`` (4,) for ``duration_s`` (a whole number of ms); the plant after it."""
         u, ticks = self._call(u, duration_s)

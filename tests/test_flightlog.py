@@ -30,6 +30,8 @@ STATE_TOL = 1e-9          # imported state against the plant's, on every kept sa
 WRENCH_RTOL = 1e-9        # wrench from the imported rotor speeds against the plant's, relative to its size
 MIN_KEPT = 0.85           # kept measured states, as a fraction of the plant's samples
 DELAY = 3                 # samples the foreign log's motors lead the state
+FLOWN_SLOPE_TOL = 2e-3    # a flown flight's velocity and rates checks: slopes off 1 by at most this
+ROTOR_RTOL = 1e-12        # a run's recorded rotor speeds against those allocated again from its inputs
 ERPM_PER_RAD_S = 360.0 / (2.0 * math.pi)   # 6 pole pairs
 T0 = 12.5                 # the foreign log's time at its first row, s
 
@@ -318,3 +320,83 @@ def test_the_benchmarks_raw_flights_import_as_documented(tmp_path):
     assert all(0.85 <= f["thrust_check"]["slope"] <= 1.2 for f in rep.values())
     ds = load_dataset(out)
     assert ds.split.tolist().count(2) == 4
+
+
+# ------------------------------------------------------------------ flights flown here
+
+
+def _flown(fidelity, periods=300, nan_from=None):
+    """A flight of our simulator under a varying command: times, states, rotor speeds, commands."""
+    from sim.params import Fidelity
+    from sim.plant import SimPlant
+
+    v = load_vehicle(None)
+    plant = SimPlant(v, Fidelity(**fidelity))
+    x0 = np.zeros(12)
+    x0[2] = -1.0
+    plant.reset(x0)
+    hover = plant.hover_input
+    xs, ns, us = [plant.x], [plant.rotor_speed], []
+    for k in range(periods):
+        s = k * DT
+        u = hover * np.array([1.0 + 0.05 * np.sin(3.0 * s), 0.0, 0.0, 0.0]) + np.array(
+            [0.0, 2e-4 * np.sin(5.0 * s), 2e-4 * np.cos(4.0 * s), 1e-4 * np.sin(2.0 * s)])
+        out = plant.advance(u)
+        xs.append(out.x)
+        ns.append(out.rotor_speed)
+        us.append(u)
+    x = np.array(xs)
+    if nan_from is not None:
+        x[nan_from:] = np.nan
+    return v, np.arange(periods + 1) * DT, x, np.array(ns), np.array(us)
+
+
+def test_a_flown_flight_becomes_a_dataset_sample_for_sample():
+    from sim.flightlog import flights_to_dataset, flown_flight
+    from sim.rotors import wrench_from_rotor_sq
+
+    v, t, x, n, u = _flown({"motor_tau": 0.03})
+    f = flown_flight("lagged", t, x, n, v, command=u, reference=x)
+    v2, t2, x2, n2, u2 = _flown({}, nan_from=150)
+    g = flown_flight("crashed", t2, x2, n2, v2, command=u2)
+    assert len(f.t) == len(t) and len(g.t) == 150           # cut before the first non-finite state
+    for check in (f.report.velocity_check, f.report.rates_check):
+        assert np.allclose(check["slope"], 1.0, atol=FLOWN_SLOPE_TOL)
+    ds = flights_to_dataset([f, g], v, {"lagged": "train", "crashed": "test"})
+    m = len(t) - 1
+    assert np.array_equal(ds.x[0, :m], x[:-1]) and np.array_equal(ds.x_next[0, :m], x[1:])
+    assert np.array_equal(ds.u[0, :m], u) and np.array_equal(ds.rotor_speed[0, :m], n[:-1])
+    realized = wrench_from_rotor_sq(n[:-1] ** 2, v.params)
+    assert np.max(np.abs(ds.wrench[0, :m] - realized)) <= WRENCH_RTOL * np.max(np.abs(realized))
+    # With the motors lagging, the command is not the wrench the rotors give: both are kept.
+    assert np.max(np.abs(ds.u[0, :m, 0] - ds.wrench[0, :m, 0])) > 1e-3 * np.max(np.abs(realized[:, 0]))
+    assert ds.valid[0, :m].all() and ds.valid[1, :149].all() and not ds.valid[1, 149:].any()
+    assert list(ds.split) == [0, 2] and ds.meta["flight_names"] == ["lagged", "crashed"]
+    assert ds.meta["log_format"] is None and ds.meta["delay_samples"] == [0, 0]
+
+
+def test_a_flown_flight_with_wrong_shapes_or_times_is_refused():
+    from sim.flightlog import flown_flight
+
+    v, t, x, n, u = _flown({}, periods=120)
+    with pytest.raises(FlightLogError, match="bad: x must have shape"):
+        flown_flight("bad", t, x[:, :6], n, v)
+    with pytest.raises(FlightLogError, match="bad: the samples must be 0.01 s apart"):
+        flown_flight("bad", t * 2.0, x, n, v)
+    with pytest.raises(FlightLogError, match="bad: command must have shape"):
+        flown_flight("bad", t, x, n, v, command=u[:, :3])
+    with pytest.raises(FlightLogError, match="fewer than 100 finite samples"):
+        flown_flight("bad", t, np.where(np.arange(len(t))[:, None] < 50, x, np.nan), n, v)
+
+
+def test_a_runs_trace_keeps_the_plants_rotor_speeds_for_its_flight():
+    from scenarios.runner import RunSpec, fly
+    from sim.rotors import realize
+
+    _, tr = fly(RunSpec("hover", "lqr", "oracle"))
+    p = load_vehicle(None).params
+    assert tr["rotor_speed"].shape == (len(tr["t"]), 4)
+    assert np.allclose(tr["rotor_speed"][0], p.n_hover, rtol=1e-12, atol=0.0)
+    # Without a motor lag the rotors run at the speeds the command in effect asks for (allocated here for all
+    # periods at once, which may round the last bit otherwise).
+    assert np.allclose(tr["rotor_speed"][1:], np.sqrt(realize(tr["u"], p).n_sq), rtol=ROTOR_RTOL, atol=0.0)
