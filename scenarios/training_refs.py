@@ -21,6 +21,10 @@ Families (each drawn afresh for each iteration of a learning loop, seeded):
 
 The evaluation references (:func:`evaluation_references`) are ``figure8-fast``
 and the figure-8 speed ladder.
+
+:class:`Perturbed` adds a seeded smooth offset (at most :data:`PERTURB_M` per
+axis) to a reference: excitation that the controller follows, so that the
+flown inputs are not a function of the state alone.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from mpc.trajectory import FlatTrajectory
 from sim.params import DT
 
 from .errors import ScenarioError
@@ -125,6 +130,63 @@ def _peaks(trajectory, duration_s: float, samples: int = 2001) -> tuple[float, f
     return float(np.max(np.linalg.norm(f.vel, axis=-1))), float(np.max(np.linalg.norm(f.acc, axis=-1)))
 
 
+#: Reference perturbation (:class:`Perturbed`): at most this far from the path, m, per axis, as PERTURB_TERMS
+#: raised-cosine terms per axis with frequencies in PERTURB_HZ.
+PERTURB_M = 0.1
+PERTURB_TERMS = 3
+PERTURB_HZ = (0.2, 0.8)
+
+
+class Perturbed(FlatTrajectory):
+    """A flat trajectory plus a seeded smooth offset of its position: excitation the controller must follow.
+
+    Each axis gets ``sum_j a_j (1 - cos(w_j t)) / 2`` with :data:`PERTURB_TERMS` terms, frequencies drawn in
+    :data:`PERTURB_HZ` and amplitudes summing to at most ``amplitude_m``; the offset and its velocity are zero at
+    t = 0, so the flight starts on the path. Its derivatives up to snap are exact, so the flatness map gives a
+    feasible reference. The yaw is the path's.
+
+    Parameters
+    ----------
+    base : FlatTrajectory
+        The path.
+    amplitude_m : float
+        Largest offset per axis, m (>= 0).
+    seed : int
+        Seeds the frequencies, amplitudes and nothing else.
+    """
+
+    def __init__(self, base, amplitude_m: float = PERTURB_M, seed: int = 0):
+        if not isinstance(base, FlatTrajectory):
+            raise ScenarioError(f"base must be a flat trajectory; found {type(base).__name__}")
+        if not (isinstance(amplitude_m, (int, float)) and np.isfinite(amplitude_m) and amplitude_m >= 0):
+            raise ScenarioError(f"amplitude_m must be a finite number >= 0; found {amplitude_m!r}")
+        rng = np.random.default_rng([int(seed), 0x9E27])
+        self.base = base
+        self.duration_s = base.duration_s
+        self.omega = 2.0 * np.pi * rng.uniform(*PERTURB_HZ, size=(PERTURB_TERMS, 3))      # rad/s
+        share = rng.uniform(0.5, 1.0, size=(PERTURB_TERMS, 3))
+        self.amp = amplitude_m * share / share.sum(axis=0)                                  # m, summing to it
+
+    def offset(self, times, order: int = 0) -> np.ndarray:
+        """The ``order``-th time derivative (0 to 4) of the offset at ``times`` (K,): (K, 3), m/s^order."""
+        t = np.asarray(times, dtype=float)[:, None, None]
+        w = self.omega[None]
+        if order == 0:
+            terms = 0.5 * (1.0 - np.cos(w * t))
+        else:   # d^n/dt^n of -cos(w t) / 2 is -w^n cos(w t + n pi / 2) / 2
+            terms = -0.5 * w ** order * np.cos(w * t + 0.5 * np.pi * order)
+        return np.sum(self.amp[None] * terms, axis=1)
+
+    def flat(self, times):
+        f = self.base.flat(times)
+        return f._replace(pos=f.pos + self.offset(times, 0), vel=f.vel + self.offset(times, 1),
+                          acc=f.acc + self.offset(times, 2), jerk=f.jerk + self.offset(times, 3),
+                          snap=f.snap + self.offset(times, 4))
+
+    def describe(self) -> dict:
+        return {"kind": "Perturbed", "base": self.base.describe(), "amplitude_m": float(self.amp.sum(axis=0).max())}
+
+
 def reference_positions(trajectory, duration_s: float) -> np.ndarray:
     """Positions (K, 3), m (NED), of a flat trajectory on the 10 ms grid from 0 to ``duration_s``."""
     times = np.arange(int(round(duration_s / DT)) + 1) * DT
@@ -178,5 +240,5 @@ def check_held_out(training: dict[str, np.ndarray], held_out: dict[str, np.ndarr
                                     f"of the held-out reference {other!r}: it must not enter training")
 
 
-__all__ = ["SPEED_LEVELS_MS", "TrainingReference", "accel_limit", "check_held_out", "evaluation_references",
+__all__ = ["Perturbed", "SPEED_LEVELS_MS", "TrainingReference", "accel_limit", "check_held_out", "evaluation_references",
            "fingerprints", "reference_positions", "training_references"]

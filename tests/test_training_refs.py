@@ -9,7 +9,9 @@ from scenarios.training_refs import (SPEED_LEVELS_MS, WINDOW, accel_limit, check
 
 #: Tolerances: the peaks of a reference against its level, relative (the min-snap limits hold on the path's own
 #: peak grid, checked here on a finer one).
-TOL = {"speed_rel": 2e-3, "accel_rel": 2e-2}
+TOL = {"speed_rel": 2e-3, "accel_rel": 2e-2,
+       "offset_start": 1e-15,       # a perturbation's velocity at t = 0 (rounding of the cosines' sum), m/s
+       "order_rel": 1e-2}           # central differences' error ratio for step h against h / 2 (4 at 2nd order)
 ITERATIONS = 4
 
 
@@ -74,3 +76,30 @@ def test_bad_arguments_are_named(kwargs, match):
         training_references(**kwargs)
     with pytest.raises(ScenarioError, match=r"positions must have shape \(K, 3\)"):
         fingerprints(np.zeros((10, 12)))
+
+
+def test_a_perturbed_reference_is_the_path_plus_an_offset_with_exact_derivatives():
+    from scenarios.training_refs import PERTURB_M, Perturbed
+
+    ref = training_references(0)[1]
+    p = Perturbed(ref.trajectory, PERTURB_M, seed=4)
+    t = np.linspace(0.0, ref.duration_s, 301)
+    base, mine = ref.trajectory.flat(t), p.flat(t)
+    for order, name in enumerate(("pos", "vel", "acc", "jerk", "snap")):
+        assert np.array_equal(getattr(mine, name), getattr(base, name) + p.offset(t, order))
+    assert np.array_equal(mine.yaw, base.yaw)
+    # Starts on the path, at rest relative to it; stays within the amplitude on each axis.
+    assert np.array_equal(p.offset([0.0]), np.zeros((1, 3)))
+    assert np.max(np.abs(p.offset([0.0], 1))) <= TOL["offset_start"]
+    assert np.all(np.max(np.abs(p.offset(np.linspace(0, 60, 6001))), axis=0) <= PERTURB_M * (1 + 1e-12))
+    # Each derivative is the derivative of the one before: central differences converge at second order.
+    for order in range(4):
+        errs = [np.max(np.abs((p.offset(t + h, order) - p.offset(t - h, order)) / (2 * h) - p.offset(t, order + 1)))
+                for h in (1e-2, 5e-3)]
+        assert errs[0] / errs[1] == pytest.approx(4.0, rel=TOL["order_rel"])
+    # Seeded; and a perturbed training reference is still no evaluation reference.
+    assert np.array_equal(Perturbed(ref.trajectory, PERTURB_M, seed=4).offset(t), p.offset(t))
+    assert not np.array_equal(Perturbed(ref.trajectory, PERTURB_M, seed=5).offset(t), p.offset(t))
+    check_held_out({"perturbed": reference_positions(p, ref.duration_s)})
+    with pytest.raises(ScenarioError, match="amplitude_m must be a finite number >= 0"):
+        Perturbed(ref.trajectory, -0.1)
