@@ -394,6 +394,20 @@ def fisher_key() -> str:
     return source_digest(("sim",)).hexdigest()
 
 
+def _reusable(paths, key) -> tuple[Path, dict] | None:
+    """The first of ``paths`` holding a stored result (:func:`_stored`) whose ``inputs_sha256`` is ``key()``:
+    ``(its path, its content)``, or None. ``key`` is computed at most once, and only if a stored result is found."""
+    wanted = None
+    for path in paths:
+        data = _stored(path)
+        if data is None:
+            continue
+        wanted = key() if wanted is None else wanted
+        if data["inputs_sha256"] == wanted:
+            return path, data
+    return None
+
+
 def reusable_fisher(out_dir, models_dir) -> tuple[Path, dict] | None:
     """A stored Fisher table the main job can reuse: ``(its path, its content)``, or None.
 
@@ -401,15 +415,7 @@ def reusable_fisher(out_dir, models_dir) -> tuple[Path, dict] | None:
     compute again. Looked for in ``out_dir`` (an earlier run of the job) and then in ``models_dir``
     (:data:`SHIPPED_FISHER`, kept current by a test).
     """
-    key = None
-    for path in (Path(out_dir) / "fisher.json", Path(models_dir) / SHIPPED_FISHER):
-        data = _stored(path)
-        if data is None:
-            continue
-        key = fisher_key() if key is None else key
-        if data["inputs_sha256"] == key:
-            return path, data
-    return None
+    return _reusable((Path(out_dir) / "fisher.json", Path(models_dir) / SHIPPED_FISHER), fisher_key)
 
 
 def reusable_evaluation(out_dir, models_dir, folders) -> tuple[Path, dict] | None:
@@ -421,15 +427,8 @@ def reusable_evaluation(out_dir, models_dir, folders) -> tuple[Path, dict] | Non
     """
     from pinn.evaluate import EFFECT_SPECS, evaluation_key
 
-    key = None
-    for path in (Path(out_dir) / "evaluation.json", Path(models_dir) / SHIPPED_EVALUATION):
-        data = _stored(path)
-        if data is None:
-            continue
-        key = evaluation_key(folders, EFFECT_SPECS) if key is None else key
-        if data["inputs_sha256"] == key:
-            return path, data
-    return None
+    return _reusable((Path(out_dir) / "evaluation.json", Path(models_dir) / SHIPPED_EVALUATION),
+                     lambda: evaluation_key(folders, EFFECT_SPECS))
 
 
 @locks_out_dir
