@@ -159,6 +159,37 @@ def register(sub) -> None:
     _sweep_options(p, "versus.json", "--models/versus")
     p.set_defaults(handler=cmd_versus)
 
+    p = sub.add_parser("learn", help="learn from the flights it flies: fly, train on the flights, fly the new model",
+                       description="On one plant with physics the nominal equations lack, fly the nominal equations "
+                                   "with the SQP on random training references (perturbed, with input dither; never "
+                                   "a figure-8), train physics plus network with the rotor speeds as states on every "
+                                   "flight so far, fly the new model on fresh references, and repeat. Each "
+                                   "iteration's model flies the held-out figure8-fast: the learning curve. Then two "
+                                   "controls (the same minutes of open-loop excitation, and an upper bound trained "
+                                   "on flights of figure8-fast itself) and the evaluation on figure8-fast and the "
+                                   "speed ladder against the nominal equations. Writes OUT/PLANT/learn.json; "
+                                   "resumable: a rerun reuses every stage already written (docs/learning.md).")
+    p.add_argument("--plant", required=True, choices=("highfi", "rotorpy"),
+                   help="highfi: our simulator's high-fidelity set-up; rotorpy: RotorPy with its motor lag and "
+                        "aerodynamics (needs the rotorpy extra)")
+    p.add_argument("--out", type=Path, default=Path("results/learn"), help="results folder (default results/learn)")
+    p.add_argument("--models", type=Path, default=Path("models"),
+                   help="models folder, for the plant's best open-loop model (default models)")
+    p.add_argument("--iterations", type=int, default=3, help="models trained on flown data (default 3)")
+    p.add_argument("--per-level", type=int, default=3,
+                   help="training references per family and speed level in each iteration (default 3: 18 flights)")
+    p.add_argument("--members", type=int, default=10, help="ensemble members on figure8-fast (default 10)")
+    p.add_argument("--ladder-members", type=int, default=5, help="members per other rung of the ladder (default 5)")
+    p.add_argument("--profile", choices=("quick", "full", "smoke"), default="full",
+                   help="training budget (default full; smoke: seconds, for tests of the loop)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the references, dither and noise (default 0)")
+    p.add_argument("--no-controls", action="store_true", help="skip the two controls")
+    p.add_argument("--jobs", type=int, default=None, help="worker processes (default: number of CPUs)")
+    p.add_argument("--publish", action="store_true",
+                   help="copy the study's summary, learning curve and models into MODELS/learn/PLANT, "
+                        "where the report of pinnmpc run finds them")
+    p.set_defaults(handler=cmd_learn)
+
     p = sub.add_parser("bounds", help="write the CI bounds file from the results of pinnmpc run",
                        description="Write the closed-loop CI bounds (scenarios/bounds.toml) from a results folder of "
                                    "pinnmpc run: the oracle's cases bounded by its measured error, every shipped "
@@ -368,6 +399,32 @@ def cmd_versus(args: argparse.Namespace) -> int:
     print(format_versus(out))
     print(f"wrote {args.out / 'versus.json'}"
           + ("" if args.no_publish else f" and {args.models / 'versus' / 'versus.json'}"))
+    return 0
+
+
+def cmd_learn(args: argparse.Namespace) -> int:
+    """Handler of ``pinnmpc learn``."""
+    import os
+
+    from .learn import LearnSettings, format_learn, publish_learn, run_learn
+
+    jobs = args.jobs if args.jobs is not None else (os.cpu_count() or 1)
+    if jobs < 1:
+        raise ValueError(f"--jobs must be >= 1; found {jobs}")
+    if args.plant == "rotorpy":
+        from .campaign import rotorpy_available
+
+        if not rotorpy_available():
+            raise ValueError("plant rotorpy needs RotorPy: python -m pip install -e '.[rotorpy]'")
+    settings = LearnSettings(plant=args.plant, iterations=args.iterations, per_level=args.per_level, seed=args.seed,
+                             profile=args.profile, members=args.members, ladder_members=args.ladder_members,
+                             controls=not args.no_controls)
+    check_writable(args.out, "--out", folder=True)
+    out = run_learn(settings, args.out, args.models, jobs)
+    print(format_learn(out))
+    print(f"wrote {args.out / args.plant / 'learn.json'}")
+    if args.publish:
+        print(f"published into {publish_learn(args.out / args.plant, args.models)}")
     return 0
 
 

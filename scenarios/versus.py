@@ -176,7 +176,8 @@ def summarize_plant(key: str, models: list[str], results: dict, speeds: dict) ->
         for rung in ladder_names():
             rungs[rung] = ens if rung == VERSUS_SCENARIO else [
                 results[i] for i in sorted(results) if results[i]["_model"] == m and results[i]["_rung"] == rung]
-        row["ladder"] = _ladder_row(rungs, speeds)
+        # A model flown on figure8-fast only (no other rung) has no ladder row.
+        row["ladder"] = _ladder_row(rungs, speeds) if all(rungs.values()) else None
         vals = _values(ens)
         if m == "nominal":
             nominal_vals = vals

@@ -1,0 +1,685 @@
+"""Learning from the flights it flies: fly, learn from the flights, fly the learned model, again.
+
+``pinnmpc learn --plant highfi|rotorpy [--iterations 3] [--out results/learn]`` runs, on one plant:
+
+* **iteration 0** flies the nominal equations with the SQP on fresh training references
+  (:func:`scenarios.training_refs.training_references`: min-snap paths and orbits at three speed levels, never a
+  figure-8), each perturbed (:class:`scenarios.training_refs.Perturbed`) and with input dither
+  (:class:`scenarios.dither.Dithered`), and logs them as flights (:func:`sim.flightlog.flown_flight`, with the
+  motion-capture noise of the open-loop data added);
+* **iteration i >= 1** trains physics plus network with the rotor speeds as states (``hybrid_lag``) on every flight
+  so far, and flies that model on the next iteration's references (the last iteration's model flies only its
+  evaluation);
+* each iteration's model flies the held-out ``figure8-fast`` (``members`` ensemble members): one row of the
+  learning curve (RMSE against iteration and against the minutes of flight it learned from);
+* two **controls** are trained the same way: the same minutes of open-loop excitation (``pinnmpc data``'s
+  random references flown by the hover LQR with dither), and an **upper bound** from flights of the evaluation
+  reference itself (never a result: it has seen the test);
+* the **evaluation** flies the nominal equations, the plant's best open-loop model shipped in ``models/``, the
+  final model and the controls on ``figure8-fast`` and the figure-8 speed ladder (a resumable sweep).
+
+Every stage writes its files as it ends (``it<i>/flights.npz``, ``it<i>/<model>.onnx``, ``it<i>/curve.json``,
+``controls/...``), and a rerun reuses what is there: killed anywhere, the study resumes and ends with the same
+results. Before anything enters training, :func:`scenarios.training_refs.check_held_out` checks by content that no
+evaluation reference is among the flown references.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sim.files import write_json
+from sim.params import DT
+
+from .errors import ScenarioError
+from .lock import locks_out_dir
+
+#: Settle time flown after a training path ends (hover at its last point), s.
+HOLD_S = 1.0
+#: Architecture learned (physics plus network, rotor speeds as states, tau_m learnable) and its budget.
+LEARN_ARCH = "hybrid_lag"
+#: Seconds of each open-loop excitation flight of the same-data control (``pinnmpc data``'s default).
+OPEN_LOOP_FLIGHT_S = 10.0
+#: Splits of the flown flights, by their order: of every SPLIT_EVERY flights, the fifth is for validation and the sixth
+#: for test (two of each of each iteration's 18 at the default settings; one of each of 6).
+SPLIT_EVERY = 9
+#: Periods per piece of a flown flight in its dataset (4 s; see :func:`flights_dataset`).
+PIECE_STEPS = 400
+LEARN_DIR = "learn"
+#: What each control is, as the report says it.
+CONTROL_ROLES = {"openloop": "control: same minutes of open-loop excitation",
+                 "upper": "upper bound: trained on flights of figure8-fast itself"}
+#: Training budgets: a profile of :data:`pinn.train.PROFILES` and settings changed from it. ``smoke`` is for tests of
+#: the loop itself (seconds; its models are not meant to fly well).
+LEARN_PROFILES = {"quick": ("quick", {}), "full": ("full", {}),
+                  "smoke": ("quick", {"epochs": 2, "steps_per_epoch": 4, "batch": 128, "n_colloc": 64})}
+
+
+@dataclass(frozen=True)
+class LearnPlant:
+    """A plant of the learning study: where it flies, the open-loop data it is compared with, its best open-loop model.
+
+    ``versus`` is the key of the plant in :data:`scenarios.versus.VERSUS_PLANTS` (its scenario suffix and label);
+    ``open_loop`` the excitation regime of the same-data control; ``best_open_loop`` the path (under the models
+    folder) of the best model trained on open-loop excitation of this plant.
+    """
+
+    key: str
+    plant: str
+    high_fidelity: bool
+    versus: str
+    open_loop: str
+    best_open_loop: str
+
+
+LEARN_PLANTS = {
+    "highfi": LearnPlant("highfi", "sim", True, "highfi", "aggressive", "versus/hybrid_lag_aggressive_highfi.onnx"),
+    "rotorpy": LearnPlant("rotorpy", "rotorpy", False, "rotorpy", "small", "versus/hybrid_lag_rotorpy.onnx"),
+}
+
+
+@dataclass(frozen=True)
+class LearnSettings:
+    """What defines a learning study (stored in ``learn.json``; a rerun into the same folder must match)."""
+
+    plant: str = "highfi"
+    iterations: int = 3          # models trained on flown data (>= 1)
+    per_level: int = 3           # training references per family and speed level, per iteration
+    seed: int = 0
+    dither: float = 1.0          # scale of scenarios.dither.dither_std
+    perturb_m: float = 0.1       # reference perturbation, m (scenarios.training_refs.Perturbed)
+    profile: str = "full"        # training budget (LEARN_PROFILES)
+    members: int = 10            # ensemble members of each curve row and of the evaluation on figure8-fast
+    ladder_members: int = 5      # members per rung of the speed ladder in the evaluation
+    controls: bool = True        # train and fly the two controls
+
+    def __post_init__(self):
+        if self.plant not in LEARN_PLANTS:
+            raise ScenarioError(f"plant must be one of {', '.join(LEARN_PLANTS)}; found {self.plant!r}")
+        for name in ("iterations", "per_level", "members", "ladder_members"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ScenarioError(f"{name} must be an integer >= 1; found {v!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ScenarioError(f"seed must be an integer >= 0; found {self.seed!r}")
+        for name in ("dither", "perturb_m"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ScenarioError(f"{name} must be a finite number >= 0; found {v!r}")
+        if self.profile not in LEARN_PROFILES:
+            raise ScenarioError(f"profile must be one of {', '.join(LEARN_PROFILES)}; found {self.profile!r}")
+
+    @property
+    def spec(self) -> LearnPlant:
+        return LEARN_PLANTS[self.plant]
+
+
+# ------------------------------------------------------------------ one training flight
+@dataclass(frozen=True)
+class FlightJob:
+    """One flight of a learning study, as data a worker process can rebuild it from.
+
+    ``kind`` is ``"train"`` (reference ``index`` of :func:`training_references` for ``iteration``) or ``"upper"``
+    (the evaluation reference ``figure8-fast`` itself, for the upper-bound control; ``index`` is the flight's
+    number). ``model`` is ``"nominal"`` or an ONNX path.
+    """
+
+    settings: LearnSettings
+    kind: str
+    iteration: int
+    index: int
+    model: str
+
+    @property
+    def seed(self) -> int:
+        """Seeds this flight's perturbation, dither and measurement noise."""
+        s = self.settings
+        return ((s.seed * 1000 + self.iteration) * 1000 + self.index) * 2 + (self.kind == "upper")
+
+    def reference(self) -> tuple[str, object, float]:
+        """``(name, flat trajectory, duration_s)`` of the perturbed reference flown."""
+        from .training_refs import Perturbed, training_references
+
+        s = self.settings
+        if self.kind == "train":
+            r = training_references(self.iteration, s.per_level, s.seed)[self.index]
+            name, base, duration = r.name, r.trajectory, r.duration_s + HOLD_S
+        else:
+            from .library import get_scenario
+
+            sc = get_scenario("figure8-fast")
+            name, base, duration = f"upper-figure8-fast-{self.index}", sc.reference(), sc.steps * DT
+        return name, Perturbed(base, s.perturb_m, seed=self.seed), duration
+
+
+def fly_flight(job: FlightJob) -> dict:
+    """Fly one flight of a study: the SQP on ``job.model`` along the perturbed reference, with dither.
+
+    Returns
+    -------
+    dict
+        ``name``; ``t`` (n,), s; ``x`` (n, 12) and ``rotor_speed`` (n, 4), RU, as measured (the open-loop data's
+        motion-capture and telemetry noise, :class:`sim.params.NoiseModel`, added to the plant's); ``command``
+        (n - 1, 4), the wrench sent (dither included), N and N m; ``reference`` (n, 3), the perturbed reference's
+        positions, m; and the flight's ``rmse_m`` (true position against that reference), ``crashed``,
+        ``crash_reason``, ``seconds`` flown and ``solve_ms`` (median per period).
+    """
+    from sim.params import NoiseModel
+    from sim.plants import make_plant
+    from sim.vehicle import load_vehicle
+
+    from .dither import Dithered, dither_std
+    from .loop import IdealClock, StateSensor, fly_loop
+    from .runner import make_controller, reference_spec, reference_states
+
+    p = job.settings.spec
+    name, traj, duration = job.reference()
+    vehicle = load_vehicle(None)
+    plant = make_plant(p.plant, vehicle, high_fidelity=p.high_fidelity)
+    K = int(round(duration / DT))
+    times = DT * np.arange(K + 1)
+    n0 = None
+    if p.high_fidelity:
+        from mpc.trajectory import actuated_flat_state
+
+        x_ref, n_ref, _ = actuated_flat_state(traj, times, vehicle.params, vehicle.fidelity)
+        n0 = n_ref[0] if vehicle.fidelity.motor_tau > 0.0 else None
+    else:
+        x_ref = reference_states(traj, times, reference_spec(p.plant, vehicle))
+    model = _load(job.model, p)
+    ctrl = make_controller("sqp", model, traj, timing="ideal", vehicle=vehicle)
+    ctrl.prepare(K * DT, x0=x_ref[0].copy())
+    plant.reset(x_ref[0].copy(), rotor_speed=n0)
+    rng = np.random.default_rng([job.seed, 0x1EA2])
+    tr = fly_loop(plant, StateSensor(None, rng), Dithered(ctrl, job.settings.dither * dither_std(vehicle.params),
+                                                          seed=job.seed),
+                  IdealClock(plant.hover_input, 0), x_ref, K)
+    n = tr.steps + 1
+    x, rot = tr.x[:n].copy(), tr.rotor_speed[:n].copy()
+    noise = NoiseModel()
+    meas = np.random.default_rng([job.seed, 0x4015E])
+    x_m = x + noise.state_std * meas.standard_normal(x.shape)
+    rot_m = rot + noise.rotor_speed * meas.standard_normal(rot.shape)
+    err = np.linalg.norm(x[:, 0:3] - x_ref[:n, 0:3], axis=1)
+    solve = tr.solve_s[:n - 1][tr.called[:n - 1]]
+    return {"name": name, "t": times[:n], "x": x_m, "rotor_speed": rot_m, "command": tr.u_command[:n - 1].copy(),
+            "reference": x_ref[:n, 0:3].copy(), "rmse_m": float(np.sqrt(np.nanmean(err ** 2))),
+            "crashed": tr.crash_step is not None, "crash_reason": tr.crash_reason, "seconds": float((n - 1) * DT),
+            "solve_ms": float(1e3 * np.median(solve)) if solve.size else None}
+
+
+def _load(model: str, p: LearnPlant):
+    """The prediction model ``model`` (``"nominal"`` or an ONNX path) as a run on plant ``p`` would load it."""
+    from .runner import RunSpec, load_run_model
+
+    scenario = "figure8-fast" + ("+highfi" if p.high_fidelity else "")
+    return load_run_model(RunSpec(scenario, "sqp", model, plant=p.plant))
+
+
+FLIGHT_ARRAYS = ("t", "x", "rotor_speed", "command", "reference")
+
+
+def save_flights(path: Path, flights: list[dict]) -> Path:
+    """Write flights (:func:`fly_flight`'s records) to one ``.npz``: arrays per flight, the rest as JSON."""
+    from sim.files import write_npz
+
+    arrays = {f"{k}_{i}": np.asarray(f[k]) for i, f in enumerate(flights) for k in FLIGHT_ARRAYS}
+    arrays["records"] = np.array(json.dumps([{k: v for k, v in f.items() if k not in FLIGHT_ARRAYS}
+                                             for f in flights]))
+    return write_npz(path, arrays)
+
+
+def load_flights(path: Path) -> list[dict]:
+    """Flights written by :func:`save_flights`, as they were."""
+    with np.load(path, allow_pickle=False) as z:
+        records = json.loads(str(z["records"]))
+        return [{**r, **{k: z[f"{k}_{i}"] for k in FLIGHT_ARRAYS}} for i, r in enumerate(records)]
+
+
+def flights_dataset(flights: list[dict]):
+    """A :class:`sim.excitation.Dataset` of flown flights, through the flight logs' path, in pieces of equal length.
+
+    Each flight goes through :func:`sim.flightlog.flown_flight` and :func:`sim.flightlog.flights_to_dataset` (as a
+    log would) and is split as a whole by :data:`SPLIT_EVERY`, in the order given (so adding flights never moves an
+    earlier one to another split). The flights are then cut into pieces of :data:`PIECE_STEPS` periods (the last
+    piece of a flight ends at its end, overlapping the one before; a flight shorter than one piece is left out), so
+    that every trajectory of the dataset is measured throughout: the motor-lag model trains only on such data.
+    """
+    from sim.excitation import Dataset
+    from sim.flightlog import flights_to_dataset, flown_flight
+    from sim.vehicle import load_vehicle
+
+    vehicle = load_vehicle(None)
+    fl = [flown_flight(f["name"], f["t"], f["x"], f["rotor_speed"], vehicle, command=f["command"],
+                       reference=f["reference"]) for f in flights]
+    splits = {f.name: ("val" if i % SPLIT_EVERY == 4 else "test" if i % SPLIT_EVERY == 5 else "train")
+              for i, f in enumerate(fl)}
+    ds = flights_to_dataset(fl, vehicle, splits)
+    L = PIECE_STEPS
+    rows = []
+    for i, f in enumerate(fl):
+        m = len(f.t) - 1                        # one-step pairs of flight i, all measured
+        if m < L:
+            continue
+        starts = list(range(0, m - L + 1, L))
+        if starts[-1] != m - L:
+            starts.append(m - L)
+        rows += [(i, k) for k in starts]
+    if not rows:
+        raise ScenarioError(f"no flown flight is {L * DT:g} s long: nothing to learn from")
+    take = {name: np.stack([getattr(ds, name)[i, k:k + L] for i, k in rows])
+            for name in ("x", "u", "rotor_speed", "x_next", "wrench", "saturated")}
+    split = np.array([ds.split[i] for i, _ in rows])
+    meta = {**ds.meta, "pieces": {"steps": L, "count": len(rows), "flights": len(fl)}}
+    return Dataset(**take, split=split, meta=meta)
+
+
+# ------------------------------------------------------------------ stages
+def _say(progress, line: str) -> None:
+    if progress is not None:
+        progress(line)
+
+
+def _check_held_out(flights: list[dict]) -> None:
+    """Raise if any flight's reference repeats a window of an evaluation reference (content, not names)."""
+    from .training_refs import check_held_out
+
+    check_held_out({f["name"]: np.asarray(f["reference"]) for f in flights})
+
+
+def _fly_all(jobs_list: list[FlightJob], workers: int, progress, what: str) -> list[dict]:
+    """Fly ``jobs_list`` on ``workers`` processes; the records in the order given."""
+    out: dict[int, dict] = {}
+    t0 = time.perf_counter()
+
+    def done(item, rec):
+        out[item[0]] = rec
+        _say(progress, f"  {what}: flew {rec['name']} ({rec['seconds']:.1f} s, RMSE {1e3 * rec['rmse_m']:.1f} mm"
+                       f"{', crashed' if rec['crashed'] else ''}) [{len(out)}/{len(jobs_list)}, "
+                       f"{time.perf_counter() - t0:.0f} s]")
+
+    def failed(item, reason):
+        raise ScenarioError(f"flight {item[1].kind} {item[1].iteration}/{item[1].index}: {reason}")
+
+    items = list(enumerate(jobs_list))
+    if workers <= 1 or len(items) == 1:
+        for item in items:
+            done(item, _fly_item(item))
+    else:
+        from .engines import worker_init
+        from .pool import run_pool
+
+        worker_init()
+        run_pool(_fly_item, items, workers, done, failed, initializer=worker_init)
+    return [out[i] for i in range(len(jobs_list))]
+
+
+def _fly_item(item):
+    return fly_flight(item[1])
+
+
+def _train_item(item):
+    """Train one model (a pool task): ``(settings, dataset path, folder, name, threads, data)``; its record."""
+    settings, data_path, folder, name, threads, data = item
+    return train_model(settings, data_path, folder, name, threads, data)
+
+
+def train_model(settings: LearnSettings, data_path, folder, name: str, threads: int, data: dict) -> dict:
+    """Train :data:`LEARN_ARCH` on the dataset at ``data_path`` and export it as ``folder/name.onnx``; its record.
+
+    The record (also written to ``folder/name.json``) holds the training's settings, identified parameters,
+    losses, test metrics and time.
+    """
+    import torch
+
+    from mpc.contract import config_hash
+    from pinn.export import export_model
+    from pinn.metrics import test_metrics
+    from pinn.train import make_config, train
+    from sim.excitation import load_dataset
+    from sim.params import THETA_NAMES
+
+    torch.set_num_threads(threads)
+    ds = load_dataset(data_path)
+    base, changed = LEARN_PROFILES[settings.profile]
+    cfg = make_config(LEARN_ARCH, base, settings.seed, threads=threads, **changed)
+    res = train(ds, cfg)
+    last = res.history[-1]
+    if not (np.isfinite(last["val"]) and np.all(np.isfinite(last["theta"]))):
+        raise ScenarioError(f"training {name} ended with a non-finite validation loss ({last['val']}) or parameters")
+    metrics = test_metrics(res.model, ds)
+    training_config = {"name": name, "recipe": LEARN_ARCH, "train": res.config.to_dict(), "data": data}
+    export_model(res.model, folder, name, training_config, settings.seed, metrics, res.stats, torch_file=False)
+    rec = {"name": name, "onnx": f"{name}.onnx", "data": data, "config_hash": config_hash(training_config),
+           "theta": dict(zip(THETA_NAMES, [float(v) for v in last["theta"]])),
+           "tau_m_s": float(res.model.tau.detach()), "final_losses": {k: last[k] for k in ("data", "phys", "rotor",
+                                                                                          "val")},
+           "metrics": metrics, "training_seconds": round(res.seconds, 1), "threads": threads}
+    write_json(Path(folder) / f"{name}.json", rec)
+    return rec
+
+
+def _dataset_file(path: Path, flights: list[dict]) -> Path:
+    """The dataset of ``flights`` at ``path`` (written once; the same flights give the same bytes)."""
+    if not path.is_file():
+        flights_dataset(flights).save(path)
+    return path
+
+
+def _curve_row(settings: LearnSettings, out: Path, iteration: int, model: str, flights: list[dict], jobs: int,
+               progress) -> dict:
+    """Fly ``model`` on the held-out ``figure8-fast`` (``settings.members`` members): one row of the learning curve."""
+    from .runner import RunSpec
+    from .stats import summarize
+    from .sweep import sweep
+    from .versus import VERSUS_PLANTS, VERSUS_SCENARIO
+
+    vp = VERSUS_PLANTS[settings.spec.versus]
+    specs = [RunSpec(vp.scenario(VERSUS_SCENARIO), "sqp", model, member=k, plant=vp.plant)
+             for k in range(settings.members)]
+    results = sweep(specs, out / "evaluation", jobs=jobs, progress=False)
+    _no_errors(results)
+    s = summarize(results)
+    seconds = float(sum(f["seconds"] for f in flights))
+    row = {"iteration": iteration, "model": "nominal" if model == "nominal" else Path(model).stem,
+           "flights": len(flights), "flight_minutes": seconds / 60.0, "ensemble": s,
+           "members_rmse_m": [None if r.get("crashed") else r.get("rmse_position_m") for r in results],
+           "solve_ms_median": _median([r["solve_ms"]["median"] for r in results
+                                       if isinstance(r.get("solve_ms"), dict)])}
+    med = "–" if s["median"] is None else f"{1e3 * s['median']:.1f} mm"
+    _say(progress, f"  curve: iteration {iteration} ({row['model']}, {seconds / 60:.1f} min of flights): "
+                   f"figure8-fast {med}, crashes {s['crashes']}/{s['runs']}")
+    return row
+
+
+def _no_errors(results: list[dict]) -> None:
+    """Raise for a run that did not fly (its error), so that no stage is written from it; a crash is a result."""
+    bad = [r for r in results if r.get("error")]
+    if bad:
+        raise ScenarioError(f"{len(bad)} of {len(results)} runs did not fly; the first, {bad[0].get('run_id')}: "
+                            f"{bad[0]['error']}")
+
+
+def _median(v):
+    v = [x for x in v if x is not None]
+    return float(np.median(v)) if v else None
+
+
+def _stage(path: Path, make):
+    """The JSON at ``path`` if a previous run wrote it, else ``make()`` written there."""
+    if path.is_file():
+        return json.loads(path.read_text())
+    value = make()
+    write_json(path, value)
+    return value
+
+
+def _flights_stage(settings: LearnSettings, path: Path, jobs_list: list[FlightJob], workers: int, progress,
+                   what: str, held_out: bool = True) -> list[dict]:
+    """The flights of ``jobs_list``: read from ``path`` if a previous run wrote them, else flown and written."""
+    if not path.is_file():
+        if held_out:     # before anything flies: no reference to be flown for training is an evaluation reference
+            from .training_refs import check_held_out, reference_positions
+
+            check_held_out({n: reference_positions(tr, d) for n, tr, d in (j.reference() for j in jobs_list)})
+        save_flights(path, _fly_all(jobs_list, workers, progress, what))
+    return load_flights(path)    # as written, so that a resumed study trains on the same bytes
+
+
+@locks_out_dir
+def run_learn(settings: LearnSettings, out_dir="results/learn", models_dir="models", jobs: int = 2,
+              progress=print) -> dict:
+    """Run the learning study on one plant (see the module docstring); the summary, also in ``OUT/learn.json``.
+
+    Parameters
+    ----------
+    settings : LearnSettings
+    out_dir : path
+        Results folder (the plant's study goes in ``out_dir/<plant>``); a rerun resumes what is there.
+    models_dir : path
+        Where the plant's best open-loop model is (:attr:`LearnPlant.best_open_loop`; left out if absent).
+    jobs : int
+        Processes flying at once (and trainings of the controls at once).
+    progress : callable, optional
+        Called with one line per step done.
+    """
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ScenarioError(f"jobs must be an integer >= 1; found {jobs!r}")
+    s, p = settings, settings.spec
+    out = Path(out_dir) / p.key
+    out.mkdir(parents=True, exist_ok=True)
+    recorded = out / "settings.json"
+    mine = dataclasses.asdict(s)
+    if recorded.is_file() and json.loads(recorded.read_text()) != mine:
+        raise ScenarioError(f"{str(out)!r} holds a study with other settings ({recorded.read_text().strip()}); "
+                            f"give another --out, or remove it")
+    write_json(recorded, mine)
+    t_start = time.perf_counter()
+    stages = {}
+    flights: list[dict] = []
+    curve: list[dict] = []
+    trainings: list[dict] = []
+    model = "nominal"
+    for i in range(s.iterations + 1):
+        it = out / f"it{i}"
+        if i > 0:
+            t0 = time.perf_counter()
+            name = f"learn_{p.key}_it{i}"
+            _check_held_out(flights)          # what enters training, by content
+            data = {"flights": len(flights), "flight_minutes": sum(f["seconds"] for f in flights) / 60.0,
+                    "kind": "closed loop", "iterations": list(range(i))}
+            path = _dataset_file(it / "data.npz", flights)
+            _say(progress, f"iteration {i}: training {name} on {len(flights)} flights "
+                           f"({data['flight_minutes']:.1f} min)")
+            rec = _stage(it / f"{name}.json", lambda: train_model(s, path, it, name, min(jobs, 2), data))
+            trainings.append(rec)
+            model = str(it / f"{name}.onnx")
+            stages[f"train {i}"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        curve.append(_stage(it / "curve.json", lambda: _curve_row(s, out, i, model, flights, jobs, progress)))
+        stages[f"curve {i}"] = time.perf_counter() - t0
+        if i < s.iterations:
+            t0 = time.perf_counter()
+            n_refs = len(training_refs_of(s, i))
+            _say(progress, f"iteration {i}: flying {n_refs} training references with "
+                           f"{'the nominal equations' if model == 'nominal' else Path(model).stem}")
+            jobs_i = [FlightJob(s, "train", i, k, model) for k in range(n_refs)]
+            flights = flights + _flights_stage(s, it / "flights.npz", jobs_i, jobs, progress, f"iteration {i}")
+            stages[f"fly {i}"] = time.perf_counter() - t0
+    final = model
+    controls = {}
+    if s.controls:
+        t0 = time.perf_counter()
+        controls = _controls(s, out, flights, final, jobs, progress)
+        stages["controls"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    evaluation = _evaluate(s, out, models_dir, final, controls, jobs, progress)
+    stages["evaluation"] = time.perf_counter() - t0
+    summary = {"plant": p.key, "label": evaluation["label"], "settings": mine, "curve": curve,
+               "trainings": trainings, "controls": {k: v["record"] for k, v in controls.items()},
+               "evaluation": evaluation, "final_model": Path(final).stem,
+               "stage_seconds": {k: round(v, 1) for k, v in stages.items()},
+               "wall_time_s": round(time.perf_counter() - t_start, 1), "date": time.strftime("%Y-%m-%d")}
+    write_json(out / "learn.json", summary)
+    return summary
+
+
+def training_refs_of(settings: LearnSettings, iteration: int):
+    """The training references of one iteration (:func:`scenarios.training_refs.training_references`)."""
+    from .training_refs import training_references
+
+    return training_references(iteration, settings.per_level, settings.seed)
+
+
+def _controls(s: LearnSettings, out: Path, flights: list[dict], final: str, jobs: int, progress) -> dict:
+    """The two controls, trained on as many minutes of flight as the final model (two trainings at once)."""
+    import math as _math
+
+    from sim.excitation import make_dataset
+    from sim.params import NoiseModel
+    from sim.vehicle import load_vehicle
+
+    from .library import get_scenario
+    from .pool import run_pool
+
+    p = s.spec
+    c = out / "controls"
+    seconds = sum(f["seconds"] for f in flights)
+    # Same minutes of open-loop excitation: pinnmpc data's flights on this plant, in the regime of its best model.
+    n_open = max(2, _math.ceil(seconds / OPEN_LOOP_FLIGHT_S - 1e-9))
+    open_path = c / "openloop_data.npz"
+    if not open_path.is_file():
+        _say(progress, f"controls: {n_open} open-loop excitation flights of {OPEN_LOOP_FLIGHT_S:g} s ({p.open_loop})")
+        vehicle = load_vehicle(None)
+        ds = make_dataset(p.open_loop, n_open, OPEN_LOOP_FLIGHT_S, s.seed, noise=NoiseModel(),
+                          fidelity=vehicle.named_fidelity("high" if p.high_fidelity else "nominal"), plant=p.plant,
+                          vehicle=vehicle)
+        ds.save(open_path)
+    # The upper bound: flights of the evaluation reference itself (perturbed, dithered) with the final model.
+    per = get_scenario("figure8-fast").steps * DT
+    n_up = max(2, _math.ceil(seconds / per - 1e-9))
+    _say(progress, f"controls: {n_up} flights of figure8-fast itself with {Path(final).stem} (upper bound only)")
+    up = _flights_stage(s, c / "upper_flights.npz", [FlightJob(s, "upper", 0, k, final) for k in range(n_up)],
+                        jobs, progress, "upper bound", held_out=False)
+    up_path = _dataset_file(c / "upper_data.npz", up)
+    todo = {
+        "openloop": (open_path, {"flights": n_open, "flight_minutes": n_open * OPEN_LOOP_FLIGHT_S / 60.0,
+                                 "kind": f"open-loop excitation ({p.open_loop})"}),
+        "upper": (up_path, {"flights": len(up), "flight_minutes": sum(f["seconds"] for f in up) / 60.0,
+                            "kind": "closed loop on the evaluation reference (upper bound)"}),
+    }
+    recs = {}
+    items = []
+    for k, (path, data) in todo.items():
+        name = f"learn_{p.key}_{k}"
+        if (c / f"{name}.json").is_file():
+            recs[k] = json.loads((c / f"{name}.json").read_text())
+        else:
+            items.append((k, (s, path, c, name, 1, data)))
+    if items:
+        _say(progress, f"controls: training {', '.join(f'learn_{p.key}_{k}' for k, _ in items)}")
+
+        def failed(item, reason):
+            raise ScenarioError(f"training control {item[0]}: {reason}")
+
+        if jobs > 1 and len(items) > 1:
+            run_pool(_control_item, items, min(jobs, 2), lambda item, rec: recs.__setitem__(item[0], rec), failed)
+        else:
+            for item in items:
+                recs[item[0]] = _control_item(item)
+    return {k: {"record": recs[k], "model": str(c / f"learn_{p.key}_{k}.onnx")} for k in todo}
+
+
+def _control_item(item):
+    return _train_item(item[1])
+
+
+def _evaluate(s: LearnSettings, out: Path, models_dir, final: str, controls: dict, jobs: int, progress) -> dict:
+    """Nominal, the best open-loop model, the final model and the controls on figure8-fast and the ladder."""
+    from .library import ladder_speeds
+    from .sweep import sweep
+    from .versus import VERSUS_SCENARIO, WIN_FRACTION, summarize_plant, versus_specs
+
+    models = ["nominal"]
+    best = Path(models_dir) / s.spec.best_open_loop
+    if best.is_file():
+        models.append(str(best))
+    models.append(final)
+    models += [c["model"] for c in controls.values()]
+    # Every model on figure8-fast; the ladder for the nominal equations and the final model (the goal's rung test).
+    ens = versus_specs(s.spec.versus, models, s.members, s.ladder_members)["ensemble"]
+    lad = versus_specs(s.spec.versus, ["nominal", final], s.members, s.ladder_members)["ladder"]
+    specs, tags = [], []
+    for m, runs in ens.items():
+        specs += runs
+        tags += [(m, None)] * len(runs)
+    for m, rungs in lad.items():
+        for rung, runs in rungs.items():
+            if rung != VERSUS_SCENARIO:
+                specs += runs
+                tags += [(m, rung)] * len(runs)
+    _say(progress, f"evaluation: {len(specs)} runs ({len(models)} models on {VERSUS_SCENARIO} and the ladder)")
+    results = sweep(specs, out / "evaluation", jobs=jobs, progress=progress is not None)
+    _no_errors(results)
+    mine = {i: {**r, "_model": m, "_rung": rung} for i, ((m, rung), r) in enumerate(zip(tags, results))}
+    summary = summarize_plant(s.spec.versus, models, mine, ladder_speeds())
+    # The verdict is the final model's (summarize_plant's best could be a control, and the upper bound has seen the
+    # evaluation reference): at least WIN_FRACTION below the nominal equations with the medians' intervals apart, and
+    # the fastest rung flown at least the nominal equations'.
+    rows = summary["models"]
+    fin, nom = rows[Path(final).stem], rows["nominal"]
+    v = fin["versus_nominal"]
+    sp_f, sp_n = fin["ladder"]["max_speed"]["speed_mps"], nom["ladder"]["max_speed"]["speed_mps"]
+    ladder_ok = sp_n is None or (sp_f is not None and sp_f >= sp_n)
+    summary["verdict"] = None if v is None else {
+        "model": Path(final).stem, "fraction": v["fraction"], "fraction_ci95": v["fraction_ci95"], "apart": v["apart"],
+        "goal": WIN_FRACTION, "max_speed_mps": sp_f, "nominal_max_speed_mps": sp_n, "ladder_ok": bool(ladder_ok),
+        "met": bool(v["fraction"] >= WIN_FRACTION and v["apart"] and ladder_ok)}
+    summary["roles"] = {Path(m).stem if m != "nominal" else m: role for m, role in
+                        [("nominal", "nominal equations")] + [(str(best), "best open-loop model")] * best.is_file()
+                        + [(final, "final learned model")]
+                        + [(c["model"], CONTROL_ROLES[k]) for k, c in controls.items()]}
+    return summary
+
+
+def _mm(v) -> str:
+    return "–" if v is None else f"{1e3 * v:.1f}"
+
+
+def format_learn(out: dict) -> str:
+    """A study's summary as plain text: the learning curve, the controls and the evaluation's verdict."""
+    lines = [f"learning from flown flights on {out['label']}", "learning curve (figure8-fast, median RMSE, mm):"]
+    for r in out["curve"]:
+        s = r["ensemble"]
+        ci = s["median_ci95"]
+        lines.append(f"  iteration {r['iteration']} ({r['model']}, {r['flight_minutes']:.1f} min of flights): "
+                     f"{_mm(s['median'])}" + ("" if ci is None else f" ({_mm(ci[0])}-{_mm(ci[1])})")
+                     + f", crashes {s['crashes']}/{s['runs']}")
+    ev = out["evaluation"]
+    lines.append("evaluation (figure8-fast; fastest ladder rung flown):")
+    for name, row in ev["models"].items():
+        s, v = row["ensemble"], row["versus_nominal"]
+        role = ev["roles"].get(name, "")
+        sp = None if row["ladder"] is None else row["ladder"]["max_speed"]["speed_mps"]
+        vs = "" if v is None else f", {100 * v['fraction']:+.0f} % vs nominal"
+        lines.append(f"  {name} [{role}]: {_mm(s['median'])} mm{vs}, crashes {s['crashes']}/{s['runs']}, "
+                     f"max speed {'–' if sp is None else f'{sp:.2f} m/s'}")
+    v = ev.get("verdict")
+    if v is None:
+        lines.append("  no verdict: the final model or the nominal equations lack two members with an RMSE")
+    else:
+        lines.append(f"  final model {v['model']}: {100 * v['fraction']:.0f} % better than nominal (goal "
+                     f"{100 * v['goal']:.0f} %, intervals {'apart' if v['apart'] else 'overlap'}, ladder "
+                     f"{'kept' if v['ladder_ok'] else 'lost speed'}): {'met' if v['met'] else 'missed'}")
+    lines.append(f"wall time {out['wall_time_s'] / 60:.1f} min")
+    return "\n".join(lines)
+
+
+def publish_learn(study_dir, models_dir="models") -> Path:
+    """Copy a finished study's ``learn.json`` and its models' ONNX files into ``models_dir/learn/<plant>``.
+
+    The copied summary's model paths are rewritten to the copies (relative to the models folder), so that the
+    main job can fly them from a fresh clone.
+    """
+    import shutil
+
+    study_dir = Path(study_dir)
+    summary_path = study_dir / "learn.json"
+    if not summary_path.is_file():
+        raise ScenarioError(f"{str(study_dir)!r} holds no finished study (no learn.json)")
+    out = json.loads(summary_path.read_text())
+    dest = Path(models_dir) / LEARN_DIR / out["plant"]
+    dest.mkdir(parents=True, exist_ok=True)
+    for onnx in sorted(study_dir.glob("it*/*.onnx")) + sorted(study_dir.glob("controls/*.onnx")):
+        shutil.copyfile(onnx, dest / onnx.name)
+    for it in sorted(study_dir.glob("it*/flights.npz")):
+        shutil.copyfile(it, dest / f"flights_{it.parent.name}.npz")
+    write_json(dest / "learn.json", out)
+    return dest

@@ -1,0 +1,244 @@
+"""Learning from flown flights (scenarios.learn): held-out references, the flights' dataset, resume."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from scenarios import learn
+from scenarios.errors import ScenarioError
+from scenarios.learn import FlightJob, LearnSettings, flights_dataset, load_flights, save_flights
+from scenarios.library import get_scenario
+from scenarios.training_refs import reference_positions
+from sim.params import DT
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED = ROOT / "models" / learn.LEARN_DIR
+
+# Tolerances and budgets of this module.
+TOL = {
+    "pieces_exact": 0.0,         # the dataset's pieces are the flights' samples, bit for bit
+    "hover_thrust_rel": 1e-9,    # the synthetic flights' wrench against m g
+}
+#: Size budget of the shipped study (its summaries, models and flown data), bytes.
+SHIPPED_BYTES = 45e6
+#: Fields of learn.json that are timings (a resumed run differs there only).
+TIMING_FIELDS = ("stage_seconds", "wall_time_s", "date")
+
+
+def _hover_flight(name: str, n: int, seed: int, ref=None) -> dict:
+    """A synthetic flown flight of ``n`` samples: hover with small seeded noise, hover thrust commanded."""
+    from sim.vehicle import load_vehicle
+
+    v = load_vehicle(None)
+    rng = np.random.default_rng(seed)
+    x = np.zeros((n, 12))
+    x[:, 2] = -1.0
+    x += 1e-3 * rng.standard_normal(x.shape)
+    n_hover = np.sqrt(v.m * v.params.g / (4.0 * v.kt))
+    rot = n_hover + 1e-3 * rng.standard_normal((n, 4))
+    cmd = np.tile([v.m * v.params.g, 0.0, 0.0, 0.0], (n - 1, 1))
+    ref = x[:, 0:3] * 0.0 + np.array([0.0, 0.0, -1.0]) if ref is None else ref
+    return {"name": name, "t": DT * np.arange(n), "x": x, "rotor_speed": rot, "command": cmd, "reference": ref,
+            "rmse_m": 0.0, "crashed": False, "crash_reason": None, "seconds": (n - 1) * DT, "solve_ms": 1.0}
+
+
+# ------------------------------------------------------------------ held-out references
+def test_no_training_reference_of_the_default_study_is_an_evaluation_reference():
+    from scenarios.training_refs import check_held_out
+
+    s = LearnSettings()
+    refs = {}
+    for i in range(s.iterations):
+        for k in range(len(learn.training_refs_of(s, i))):
+            name, traj, dur = FlightJob(s, "train", i, k, "nominal").reference()
+            refs[name] = reference_positions(traj, dur)
+    assert len(refs) == s.iterations * 18
+    check_held_out(refs)            # raises if any window is shared
+
+
+def test_a_renamed_or_embedded_evaluation_reference_is_refused_before_training():
+    sc = get_scenario("figure8-2.2s")
+    fig8 = reference_positions(sc.reference(), sc.steps * DT)
+    renamed = _hover_flight("it0-orbit-1-0", len(fig8), 1, ref=fig8)
+    with pytest.raises(ScenarioError, match="figure8-2.2s"):
+        learn._check_held_out([_hover_flight("it0-minsnap-1-0", 500, 0), renamed])
+    # a piece of one second of figure8-fast inside a longer path
+    fast = get_scenario("figure8-fast")
+    piece = reference_positions(fast.reference(), fast.steps * DT)[200:300]
+    path = np.vstack([np.tile(piece[0], (150, 1)), piece, np.tile(piece[-1], (150, 1))])
+    with pytest.raises(ScenarioError, match="figure8-fast"):
+        learn._check_held_out([_hover_flight("it1-orbit-2-0", len(path), 2, ref=path)])
+
+
+def test_the_loop_refuses_to_train_on_flights_of_an_evaluation_reference(tmp_path, monkeypatch):
+    """A flight whose recorded reference is figure8-fast under a training name stops the study before training."""
+    fast = get_scenario("figure8-fast")
+    fig8 = reference_positions(fast.reference(), fast.steps * DT)
+    trained = []
+
+    def fake_fly(job):
+        ref = fig8 if job.index == 1 else None
+        return _hover_flight(job.reference()[0], len(fig8), job.seed, ref=ref)
+
+    monkeypatch.setattr(learn, "fly_flight", fake_fly)
+    monkeypatch.setattr(learn, "_curve_row", lambda *a, **k: {"iteration": a[2]})
+    monkeypatch.setattr(learn, "train_model", lambda *a, **k: trained.append(a) or {})
+    with pytest.raises(ScenarioError, match="figure8-fast"):
+        learn.run_learn(LearnSettings(iterations=1, per_level=1), tmp_path, jobs=1, progress=None)
+    assert trained == []
+
+
+# ------------------------------------------------------------------ flights as data
+def test_flights_round_trip_and_become_pieces_of_equal_length(tmp_path):
+    L = learn.PIECE_STEPS
+    lengths = [L + 1, 2 * L + 51, L // 2, 3 * L + 1, L + 7, L + 2]   # one too short to make a piece
+    flights = [_hover_flight(f"f{i}", n, i) for i, n in enumerate(lengths)]
+    save_flights(tmp_path / "f.npz", flights)
+    back = load_flights(tmp_path / "f.npz")
+    for a, b in zip(flights, back):
+        assert a.keys() == b.keys()
+        for k in learn.FLIGHT_ARRAYS:
+            np.testing.assert_array_equal(a[k], b[k])
+    ds = flights_dataset(back)
+    # pieces per flight: m // L, plus one ending at the flight's end where L does not divide m
+    expect = []
+    for i, n in enumerate(lengths):
+        m = n - 1
+        if m >= L:
+            starts = list(range(0, m - L + 1, L))
+            expect += [(i, k) for k in starts + ([m - L] if starts[-1] != m - L else [])]
+    assert ds.x.shape == (len(expect), L, 12) and ds.valid is None
+    for j, (i, k) in enumerate(expect):
+        f = flights[i]
+        assert np.max(np.abs(ds.x[j] - f["x"][k:k + L])) <= TOL["pieces_exact"]
+        assert np.max(np.abs(ds.x_next[j] - f["x"][k + 1:k + L + 1])) <= TOL["pieces_exact"]
+        assert np.max(np.abs(ds.u[j] - f["command"][k:k + L])) <= TOL["pieces_exact"]
+        assert np.max(np.abs(ds.rotor_speed[j] - f["rotor_speed"][k:k + L])) <= TOL["pieces_exact"]
+        # split of the whole flight: the fifth of every SPLIT_EVERY to validation, the sixth to test
+        assert ds.split[j] == {4: 1, 5: 2}.get(i % learn.SPLIT_EVERY, 0)
+    assert ds.meta["pieces"] == {"steps": L, "count": len(expect), "flights": len(lengths)}
+
+
+def test_bad_settings_name_the_setting():
+    for kw, word in (({"plant": "moon"}, "plant"), ({"iterations": 0}, "iterations"), ({"per_level": 1.5}, "per_level"),
+                     ({"dither": -1.0}, "dither"), ({"profile": "long"}, "profile"), ({"seed": -2}, "seed")):
+        with pytest.raises(ScenarioError, match=word):
+            LearnSettings(**kw)
+
+
+# ------------------------------------------------------------------ resume (the loop's stages, fast)
+class _Fakes:
+    """Flying, training, the curve and the evaluation replaced by deterministic stand-ins that count their calls."""
+
+    def __init__(self, kill_at_training: int | None = None):
+        self.calls = {"fly": 0, "train": 0}
+        self.kill = kill_at_training
+
+    def fly(self, job):
+        self.calls["fly"] += 1
+        rng = np.random.default_rng(job.seed)
+        f = _hover_flight(job.reference()[0], 450 + int(rng.integers(0, 200)), job.seed)
+        f["model_flown"] = Path(job.model).name
+        return f
+
+    def train(self, settings, data_path, folder, name, threads, data):
+        self.calls["train"] += 1
+        if self.kill is not None and name.endswith(f"_it{self.kill}"):
+            raise KeyboardInterrupt        # the study is killed while it trains this iteration
+        from sim.excitation import load_dataset
+
+        ds = load_dataset(data_path)
+        return {"name": name, "data": data, "x_sum": float(np.sum(ds.x)), "pieces": int(ds.x.shape[0])}
+
+    def curve(self, settings, out, i, model, flights, jobs, progress):
+        return {"iteration": i, "model": Path(model).stem, "flights": len(flights),
+                "x_sum": float(sum(np.sum(f["x"]) for f in flights))}
+
+    def evaluate(self, s, out, models_dir, final, controls, jobs, progress):
+        return {"label": "fake", "final": Path(final).stem, "controls": sorted(controls)}
+
+    def install(self, monkeypatch):
+        monkeypatch.setattr(learn, "fly_flight", self.fly)
+        monkeypatch.setattr(learn, "train_model", self.train)
+        monkeypatch.setattr(learn, "_curve_row", self.curve)
+        monkeypatch.setattr(learn, "_evaluate", self.evaluate)
+
+
+def _without_timing(d: dict) -> dict:
+    return {k: v for k, v in d.items() if k not in TIMING_FIELDS}
+
+
+def test_a_study_killed_in_iteration_2_resumes_to_the_same_results(tmp_path, monkeypatch):
+    s = LearnSettings(iterations=3, per_level=1, controls=False)
+    whole = _Fakes()
+    whole.install(monkeypatch)
+    ref = learn.run_learn(s, tmp_path / "whole", jobs=1, progress=None)
+    assert whole.calls == {"fly": 18, "train": 3}
+
+    killed = _Fakes(kill_at_training=2)
+    killed.install(monkeypatch)
+    with pytest.raises(KeyboardInterrupt):
+        learn.run_learn(s, tmp_path / "resumed", jobs=1, progress=None)
+    assert killed.calls == {"fly": 12, "train": 2}
+    again = _Fakes()
+    again.install(monkeypatch)
+    out = learn.run_learn(s, tmp_path / "resumed", jobs=1, progress=None)
+    assert again.calls == {"fly": 6, "train": 2}          # iterations 0 and 1 were not flown or trained again
+    assert _without_timing(out) == _without_timing(ref)
+    a = json.loads((tmp_path / "whole" / "highfi" / "learn.json").read_text())
+    b = json.loads((tmp_path / "resumed" / "highfi" / "learn.json").read_text())
+    assert _without_timing(a) == _without_timing(b)
+    # the data each model learned from are the same bytes
+    for i in (1, 2, 3):
+        assert (tmp_path / "whole" / "highfi" / f"it{i}" / "data.npz").read_bytes() == \
+            (tmp_path / "resumed" / "highfi" / f"it{i}" / "data.npz").read_bytes()
+
+
+def test_a_rerun_with_other_settings_is_refused(tmp_path, monkeypatch):
+    _Fakes().install(monkeypatch)
+    learn.run_learn(LearnSettings(iterations=1, per_level=1, controls=False), tmp_path, jobs=1, progress=None)
+    with pytest.raises(ScenarioError, match="other settings"):
+        learn.run_learn(LearnSettings(iterations=1, per_level=2, controls=False), tmp_path, jobs=1, progress=None)
+
+
+# ------------------------------------------------------------------ resume (the real command, killed)
+def _learn_cmd(out: Path) -> list[str]:
+    return [sys.executable, "-m", "scenarios.cli", "learn", "--plant", "highfi", "--out", str(out), "--iterations",
+            "2", "--per-level", "1", "--members", "2", "--ladder-members", "1", "--profile", "smoke",
+            "--no-controls", "--jobs", "2"]
+
+
+@pytest.mark.slow
+def test_pinnmpc_learn_killed_in_iteration_2_and_rerun_equals_an_uninterrupted_run(tmp_path):
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    subprocess.run(_learn_cmd(tmp_path / "whole"), check=True, cwd=ROOT, env=env, capture_output=True)
+    proc = subprocess.Popen(_learn_cmd(tmp_path / "killed"), cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    for line in proc.stdout:                    # kill it as iteration 2's training starts
+        if line.startswith("iteration 2: training"):
+            os.killpg(proc.pid, signal.SIGKILL)
+            break
+    proc.wait(timeout=60)
+    assert proc.returncode == -signal.SIGKILL
+    assert not (tmp_path / "killed" / "highfi" / "learn.json").exists()
+    time.sleep(1.0)
+    subprocess.run(_learn_cmd(tmp_path / "killed"), check=True, cwd=ROOT, env=env, capture_output=True)
+    a = json.loads((tmp_path / "whole" / "highfi" / "learn.json").read_text())
+    b = json.loads((tmp_path / "killed" / "highfi" / "learn.json").read_text())
+
+    def strip(d):
+        d = _without_timing(d)
+        for r in d["trainings"]:
+            r.pop("training_seconds")
+        return d
+
+    assert strip(a) == strip(b)
