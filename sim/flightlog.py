@@ -625,8 +625,9 @@ def flights_to_dataset(flights: list[Flight], vehicle: Vehicle, splits: dict[str
 
     ``valid[i, k]`` holds (state at k measured, rotor speeds at k measured, state at k + 1 measured); a sample is
     a usable one-step pair when all three are True. The input ``u`` is each flight's command where it has one
-    (:func:`flown_flight`), else its wrench from the rotor speeds; ``wrench`` is always the latter. ``fmt``: the
-    logs' format (None for flights flown here).
+    (:func:`flown_flight`), else its wrench from the rotor speeds; ``wrench`` is always the latter. The rotor speeds
+    of sample k are a log's at sample k, and a flown flight's at the end of period k (sample k + 1), as the
+    simulator's datasets log them. ``fmt``: the logs' format (None for flights flown here).
     """
     from . import __version__
     from .excitation import FORMAT_VERSION, SPLIT_NAMES, Dataset
@@ -642,7 +643,11 @@ def flights_to_dataset(flights: list[Flight], vehicle: Vehicle, splits: dict[str
     for i, f in enumerate(flights):
         m = len(f.t) - 1
         cmd = f.u if f.command is None else f.command
-        x[i, :m], x_next[i, :m], rs[i, :m] = f.x[:-1], f.x[1:], f.rotor_speed[:-1]
+        # A log's rotor speeds at sample k go with sample k. A flight flown here commands each period and its rotors
+        # answer within it: its sample k gets the speeds at the period's end, as the simulator's datasets log them
+        # (the telemetry a motor-lag model is trained against).
+        rot = f.rotor_speed[:-1] if f.command is None else f.rotor_speed[1:]
+        x[i, :m], x_next[i, :m], rs[i, :m] = f.x[:-1], f.x[1:], rot
         u[i, :m], wrench[i, :m] = cmd[:-1], f.u[:-1]
         x[i, m:], x_next[i, m:], rs[i, m:] = f.x[-1], f.x[-1], f.rotor_speed[-1]
         u[i, m:], wrench[i, m:] = cmd[-1], f.u[-1]

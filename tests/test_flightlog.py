@@ -365,7 +365,7 @@ def test_a_flown_flight_becomes_a_dataset_sample_for_sample():
     ds = flights_to_dataset([f, g], v, {"lagged": "train", "crashed": "test"})
     m = len(t) - 1
     assert np.array_equal(ds.x[0, :m], x[:-1]) and np.array_equal(ds.x_next[0, :m], x[1:])
-    assert np.array_equal(ds.u[0, :m], u) and np.array_equal(ds.rotor_speed[0, :m], n[:-1])
+    assert np.array_equal(ds.u[0, :m], u) and np.array_equal(ds.rotor_speed[0, :m], n[1:])  # period's end
     realized = wrench_from_rotor_sq(n[:-1] ** 2, v.params)
     assert np.max(np.abs(ds.wrench[0, :m] - realized)) <= WRENCH_RTOL * np.max(np.abs(realized))
     # With the motors lagging, the command is not the wrench the rotors give: both are kept.
