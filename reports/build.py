@@ -13,6 +13,7 @@ from .plants import plants_section, split_by_plant, where_sentence
 from .realflights import realdata_section
 from .inputs import load_inputs
 from .summary import summary_text
+from .learn import learn_section
 from .versus import versus_section
 from .estimation import estimation_section, split_by_estimator
 from .zoo import (NO_STUDY, answer_text, dose_response_figure, estimator_threshold_section, max_speed_figure,
@@ -37,6 +38,7 @@ SECTIONS = (
     "Closed-loop results",
     "High-fidelity plant: models trained on its own data",
     "Learned against nominal on plants with unmodelled physics",
+    "Learning from flown flights",
     "Other plants and vehicles",
     "Real flights: the nano-drone benchmark",
     "State estimation and offset-free control",
@@ -125,6 +127,7 @@ def report_markdown(run_dir) -> str:
     body["High-fidelity plant: models trained on its own data"] = highfi_table(
         inp.runs + members, inp.evaluation)
     body["Learned against nominal on plants with unmodelled physics"] = versus_section(inp.versus)
+    body["Learning from flown flights"] = learn_section(inp.learn, d, _figure_md)
     body["Other plants and vehicles"] = plants_section(inp.runs, other_plants)
     body["Real flights: the nano-drone benchmark"] = realdata_section(inp.realdata)
     body["State estimation and offset-free control"] = estimation_section(without, estimated)

@@ -4,7 +4,7 @@ Required: ``results.json``, ``evaluation.json``, ``fisher.json`` (a missing or
 malformed one raises :class:`~reports.errors.ReportError` naming the file).
 Optional: ``ablation.json``, ``provenance.json``, ``study.json`` (the zoo
 study, copied by ``pinnmpc run``), ``versus.json`` (learned against nominal,
-copied likewise), ``realdata.json`` (``pinnmpc realdata --out`` this folder) and ``traces/<run_id>.npz`` (missing ones are reported in the
+copied likewise), ``learn_<plant>.json`` (learning from flown flights, copied likewise), ``realdata.json`` (``pinnmpc realdata --out`` this folder) and ``traces/<run_id>.npz`` (missing ones are reported in the
 text instead; a malformed ``study.json`` or ``versus.json`` raises).
 """
 
@@ -28,6 +28,8 @@ STUDY_KEYS = ("scenario", "members", "controllers", "ladder", "models", "scores"
 VERSUS_KEYS = ("scenario", "controller", "members", "ladder_members", "ladder", "goal", "plants")
 #: Keys a realdata.json must have.
 REALDATA_KEYS = ("source", "horizons", "splits", "models", "published_h50", "goal_h50", "identification")
+#: Keys a learn_<plant>.json must have.
+LEARN_KEYS = ("plant", "settings", "curve", "evaluation", "wall_time_s")
 #: Trace arrays the figures use: t (K+1,) s, x and x_ref (K+1, 12), solve_s (K,) s.
 TRACE_KEYS = ("t", "x", "x_ref")
 
@@ -106,6 +108,8 @@ class Inputs:
         ``study_ekf.json`` (the study's ensembles flown with the state estimator), None when absent.
     realdata : dict or None
         ``realdata.json`` (``pinnmpc realdata``: real flight logs under the benchmark's protocol), None when absent.
+    learn : dict or None
+        ``learn_<plant>.json`` by plant (``pinnmpc learn``: learning from flown flights), None when there is none.
     """
 
     run_dir: Path
@@ -119,6 +123,7 @@ class Inputs:
     versus: dict | None = None
     study_ekf: dict | None = None
     realdata: dict | None = None
+    learn: dict | None = None
     _traces: dict = field(default_factory=dict, repr=False)
 
     def models_by_name(self) -> dict:
@@ -183,8 +188,16 @@ def load_inputs(run_dir) -> Inputs:
         missing = [k for k in REALDATA_KEYS if not isinstance(realdata, dict) or k not in realdata]
         if missing:
             raise ReportError(f"'realdata.json': not the output of pinnmpc realdata (lacks {', '.join(missing)})")
+    learn = {}
+    for path in sorted(d.glob("learn_*.json")):
+        st = _read_json(path, False)
+        missing = [k for k in LEARN_KEYS if not isinstance(st, dict) or k not in st]
+        if missing:
+            raise ReportError(f"{path.name!r}: not the output of pinnmpc learn (lacks {', '.join(missing)})")
+        learn[st["plant"]] = st
     plan = results.get("plan") if isinstance(results.get("plan"), dict) else {}
-    return Inputs(d, runs, plan, evaluation, fisher, ablation, provenance, study, versus, study_ekf, realdata)
+    return Inputs(d, runs, plan, evaluation, fisher, ablation, provenance, study, versus, study_ekf, realdata,
+                  learn or None)
 
 
 def _read_study(d: Path, name: str) -> dict | None:

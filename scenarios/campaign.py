@@ -17,6 +17,9 @@ Layout of a results folder ``DIR``::
     DIR/versus.json         learned models against the nominal equations on plants with unmodelled physics
                             (copied from models/versus/versus.json, produced by ``pinnmpc versus``; also too
                             long for the main job)
+    DIR/learn_<plant>.json  learning from flown flights (copied from models/learn/<plant>/learn.json, produced by
+                            ``pinnmpc learn --publish``; its final models fly in the main job's high-fidelity and
+                            RotorPy runs)
     DIR/results.json        {"plan": ..., "runs": [one result per closed-loop run, as ``fly --json``]}
     DIR/runs/<id>.json      the same results, one file per run
     DIR/traces/<id>.npz     the trace of each run (t, x, x_ref, x_measured, u, u_command, rotor_speed, solve_s, ...)
@@ -178,9 +181,21 @@ def plant_plan(models_dir="models", full: bool = False) -> list[RunSpec]:
         models = [m for m in models if Path(m).name in PLANT_DEFAULT_MODELS]
     sc, c = PLANT_SCENARIO, PLANT_CONTROLLER
     specs = [RunSpec(sc, c, m, plant="rotorpy-ideal") for m in ["oracle", *models]]
-    specs += [RunSpec(sc, c, m, plant="rotorpy") for m in ["nominal", *models]]
+    specs += [RunSpec(sc, c, m, plant="rotorpy") for m in ["nominal", *models, *learned_models(models_dir, "rotorpy")]]
     specs += [RunSpec(sc, c, "nominal", plant=pl, vehicle=v) for v in PLANT_VEHICLES for pl in ("sim", "rotorpy")]
     return specs
+
+
+def learned_models(models_dir, plant: str) -> list[str]:
+    """The final model of the shipped learning study on ``plant`` (``highfi`` or ``rotorpy``): ``[path]``, or
+    ``[]`` where none is shipped (``models/learn/<plant>/learn.json`` names it; ``pinnmpc learn --publish``)."""
+    from .learn import LEARN_DIR
+
+    summary = Path(models_dir) / LEARN_DIR / plant / "learn.json"
+    if not summary.is_file():
+        return []
+    path = summary.parent / f"{json.loads(summary.read_text())['final_model']}.onnx"
+    return [str(path)] if path.is_file() else []
 
 
 def _on(spec: RunSpec, plant: str, vehicle: str | None) -> RunSpec | None:
@@ -294,6 +309,7 @@ def highfi_plan(models_dir="models", full: bool = False) -> list[RunSpec]:
     d = Path(models_dir)
     # The oracle is the plant's true equations (lag, drag, gyro); the nominal rigid-body equations fly beside it.
     models = ["oracle", "nominal"] + [str(d / m) for m in HIGHFI_MODELS if (d / m).is_file()]
+    models += learned_models(models_dir, "highfi")    # the learning study's final model (its report's cases)
     specs = []
     for sc, members in HIGHFI_SCENARIOS.items():
         members = members if full else min(members, HIGHFI_DEFAULT_MEMBERS)
@@ -498,6 +514,10 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
             shutil.copyfile(src, out / name)
         elif (out / name).is_file():
             (out / name).unlink()     # a stale copy would be reported as this run's
+    for stale in out.glob("learn_*.json"):
+        stale.unlink()
+    for src in sorted((Path(models_dir) / "learn").glob("*/learn.json")):
+        shutil.copyfile(src, out / f"learn_{src.parent.name}.json")
     where = (f"the Ray cluster at {address}" if address else f"a local Ray instance with {jobs} CPUs") \
         if engine == "ray" else f"{jobs} processes"
     stage(f"closed-loop sweep: {len(specs)} runs on {where}")

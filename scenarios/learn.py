@@ -663,10 +663,11 @@ def format_learn(out: dict) -> str:
 
 
 def publish_learn(study_dir, models_dir="models") -> Path:
-    """Copy a finished study's ``learn.json`` and its models' ONNX files into ``models_dir/learn/<plant>``.
+    """Copy a finished study's ``learn.json``, its models' ONNX files and its flown flights (single precision) into
+    ``models_dir/learn/<plant>``.
 
-    The copied summary's model paths are rewritten to the copies (relative to the models folder), so that the
-    main job can fly them from a fresh clone.
+    The summary names its models by file stem (``final_model``), so that the main job finds the copies
+    beside it (:func:`scenarios.campaign.learned_models`).
     """
     import shutil
 
@@ -679,7 +680,8 @@ def publish_learn(study_dir, models_dir="models") -> Path:
     dest.mkdir(parents=True, exist_ok=True)
     for onnx in sorted(study_dir.glob("it*/*.onnx")) + sorted(study_dir.glob("controls/*.onnx")):
         shutil.copyfile(onnx, dest / onnx.name)
-    for it in sorted(study_dir.glob("it*/flights.npz")):
-        shutil.copyfile(it, dest / f"flights_{it.parent.name}.npz")
+    for it in sorted(study_dir.glob("it*/flights.npz")):     # in single precision: half the size, the same data
+        flights = [{**f, **{k: np.asarray(f[k], dtype=np.float32) for k in FLIGHT_ARRAYS}} for f in load_flights(it)]
+        save_flights(dest / f"flights_{it.parent.name}.npz", flights)
     write_json(dest / "learn.json", out)
     return dest

@@ -122,7 +122,8 @@ def test_flights_round_trip_and_become_pieces_of_equal_length(tmp_path):
         assert np.max(np.abs(ds.x[j] - f["x"][k:k + L])) <= TOL["pieces_exact"]
         assert np.max(np.abs(ds.x_next[j] - f["x"][k + 1:k + L + 1])) <= TOL["pieces_exact"]
         assert np.max(np.abs(ds.u[j] - f["command"][k:k + L])) <= TOL["pieces_exact"]
-        assert np.max(np.abs(ds.rotor_speed[j] - f["rotor_speed"][k:k + L])) <= TOL["pieces_exact"]
+        # the rotor speeds at the end of each period (the simulator's datasets' telemetry)
+        assert np.max(np.abs(ds.rotor_speed[j] - f["rotor_speed"][k + 1:k + L + 1])) <= TOL["pieces_exact"]
         # split of the whole flight: the fifth of every SPLIT_EVERY to validation, the sixth to test
         assert ds.split[j] == {4: 1, 5: 2}.get(i % learn.SPLIT_EVERY, 0)
     assert ds.meta["pieces"] == {"steps": L, "count": len(expect), "flights": len(lengths)}
@@ -242,3 +243,42 @@ def test_pinnmpc_learn_killed_in_iteration_2_and_rerun_equals_an_uninterrupted_r
         return d
 
     assert strip(a) == strip(b)
+
+
+# ------------------------------------------------------------------ the report's section
+def _ens(median, lo, hi, runs=10, crashes=0):
+    return {"runs": runs, "crashes": crashes, "median": median, "median_ci95": [lo, hi]}
+
+
+def _study(final_mm: float, apart: bool) -> dict:
+    frac = 1.0 - final_mm / 40.0
+    ladder = {"max_speed": {"speed_mps": 2.29}}
+    return {
+        "plant": "highfi", "settings": {"members": 10}, "wall_time_s": 1800.0, "date": "2026-11-26",
+        "curve": [{"iteration": 0, "model": "nominal", "flights": 0, "flight_minutes": 0.0,
+                   "ensemble": _ens(0.040, 0.039, 0.041)},
+                  {"iteration": 1, "model": "learn_highfi_it1", "flights": 18, "flight_minutes": 3.2,
+                   "ensemble": _ens(1e-3 * final_mm, 1e-3 * final_mm - 1e-3, 1e-3 * final_mm + 1e-3)}],
+        "evaluation": {
+            "label": "our high-fidelity plant", "scenario": "figure8-fast+highfi",
+            "roles": {"nominal": "nominal equations", "learn_highfi_it1": "final learned model"},
+            "models": {"nominal": {"ensemble": _ens(0.040, 0.039, 0.041), "versus_nominal": None, "ladder": ladder},
+                       "learn_highfi_it1": {"ensemble": _ens(1e-3 * final_mm, 0.0, 1.0), "ladder": ladder,
+                                            "versus_nominal": {"fraction": frac, "fraction_ci95": [frac - 0.01,
+                                                                                                   frac + 0.01],
+                                                               "apart": apart}}},
+            "verdict": {"model": "learn_highfi_it1", "fraction": frac, "fraction_ci95": [frac - 0.01, frac + 0.01],
+                        "apart": apart, "goal": 0.5, "max_speed_mps": 2.29, "nominal_max_speed_mps": 2.29,
+                        "ladder_ok": True, "met": bool(frac >= 0.5 and apart)}}}
+
+
+def test_the_report_section_states_the_goal_with_its_numbers(tmp_path):
+    from reports.build import _figure_md
+    from reports.learn import learn_section
+
+    met = learn_section({"highfi": _study(18.0, True)}, tmp_path, _figure_md)
+    assert "18.0 mm against 40.0 mm, 55 % better" in met and "20.0 mm with the intervals apart, is met" in met
+    assert (tmp_path / "figures" / "learning_curve.png").is_file()
+    missed = learn_section({"highfi": _study(24.0, True)}, tmp_path, _figure_md)
+    assert "24.0 mm against 40.0 mm, 40 % better" in missed and "is missed" in missed
+    assert "| 1 | `learn_highfi_it1` | 18 | 3.2 | 24.0 (23.0–25.0) | 0/10 |" in missed

@@ -1,0 +1,117 @@
+"""The report's section on learning from flown flights (``learn_<plant>.json`` of ``pinnmpc learn``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .figures import STYLE, FigureOut, _save
+from .tables import MISSING, fmt, md_table
+
+#: Shown when the results folder has no learning study.
+NO_LEARN = ("No `learn_<plant>.json` in this folder: `pinnmpc learn --plant highfi|rotorpy --publish` flies, learns "
+            "from its flights and flies again (about 45 minutes per plant on two cores), and writes a copy into "
+            "`models/learn/`, which the next `pinnmpc run` copies here.")
+
+
+def _mm(s: dict) -> str:
+    if s.get("median") is None:
+        return MISSING
+    ci = s.get("median_ci95")
+    return f"{1e3 * s['median']:.1f}" + ("" if not ci else f" ({1e3 * ci[0]:.1f}–{1e3 * ci[1]:.1f})")
+
+
+def _pct(v: dict | None) -> str:
+    if v is None:
+        return MISSING
+    lo, hi = v["fraction_ci95"]
+    return f"{100 * v['fraction']:+.0f} % ({100 * lo:+.0f} to {100 * hi:+.0f})"
+
+
+def verdict_sentence(study: dict) -> str:
+    """One sentence on the final model against the goal, with its numbers."""
+    ev = study["evaluation"]
+    v = ev.get("verdict")
+    if v is None:
+        return "The final model or the nominal equations lack two members with an RMSE: no verdict."
+    nominal = ev["models"]["nominal"]["ensemble"]["median"]
+    final = ev["models"][v["model"]]["ensemble"]["median"]
+    goal_mm = 1e3 * (1.0 - v["goal"]) * nominal
+    lo, hi = v["fraction_ci95"]
+    ladder = ("its fastest ladder rung is at least the nominal equations'" if v["ladder_ok"] else
+              f"it loses speed on the ladder ({fmt(v['max_speed_mps'], '.2f')} against "
+              f"{fmt(v['nominal_max_speed_mps'], '.2f')} m/s)")
+    return (f"Final model `{v['model']}`: {1e3 * final:.1f} mm against {1e3 * nominal:.1f} mm, "
+            f"{100 * v['fraction']:.0f} % better (95 % {100 * lo:.0f} to {100 * hi:.0f} %); the goal, "
+            f"{100 * v['goal']:.0f} % or {goal_mm:.1f} mm with the intervals apart, is "
+            f"{'met' if v['met'] else 'missed'}; the medians' intervals are {'apart' if v['apart'] else 'overlapping'}"
+            f"; {ladder}.")
+
+
+def learning_figure(studies: dict, run_dir: Path) -> FigureOut | None:
+    """Median RMSE on figure8-fast against iteration and against minutes of flight, one line per plant."""
+    import matplotlib.pyplot as plt
+
+    if not studies:
+        return None
+    with plt.rc_context(STYLE):
+        fig, axes = plt.subplots(1, 2, figsize=(8.0, 3.2), sharey=True)
+        for k, (plant, st) in enumerate(sorted(studies.items())):
+            color = f"C{k}"
+            rows = [r for r in st["curve"] if r["ensemble"]["median"] is not None]
+            for ax, xkey in zip(axes, ("iteration", "flight_minutes")):
+                xs = [r[xkey] for r in rows]
+                ys = [1e3 * r["ensemble"]["median"] for r in rows]
+                lo = [y - 1e3 * (r["ensemble"]["median_ci95"] or [r["ensemble"]["median"]] * 2)[0]
+                      for y, r in zip(ys, rows)]
+                hi = [1e3 * (r["ensemble"]["median_ci95"] or [r["ensemble"]["median"]] * 2)[1] - y
+                      for y, r in zip(ys, rows)]
+                ax.errorbar(xs, ys, yerr=[lo, hi], marker="o", color=color, capsize=3, label=plant)
+                goal = 1e3 * (1.0 - st["evaluation"].get("verdict", {}).get("goal", 0.5)) * ys[0] if ys else None
+                if goal is not None:
+                    ax.axhline(goal, color=color, ls=":", lw=1)
+                best = [m for m, role in st["evaluation"]["roles"].items() if role == "best open-loop model"]
+                if best and st["evaluation"]["models"][best[0]]["ensemble"]["median"] is not None:
+                    ax.axhline(1e3 * st["evaluation"]["models"][best[0]]["ensemble"]["median"], color=color, ls="--",
+                               lw=1)
+        axes[0].set_xlabel("iteration (0: the nominal equations)")
+        axes[1].set_xlabel("minutes of flight learned from")
+        axes[0].set_ylabel("figure8-fast RMSE, mm (median, 95 %)")
+        axes[0].legend()
+        rel = _save(fig, run_dir, "learning_curve")
+    return FigureOut(rel, "learning curve",
+                     "Median position RMSE on the held-out `figure8-fast` (ensemble members, bootstrap 95 %) of each "
+                     "iteration's model, against the iteration and against the minutes of flown data it learned "
+                     "from. Dotted: the goal (half the nominal equations' RMSE, iteration 0); dashed: the plant's "
+                     "best model trained on open-loop excitation.")
+
+
+def learn_section(studies: dict | None, run_dir: Path, figure_md) -> str:
+    """Markdown: per plant, the learning curve, the evaluation table and the verdict; the figure."""
+    if not studies:
+        return NO_LEARN
+    parts = ["From `pinnmpc learn` (published into `models/learn/`, copied here by `pinnmpc run`). Each iteration "
+             "trains physics plus network with the rotor speeds as states on every flight flown so far (random "
+             "min-snap paths and orbits at 1-3 m/s, perturbed, with input dither; never a figure-8), and its model "
+             "flies the next iteration's references. The controls are trained the same way on the same minutes of "
+             "open-loop excitation, and (an upper bound only) on flights of `figure8-fast` itself."]
+    f = learning_figure(studies, run_dir)
+    if f is not None:
+        parts.append(figure_md(f))
+    for plant, st in sorted(studies.items()):
+        ev = st["evaluation"]
+        parts.append(f"**{ev['label']}** (`{ev['scenario']}`; {st['settings']['members']} members, "
+                     f"{fmt(st['wall_time_s'] / 60, '.0f')} min on two cores, {st.get('date', 'undated')})")
+        rows = [[r["iteration"], f"`{r['model']}`", r["flights"], fmt(r["flight_minutes"], ".1f"),
+                 _mm(r["ensemble"]), f"{r['ensemble']['crashes']}/{r['ensemble']['runs']}"] for r in st["curve"]]
+        parts.append(md_table(["iteration", "model", "flights learned from", "minutes", "RMSE, mm (95 %)",
+                               "crashes"], rows))
+        rows = []
+        for name, r in ev["models"].items():
+            sp = None if r.get("ladder") is None else r["ladder"]["max_speed"]["speed_mps"]
+            rows.append([f"`{name}`", ev["roles"].get(name, MISSING), _mm(r["ensemble"]),
+                         f"{r['ensemble']['crashes']}/{r['ensemble']['runs']}", _pct(r.get("versus_nominal")),
+                         MISSING if sp is None else f"{sp:.2f}"])
+        parts.append(md_table(["model", "role", "RMSE, mm (95 %)", "crashes", "against nominal (95 %)",
+                               "max speed, m/s"], rows))
+        parts.append(verdict_sentence(st))
+    return "\n\n".join(parts)
