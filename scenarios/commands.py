@@ -180,8 +180,9 @@ def register(sub) -> None:
                    help="training references per family and speed level in each iteration (default 3: 18 flights)")
     p.add_argument("--members", type=int, default=10, help="ensemble members on figure8-fast (default 10)")
     p.add_argument("--ladder-members", type=int, default=5, help="members per other rung of the ladder (default 5)")
-    p.add_argument("--profile", choices=("quick", "full", "smoke"), default="full",
-                   help="training budget (default full; smoke: seconds, for tests of the loop)")
+    p.add_argument("--profile", choices=("scaled", "full", "quick", "smoke"), default="scaled",
+                   help="training budget (default scaled: 60 passes over the flights; full: the shipped models' "
+                        "fixed budget; smoke: seconds, for tests of the loop)")
     p.add_argument("--seed", type=int, default=0, help="seed of the references, dither and noise (default 0)")
     p.add_argument("--no-controls", action="store_true", help="skip the two controls")
     p.add_argument("--jobs", type=int, default=None, help="worker processes (default: number of CPUs)")

@@ -282,3 +282,33 @@ def test_the_report_section_states_the_goal_with_its_numbers(tmp_path):
     missed = learn_section({"highfi": _study(24.0, True)}, tmp_path, _figure_md)
     assert "24.0 mm against 40.0 mm, 40 % better" in missed and "is missed" in missed
     assert "| 1 | `learn_highfi_it1` | 18 | 3.2 | 24.0 (23.0–25.0) | 0/10 |" in missed
+
+
+# ------------------------------------------------------------------ the shipped study
+SHIPPED_PLANTS = ("highfi", "rotorpy")
+
+
+@pytest.mark.parametrize("plant", SHIPPED_PLANTS)
+def test_the_shipped_study_learned_from_training_references_only(plant):
+    """Every flight the shipped models learned from has a reference that shares no window with an evaluation one,
+    and the summary holds the curve of every iteration."""
+    from mpc.contract import check_model
+    from scenarios.training_refs import check_held_out
+
+    d = SHIPPED / plant
+    st = json.loads((d / "learn.json").read_text())
+    its = st["settings"]["iterations"]
+    assert its >= 3 and [r["iteration"] for r in st["curve"]] == list(range(its + 1))
+    flights = [f for i in range(its) for f in load_flights(d / f"flights_it{i}.npz")]
+    assert len(flights) == its * 6 * st["settings"]["per_level"]
+    # the minutes each model learned from are the flights shipped
+    seconds = np.cumsum([sum(f["seconds"] for f in load_flights(d / f"flights_it{i}.npz")) for i in range(its)])
+    assert [r["flight_minutes"] for r in st["curve"][1:]] == pytest.approx(list(seconds / 60.0), rel=1e-12)
+    check_held_out({f["name"]: np.asarray(f["reference"], dtype=float) for f in flights})
+    for i in range(1, its + 1):
+        assert check_model(d / f"learn_{plant}_it{i}.onnx").jacobian is not None
+
+
+def test_the_shipped_study_fits_its_size_budget():
+    size = sum(p.stat().st_size for p in SHIPPED.rglob("*") if p.is_file())
+    assert size < SHIPPED_BYTES
