@@ -315,3 +315,9 @@ def test_the_shipped_study_learned_from_training_references_only(plant):
 def test_the_shipped_study_fits_its_size_budget():
     size = sum(p.stat().st_size for p in SHIPPED.rglob("*") if p.is_file())
     assert size < SHIPPED_BYTES
+
+
+def test_the_goal_line_is_half_the_nominal_rmse_in_mm():
+    from reports.learn import goal_mm
+
+    assert goal_mm(_study(18.0, True)) == pytest.approx(20.0, rel=1e-12)
