@@ -428,11 +428,16 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
         main_plan(MODELS, estimator="kalman")
     # The high-fidelity plant: the oracle (its true equations), the nominal equations, the nominal-trained twins and
     # the models trained on its own data, with ensemble members where the scenario has them, and no run twice.
-    from scenarios.campaign import HIGHFI_DEFAULT_MEMBERS, HIGHFI_MODELS, HIGHFI_SCENARIOS
+    from scenarios.campaign import HIGHFI_DEFAULT_MEMBERS, HIGHFI_MODELS, HIGHFI_SCENARIOS, learned_models
+
+    # ... and the shipped learning study's final model (models/learn/highfi)
+    learned = tuple(learned_models(MODELS, "highfi"))
+    assert [Path(m).stem for m in learned] == [json.loads((MODELS / "learn" / "highfi" / "learn.json").read_text())
+                                                ["final_model"]]
 
     def expect(full):
         return {(sc, m if m in ("oracle", "nominal") else Path(m).stem, k)
-                for sc, n in HIGHFI_SCENARIOS.items() for m in ("oracle", "nominal") + HIGHFI_MODELS
+                for sc, n in HIGHFI_SCENARIOS.items() for m in ("oracle", "nominal") + HIGHFI_MODELS + learned
                 for k in ([None] if (n if full else min(n, HIGHFI_DEFAULT_MEMBERS)) == 1
                           else range(n if full else HIGHFI_DEFAULT_MEMBERS))}
     assert {(s.scenario, s.model_name, s.member) for s in highfi} == expect(False)
@@ -446,9 +451,13 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     # nominal equations flying RotorPy's two presets on both our simulator and RotorPy.
     from scenarios.campaign import PLANT_DEFAULT_MODELS
 
+    # ... and, with motor lag and aerodynamics, the final model of the shipped learning study on RotorPy
+    learned_rp = {Path(m).stem for m in learned_models(MODELS, "rotorpy")}
+    assert learned_rp == {json.loads((MODELS / "learn" / "rotorpy" / "learn.json").read_text())["final_model"]}
+
     def on_plants(shipped):
         return ({("rotorpy-ideal", "rolling-spider", m) for m in shipped | {"oracle"}}
-                | {("rotorpy", "rolling-spider", m) for m in shipped | {"nominal"}}
+                | {("rotorpy", "rolling-spider", m) for m in shipped | {"nominal"} | learned_rp}
                 | {(p, v, "nominal") for p in ("sim", "rotorpy") for v in ("hummingbird", "crazyflie")})
     assert {(s.scenario, s.controller) for s in other} == {("figure8-fast", "sqp")}
     assert {(s.plant, s.vehicle_data.name, s.model_name) for s in other} == on_plants(
