@@ -628,6 +628,9 @@ def _evaluate(s: LearnSettings, out: Path, models_dir, final: str, controls: dic
     # evaluation reference): at least WIN_FRACTION below the nominal equations with the medians' intervals apart, and
     # the fastest rung flown at least the nominal equations'.
     rows = summary["models"]
+    for row in rows.values():      # the study's own models by their path in its folder: the summary moves with it
+        if row.get("path") and Path(row["path"]).is_relative_to(out):
+            row["path"] = Path(row["path"]).relative_to(out).as_posix()
     fin, nom = rows[Path(final).stem], rows["nominal"]
     v = fin["versus_nominal"]
     sp_f, sp_n = fin["ladder"]["max_speed"]["speed_mps"], nom["ladder"]["max_speed"]["speed_mps"]
