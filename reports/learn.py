@@ -5,29 +5,15 @@ from __future__ import annotations
 from pathlib import Path
 
 from .figures import STYLE, FigureOut, _save
-from .tables import MISSING, fmt, md_table
+from scenarios.versus import WIN_FRACTION
 
-#: The goal as a fraction below the nominal equations' RMSE (where a summary has no verdict to say it).
-WIN_FRACTION = 0.5
+from .tables import MISSING, fmt, md_table
+from .versus import mm_ci, pct_ci
 
 #: Shown when the results folder has no learning study.
 NO_LEARN = ("No `learn_<plant>.json` in this folder: `pinnmpc learn --plant highfi|rotorpy --publish` flies, learns "
             "from its flights and flies again (about 45 minutes per plant on two cores), and writes a copy into "
             "`models/learn/`, which the next `pinnmpc run` copies here.")
-
-
-def _mm(s: dict) -> str:
-    if s.get("median") is None:
-        return MISSING
-    ci = s.get("median_ci95")
-    return f"{1e3 * s['median']:.1f}" + ("" if not ci else f" ({1e3 * ci[0]:.1f}–{1e3 * ci[1]:.1f})")
-
-
-def _pct(v: dict | None) -> str:
-    if v is None:
-        return MISSING
-    lo, hi = v["fraction_ci95"]
-    return f"{100 * v['fraction']:+.0f} % ({100 * lo:+.0f} to {100 * hi:+.0f})"
 
 
 def goal_mm(study: dict) -> float | None:
@@ -113,14 +99,14 @@ def learn_section(studies: dict | None, run_dir: Path, figure_md) -> str:
         parts.append(f"**{ev['label']}** (`{ev['scenario']}`; {st['settings']['members']} members, "
                      f"{fmt(st['wall_time_s'] / 60, '.0f')} min on two cores, {st.get('date', 'undated')})")
         rows = [[r["iteration"], f"`{r['model']}`", r["flights"], fmt(r["flight_minutes"], ".1f"),
-                 _mm(r["ensemble"]), f"{r['ensemble']['crashes']}/{r['ensemble']['runs']}"] for r in st["curve"]]
+                 mm_ci(r["ensemble"]), f"{r['ensemble']['crashes']}/{r['ensemble']['runs']}"] for r in st["curve"]]
         parts.append(md_table(["iteration", "model", "flights learned from", "minutes", "RMSE, mm (95 %)",
                                "crashes"], rows))
         rows = []
         for name, r in ev["models"].items():
             sp = None if r.get("ladder") is None else r["ladder"]["max_speed"]["speed_mps"]
-            rows.append([f"`{name}`", ev["roles"].get(name, MISSING), _mm(r["ensemble"]),
-                         f"{r['ensemble']['crashes']}/{r['ensemble']['runs']}", _pct(r.get("versus_nominal")),
+            rows.append([f"`{name}`", ev["roles"].get(name, MISSING), mm_ci(r["ensemble"]),
+                         f"{r['ensemble']['crashes']}/{r['ensemble']['runs']}", pct_ci(r.get("versus_nominal")),
                          MISSING if sp is None else f"{sp:.2f}"])
         parts.append(md_table(["model", "role", "RMSE, mm (95 %)", "crashes", "against nominal (95 %)",
                                "max speed, m/s"], rows))

@@ -10,14 +10,16 @@ NO_VERSUS = ("No `versus.json` in this folder: `pinnmpc versus` flies the models
              "`models/versus/`, which the next `pinnmpc run` copies here.")
 
 
-def _mm_ci(s: dict) -> str:
+def mm_ci(s: dict) -> str:
+    """An ensemble's median RMSE in mm with its bootstrap interval (``–`` without a median)."""
     if s.get("median") is None:
         return MISSING
     ci = s.get("median_ci95")
     return f"{1e3 * s['median']:.1f}" + ("" if not ci else f" ({1e3 * ci[0]:.1f}–{1e3 * ci[1]:.1f})")
 
 
-def _pct_ci(v: dict | None) -> str:
+def pct_ci(v: dict | None) -> str:
+    """An improvement over the nominal equations in % with its interval (``–`` without one)."""
     if v is None:
         return MISSING
     lo, hi = v["fraction_ci95"]
@@ -59,8 +61,8 @@ def versus_section(versus: dict | None) -> str:
             s = r["ensemble"]
             sp = r["ladder"]["max_speed"]["speed_mps"]
             rows.append([f"`{name}`", r.get("architecture") or MISSING,
-                         ", ".join(r.get("extra_states") or []) or "none", _mm_ci(s),
-                         f"{s['crashes']}/{s['runs']}", _pct_ci(r.get("versus_nominal")),
+                         ", ".join(r.get("extra_states") or []) or "none", mm_ci(s),
+                         f"{s['crashes']}/{s['runs']}", pct_ci(r.get("versus_nominal")),
                          MISSING if sp is None else f"{sp:.2f}"])
         parts.append(f"**{p['label']}** (`{p['scenario']}`)")
         parts.append(md_table(["model", "architecture", "actuator states", "RMSE, mm (95 %)", "crashes",

@@ -646,12 +646,10 @@ def _evaluate(s: LearnSettings, out: Path, models_dir, final: str, controls: dic
     return summary
 
 
-def _mm(v) -> str:
-    return "–" if v is None else f"{1e3 * v:.1f}"
-
-
 def format_learn(out: dict) -> str:
     """A study's summary as plain text: the learning curve, the controls and the evaluation's verdict."""
+    from .versus import _mm
+
     lines = [f"learning from flown flights on {out['label']}", "learning curve (figure8-fast, median RMSE, mm):"]
     for r in out["curve"]:
         s = r["ensemble"]
