@@ -534,8 +534,6 @@ def training_refs_of(settings: LearnSettings, iteration: int):
 
 def _controls(s: LearnSettings, out: Path, flights: list[dict], final: str, jobs: int, progress) -> dict:
     """The two controls, trained on as many minutes of flight as the final model (two trainings at once)."""
-    import math as _math
-
     from sim.excitation import make_dataset
     from sim.params import NoiseModel
     from sim.vehicle import load_vehicle
@@ -547,7 +545,7 @@ def _controls(s: LearnSettings, out: Path, flights: list[dict], final: str, jobs
     c = out / "controls"
     seconds = sum(f["seconds"] for f in flights)
     # Same minutes of open-loop excitation: pinnmpc data's flights on this plant, in the regime of its best model.
-    n_open = max(2, _math.ceil(seconds / OPEN_LOOP_FLIGHT_S - 1e-9))
+    n_open = max(2, math.ceil(seconds / OPEN_LOOP_FLIGHT_S - 1e-9))
     open_path = c / "openloop_data.npz"
     if not open_path.is_file():
         _say(progress, f"controls: {n_open} open-loop excitation flights of {OPEN_LOOP_FLIGHT_S:g} s ({p.open_loop})")
@@ -558,7 +556,7 @@ def _controls(s: LearnSettings, out: Path, flights: list[dict], final: str, jobs
         ds.save(open_path)
     # The upper bound: flights of the evaluation reference itself (perturbed, dithered) with the final model.
     per = get_scenario("figure8-fast").steps * DT
-    n_up = max(2, _math.ceil(seconds / per - 1e-9))
+    n_up = max(2, math.ceil(seconds / per - 1e-9))
     _say(progress, f"controls: {n_up} flights of figure8-fast itself with {Path(final).stem} (upper bound only)")
     up = _flights_stage(s, c / "upper_flights.npz", [FlightJob(s, "upper", 0, k, final) for k in range(n_up)],
                         jobs, progress, "upper bound", held_out=False)
