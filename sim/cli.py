@@ -43,6 +43,9 @@ def register(sub) -> None:
                         "inside the rotor limits; not with motor lag)")
     p.add_argument("--out", required=True, type=Path, help="output file, .npz")
     p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="processes flying at once on a plant that flies one vehicle at a time (RotorPy; default 1); "
+                        "the dataset is the same for any number")
     add_plant_options(p, " ; --fidelity applies to sim only")
     p.set_defaults(handler=cmd_data)
 
@@ -82,11 +85,13 @@ def cmd_data(args: argparse.Namespace) -> int:
 
     if args.out.suffix != ".npz":
         raise ValueError(f"--out must end in .npz; found {str(args.out)!r}")
+    if args.jobs < 1:
+        raise ValueError(f"--jobs must be >= 1; found {args.jobs}")
     vehicle = load_vehicle(args.vehicle)
     ds = make_dataset(args.regime, args.n_traj, args.duration, args.seed,
                       noise=NoiseModel() if args.noise == "default" else NoiseModel.none(),
                       fidelity=vehicle.named_fidelity(args.fidelity), inputs=args.inputs,
-                      progress=sys.stderr.isatty(), plant=args.plant, vehicle=vehicle)
+                      progress=sys.stderr.isatty(), plant=args.plant, vehicle=vehicle, workers=args.jobs)
     ds.save(args.out)
     s = ds.summary()
     lo, hi = s["envelope_deg"]

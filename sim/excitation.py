@@ -427,10 +427,65 @@ def _step_plants(plants, u):
     return StepResult(*(np.stack([getattr(o, f) for o in outs]) for f in ("x", "rotor_speed", "wrench", "saturated")))
 
 
+def _fly_slice(item):
+    """:func:`_fly_rows` of a worker process: ``(job, lo, hi)``."""
+    job, lo, hi = item
+    return _fly_rows(job, lo, hi, False)
+
+
+def _fly_rows(job: tuple, lo: int, hi: int, progress: bool):
+    """Fly trajectories ``lo .. hi - 1`` of :func:`make_dataset`'s ``job`` = ``(regime, seed, n_traj, n_steps, params,
+    fidelity, plant, vehicle)``; each trajectory is the same whichever slice flies it (its own random stream).
+
+    Returns ``(x_true (n, n_steps + 1, 12), u, rotor_speed, wrench, saturated (n, n_steps, 4))`` for ``n = hi - lo``.
+    """
+    regime, seed, n_traj, n_steps, p, fidelity, plant, veh = job
+    reg = REGIMES[regime]
+    flight_root = np.random.SeedSequence(seed).spawn(3)[0]
+    rngs = [np.random.default_rng(s) for s in flight_root.spawn(n_traj)[lo:hi]]
+    n = hi - lo
+    refs = _references(rngs, n_steps, reg, p)
+    sim = Simulator(p, fidelity)
+    x_true = np.zeros((n, n_steps + 1, 12))
+    x0 = np.zeros((n, 12))
+    x0[:, 0:3] = refs.pos[:, 0]
+    plants = None
+    if plant != "sim":     # one plant per trajectory (RotorPy flies one vehicle), each started at its x0
+        plants = [make_plant(plant, veh.replace(**{k: getattr(p, k) for k in ("m", "Jxx", "Jyy", "Jzz", "kt", "kq",
+                                                                              "d", "c_d", "n_max")}))
+                  for _ in range(n)]
+        for pl, xi in zip(plants, x0):
+            pl.reset(xi)
+    x_true[:, 0] = x0
+    ctrl = ExcitationController(p, reg, x0)
+    u = np.zeros((n, n_steps, 4))
+    n_log = np.zeros((n, n_steps, 4))
+    wrench = np.zeros((n, n_steps, 4))
+    sat = np.zeros((n, n_steps, 4), dtype=bool)
+    rotor = None
+    steps = range(n_steps)
+    if progress:
+        from tqdm import tqdm
+        steps = tqdm(steps, desc=f"data {reg.name}", unit="step", leave=False)
+    x = x0
+    for k in steps:
+        uk = ctrl(x, refs.pos[:, k], refs.vel[:, k], refs.acc[:, k], refs.att[:, k])
+        uk = uk + refs.dither[:, k]
+        if plants is None:
+            res = sim._step(x, uk, rotor, k * DT)
+        else:
+            res = _step_plants(plants, uk)
+        rotor = res.rotor_speed
+        u[:, k], n_log[:, k], wrench[:, k], sat[:, k] = uk, res.rotor_speed, res.wrench, res.saturated
+        x = res.x
+        x_true[:, k + 1] = x
+    return x_true, u, n_log, wrench, sat
+
+
 def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.0, seed: int = 0, *,
                  noise: NoiseModel | None = None, fidelity: Fidelity = NOMINAL,
                  params: QuadParams | None = None, inputs: str = "commanded", progress: bool = False,
-                 with_clean: bool = False, plant: str = "sim", vehicle=None):
+                 with_clean: bool = False, plant: str = "sim", vehicle=None, workers: int = 1):
     """Fly seeded excitation trajectories and log them.
 
     Parameters
@@ -465,7 +520,10 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
         ``"realized"`` needs a simulator without motor lag (with lag the
         wrench changes within a period).
     progress : bool
-        Show a progress bar on stderr.
+        Show a progress bar on stderr (with one process).
+    workers : int
+        Processes flying at once where the plant flies one vehicle at a time (RotorPy); the dataset is the same
+        for any number. Our simulator flies every trajectory in one batch and ignores it.
     with_clean : bool
         Also return the same flights without measurement noise (what the Fisher information is evaluated on),
         without flying them again.
@@ -506,46 +564,21 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
 
     # Independent streams per trajectory (flight and noise), so trajectory i
     # is the same whatever n_traj is.
-    flight_root, noise_root, split_root = np.random.SeedSequence(int(seed)).spawn(3)
-    rngs = [np.random.default_rng(s) for s in flight_root.spawn(n_traj)]
+    _, noise_root, split_root = np.random.SeedSequence(int(seed)).spawn(3)
     noise_rngs = [np.random.default_rng(s) for s in noise_root.spawn(n_traj)]
     split_rng = np.random.default_rng(split_root)
+    workers = positive_int(workers, "workers")
+    job = (reg.name, int(seed), n_traj, n_steps, p, fidelity, plant, veh)
+    if plant == "sim" or workers == 1 or n_traj == 1:
+        x_true, u, n_log, wrench, sat = _fly_rows(job, 0, n_traj, progress)
+    else:      # plants flown one vehicle at a time: slices of the trajectories in worker processes
+        from concurrent.futures import ProcessPoolExecutor
+        from multiprocessing import get_context
 
-    refs = _references(rngs, n_steps, reg, p)
-    sim = Simulator(p, fidelity)
-    x_true = np.zeros((n_traj, n_steps + 1, 12))
-    x0 = np.zeros((n_traj, 12))
-    x0[:, 0:3] = refs.pos[:, 0]
-    plants = None
-    if plant != "sim":     # one plant per trajectory (RotorPy flies one vehicle), each started at its x0
-        plants = [make_plant(plant, veh.replace(**{k: getattr(p, k) for k in ("m", "Jxx", "Jyy", "Jzz", "kt", "kq",
-                                                                              "d", "c_d", "n_max")}))
-                  for _ in range(n_traj)]
-        for pl, xi in zip(plants, x0):
-            pl.reset(xi)
-    x_true[:, 0] = x0
-    ctrl = ExcitationController(p, reg, x0)
-    u = np.zeros((n_traj, n_steps, 4))
-    n_log = np.zeros((n_traj, n_steps, 4))
-    wrench = np.zeros((n_traj, n_steps, 4))
-    sat = np.zeros((n_traj, n_steps, 4), dtype=bool)
-    rotor = None
-    steps = range(n_steps)
-    if progress:
-        from tqdm import tqdm
-        steps = tqdm(steps, desc=f"data {reg.name}", unit="step", leave=False)
-    x = x0
-    for k in steps:
-        uk = ctrl(x, refs.pos[:, k], refs.vel[:, k], refs.acc[:, k], refs.att[:, k])
-        uk = uk + refs.dither[:, k]
-        if plants is None:
-            res = sim._step(x, uk, rotor, k * DT)
-        else:
-            res = _step_plants(plants, uk)
-        rotor = res.rotor_speed
-        u[:, k], n_log[:, k], wrench[:, k], sat[:, k] = uk, res.rotor_speed, res.wrench, res.saturated
-        x = res.x
-        x_true[:, k + 1] = x
+        cuts = np.linspace(0, n_traj, min(workers, n_traj) + 1).round().astype(int)
+        with ProcessPoolExecutor(len(cuts) - 1, mp_context=get_context("spawn")) as ex:
+            parts = list(ex.map(_fly_slice, [(job, int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:])]))
+        x_true, u, n_log, wrench, sat = (np.concatenate(a) for a in zip(*parts))
     if not np.all(np.isfinite(x_true)):
         raise RuntimeError("excitation flight diverged (non-finite state); this is a bug in sim.excitation")
 

@@ -111,6 +111,7 @@ def test_split_is_by_trajectory():
     (dict(n_traj=2.5), "n_traj"),
     (dict(seed=-3), "seed"),
     (dict(noise="loud"), "noise"),
+    (dict(workers=0), "workers"),
 ])
 def test_bad_arguments_raise_value_error_naming_them(kwargs, arg):
     args = dict(regime="small", n_traj=2, duration=1.0, seed=0) | kwargs

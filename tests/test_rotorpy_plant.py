@@ -424,3 +424,14 @@ def test_rotorpy_with_aerodynamics_has_no_oracle_and_says_so(capsys):
     assert main(["fly", "--plant", "rotorpy-ideal", "--model", "nominal", "--controller", "lqr", "--scenario",
                  "hover+highfi"]) == 2
     assert "high-fidelity" in capsys.readouterr().err
+
+
+def test_a_rotorpy_dataset_flown_in_two_processes_equals_one_flown_in_one():
+    """Each trajectory has its own random stream and plant: slicing them over processes changes no bit."""
+    from sim.excitation import make_dataset
+
+    one = make_dataset("small", 3, 0.5, 4, plant="rotorpy", vehicle="crazyflie")
+    two = make_dataset("small", 3, 0.5, 4, plant="rotorpy", vehicle="crazyflie", workers=2)
+    for k in ("x", "u", "rotor_speed", "x_next", "wrench", "saturated", "split"):
+        np.testing.assert_array_equal(getattr(one, k), getattr(two, k))
+    assert one.meta == two.meta
