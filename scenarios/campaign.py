@@ -183,12 +183,14 @@ def plant_plan(models_dir="models", full: bool = False) -> list[RunSpec]:
     specs = [RunSpec(sc, c, m, plant="rotorpy-ideal") for m in ["oracle", *models]]
     specs += [RunSpec(sc, c, m, plant="rotorpy") for m in ["nominal", *models, *learned_models(models_dir, "rotorpy")]]
     specs += [RunSpec(sc, c, "nominal", plant=pl, vehicle=v) for v in PLANT_VEHICLES for pl in ("sim", "rotorpy")]
+    specs += [RunSpec(sc, c, m, plant="rotorpy", vehicle="crazyflie") for m in learned_models(models_dir, "crazyflie")]
     return specs
 
 
 def learned_models(models_dir, plant: str) -> list[str]:
-    """The final model of the shipped learning study on ``plant`` (``highfi`` or ``rotorpy``): ``[path]``, or
-    ``[]`` where none is shipped (``models/learn/<plant>/learn.json`` names it; ``pinnmpc learn --publish``)."""
+    """The final model of the shipped learning study on ``plant`` (a key of :data:`scenarios.learn.LEARN_PLANTS`):
+    ``[path]``, or ``[]`` where none is shipped (``models/learn/<plant>/learn.json`` names it; ``pinnmpc learn
+    --publish``)."""
     from .learn import LEARN_DIR
 
     summary = Path(models_dir) / LEARN_DIR / plant / "learn.json"

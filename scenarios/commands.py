@@ -155,7 +155,8 @@ def register(sub) -> None:
     p.add_argument("--ladder-members", type=int, default=10,
                    help="ensemble members on every other rung of the speed ladder (default 10)")
     p.add_argument("--plants", default=None, metavar="LIST",
-                   help="comma-separated plants: highfi, rotorpy (default both; rotorpy needs the rotorpy extra)")
+                   help="comma-separated plants: highfi, rotorpy (default both; rotorpy needs the rotorpy extra), "
+                        "crazyflie (RotorPy's Crazyflie preset: no open-loop model is trained on it)")
     _sweep_options(p, "versus.json", "--models/versus")
     p.set_defaults(handler=cmd_versus)
 
@@ -169,9 +170,10 @@ def register(sub) -> None:
                                    "on flights of figure8-fast itself) and the evaluation on figure8-fast and the "
                                    "speed ladder against the nominal equations. Writes OUT/PLANT/learn.json; "
                                    "resumable: a rerun reuses every stage already written (docs/learning.md).")
-    p.add_argument("--plant", required=True, choices=("highfi", "rotorpy"),
+    p.add_argument("--plant", required=True, choices=("highfi", "rotorpy", "crazyflie"),
                    help="highfi: our simulator's high-fidelity set-up; rotorpy: RotorPy with its motor lag and "
-                        "aerodynamics (needs the rotorpy extra)")
+                        "aerodynamics; crazyflie: RotorPy's Crazyflie 2.0 preset, 72 ms motor lag (both need the "
+                        "rotorpy extra)")
     p.add_argument("--out", type=Path, default=Path("results/learn"), help="results folder (default results/learn)")
     p.add_argument("--models", type=Path, default=Path("models"),
                    help="models folder, for the plant's best open-loop model (default models)")
@@ -412,11 +414,13 @@ def cmd_learn(args: argparse.Namespace) -> int:
     jobs = args.jobs if args.jobs is not None else (os.cpu_count() or 1)
     if jobs < 1:
         raise ValueError(f"--jobs must be >= 1; found {jobs}")
-    if args.plant == "rotorpy":
+    from .learn import LEARN_PLANTS
+
+    if LEARN_PLANTS[args.plant].plant == "rotorpy":
         from .campaign import rotorpy_available
 
         if not rotorpy_available():
-            raise ValueError("plant rotorpy needs RotorPy: python -m pip install -e '.[rotorpy]'")
+            raise ValueError(f"plant {args.plant} needs RotorPy: python -m pip install -e '.[rotorpy]'")
     settings = LearnSettings(plant=args.plant, iterations=args.iterations, per_level=args.per_level, seed=args.seed,
                              profile=args.profile, members=args.members, ladder_members=args.ladder_members,
                              controls=not args.no_controls)

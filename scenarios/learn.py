@@ -74,9 +74,9 @@ PROFILE_STEPS_CAP = 300
 class LearnPlant:
     """A plant of the learning study: where it flies, the open-loop data it is compared with, its best open-loop model.
 
-    ``versus`` is the key of the plant in :data:`scenarios.versus.VERSUS_PLANTS` (its scenario suffix and label);
-    ``open_loop`` the excitation regime of the same-data control; ``best_open_loop`` the path (under the models
-    folder) of the best model trained on open-loop excitation of this plant.
+    ``versus`` is the key of the plant in :data:`scenarios.versus.VERSUS_PLANTS` (its scenario suffix, label and
+    vehicle); ``open_loop`` the excitation regime of the same-data control; ``best_open_loop`` the path (under the
+    models folder) of the best model trained on open-loop excitation of this plant (None: there is none).
     """
 
     key: str
@@ -84,12 +84,20 @@ class LearnPlant:
     high_fidelity: bool
     versus: str
     open_loop: str
-    best_open_loop: str
+    best_open_loop: str | None
+
+    @property
+    def vehicle(self) -> str | None:
+        """The vehicle flown (a shipped vehicle's name; None: the default vehicle)."""
+        from .versus import VERSUS_PLANTS
+
+        return VERSUS_PLANTS[self.versus].vehicle
 
 
 LEARN_PLANTS = {
     "highfi": LearnPlant("highfi", "sim", True, "highfi", "aggressive", "versus/hybrid_lag_aggressive_highfi.onnx"),
     "rotorpy": LearnPlant("rotorpy", "rotorpy", False, "rotorpy", "small", "versus/hybrid_lag_rotorpy.onnx"),
+    "crazyflie": LearnPlant("crazyflie", "rotorpy", False, "crazyflie", "small", None),
 }
 
 
@@ -189,7 +197,7 @@ def fly_flight(job: FlightJob) -> dict:
 
     p = job.settings.spec
     name, traj, duration = job.reference()
-    vehicle = load_vehicle(None)
+    vehicle = load_vehicle(p.vehicle)
     plant = make_plant(p.plant, vehicle, high_fidelity=p.high_fidelity)
     K = int(round(duration / DT))
     times = DT * np.arange(K + 1)
@@ -228,7 +236,7 @@ def _load(model: str, p: LearnPlant):
     from .runner import RunSpec, load_run_model
 
     scenario = "figure8-fast" + ("+highfi" if p.high_fidelity else "")
-    return load_run_model(RunSpec(scenario, "sqp", model, plant=p.plant))
+    return load_run_model(RunSpec(scenario, "sqp", model, plant=p.plant, vehicle=p.vehicle))
 
 
 FLIGHT_ARRAYS = ("t", "x", "rotor_speed", "command", "reference")
@@ -251,7 +259,7 @@ def load_flights(path: Path) -> list[dict]:
         return [{**r, **{k: z[f"{k}_{i}"] for k in FLIGHT_ARRAYS}} for i, r in enumerate(records)]
 
 
-def flights_dataset(flights: list[dict]):
+def flights_dataset(flights: list[dict], vehicle=None):
     """A :class:`sim.excitation.Dataset` of flown flights, through the flight logs' path, in pieces of equal length.
 
     Each flight goes through :func:`sim.flightlog.flown_flight` and :func:`sim.flightlog.flights_to_dataset` (as a
@@ -259,18 +267,26 @@ def flights_dataset(flights: list[dict]):
     earlier one to another split). The flights are then cut into pieces of :data:`PIECE_STEPS` periods (the last
     piece of a flight ends at its end, overlapping the one before; a flight shorter than one piece is left out), so
     that every trajectory of the dataset is measured throughout: the motor-lag model trains only on such data.
+    ``vehicle`` is the vehicle flown (a name, file or :class:`sim.vehicle.Vehicle`; None: the default vehicle).
     """
     from sim.excitation import Dataset
-    from sim.flightlog import flights_to_dataset, flown_flight
+    from sim.flightlog import MIN_SAMPLES, flights_to_dataset, flown_flight
     from sim.vehicle import load_vehicle
 
-    vehicle = load_vehicle(None)
-    fl = [flown_flight(f["name"], f["t"], f["x"], f["rotor_speed"], vehicle, command=f["command"],
-                       reference=f["reference"]) for f in flights]
-    splits = {f.name: ("val" if i % SPLIT_EVERY == 4 else "test" if i % SPLIT_EVERY == 5 else "train")
-              for i, f in enumerate(fl)}
-    ds = flights_to_dataset(fl, vehicle, splits)
+    vehicle = load_vehicle(vehicle)
     L = PIECE_STEPS
+    # A flight cut by a crash before the logs' least length (MIN_SAMPLES, far less than a piece) gives no piece and
+    # is no log: it is left out here, and the others keep their splits.
+    fl, splits = [], {}
+    for i, f in enumerate(flights):
+        if _finite_samples(f) < MIN_SAMPLES:
+            continue
+        fl.append(flown_flight(f["name"], f["t"], f["x"], f["rotor_speed"], vehicle, command=f["command"],
+                               reference=f["reference"]))
+        splits[f["name"]] = "val" if i % SPLIT_EVERY == 4 else "test" if i % SPLIT_EVERY == 5 else "train"
+    if not fl:
+        raise ScenarioError(f"no flown flight is {L * DT:g} s long: nothing to learn from")
+    ds = flights_to_dataset(fl, vehicle, splits)
     rows = []
     for i, f in enumerate(fl):
         m = len(f.t) - 1                        # one-step pairs of flight i, all measured
@@ -287,6 +303,12 @@ def flights_dataset(flights: list[dict]):
     split = np.array([ds.split[i] for i, _ in rows])
     meta = {**ds.meta, "pieces": {"steps": L, "count": len(rows), "flights": len(fl)}}
     return Dataset(**take, split=split, meta=meta)
+
+
+def _finite_samples(flight: dict) -> int:
+    """Samples of a flight before its first non-finite state or rotor speed (all of them if none)."""
+    finite = np.all(np.isfinite(flight["x"]), axis=1) & np.all(np.isfinite(flight["rotor_speed"]), axis=1)
+    return len(finite) if finite.all() else int(np.argmin(finite))
 
 
 # ------------------------------------------------------------------ stages
@@ -380,10 +402,10 @@ def train_model(settings: LearnSettings, data_path, folder, name: str, threads: 
     return rec
 
 
-def _dataset_file(path: Path, flights: list[dict]) -> Path:
-    """The dataset of ``flights`` at ``path`` (written once; the same flights give the same bytes)."""
+def _dataset_file(path: Path, flights: list[dict], vehicle) -> Path:
+    """The dataset of ``flights`` of ``vehicle`` at ``path`` (written once; the same flights give the same bytes)."""
     if not path.is_file():
-        flights_dataset(flights).save(path)
+        flights_dataset(flights, vehicle).save(path)
     return path
 
 
@@ -396,7 +418,7 @@ def _curve_row(settings: LearnSettings, out: Path, iteration: int, model: str, f
     from .versus import VERSUS_PLANTS, VERSUS_SCENARIO
 
     vp = VERSUS_PLANTS[settings.spec.versus]
-    specs = [RunSpec(vp.scenario(VERSUS_SCENARIO), "sqp", model, member=k, plant=vp.plant)
+    specs = [RunSpec(vp.scenario(VERSUS_SCENARIO), "sqp", model, member=k, plant=vp.plant, vehicle=vp.vehicle)
              for k in range(settings.members)]
     results = sweep(specs, out / "evaluation", jobs=jobs, progress=False)
     _no_errors(results)
@@ -489,7 +511,7 @@ def run_learn(settings: LearnSettings, out_dir="results/learn", models_dir="mode
             _check_held_out(flights)          # what enters training, by content
             data = {"flights": len(flights), "flight_minutes": sum(f["seconds"] for f in flights) / 60.0,
                     "kind": "closed loop", "iterations": list(range(i))}
-            path = _dataset_file(it / "data.npz", flights)
+            path = _dataset_file(it / "data.npz", flights, p.vehicle)
             _say(progress, f"iteration {i}: training {name} on {len(flights)} flights "
                            f"({data['flight_minutes']:.1f} min)")
             rec = _stage(it / f"{name}.json", lambda: train_model(s, path, it, name, min(jobs, 2), data))
@@ -549,10 +571,10 @@ def _controls(s: LearnSettings, out: Path, flights: list[dict], final: str, jobs
     open_path = c / "openloop_data.npz"
     if not open_path.is_file():
         _say(progress, f"controls: {n_open} open-loop excitation flights of {OPEN_LOOP_FLIGHT_S:g} s ({p.open_loop})")
-        vehicle = load_vehicle(None)
+        vehicle = load_vehicle(p.vehicle)
         ds = make_dataset(p.open_loop, n_open, OPEN_LOOP_FLIGHT_S, s.seed, noise=NoiseModel(),
                           fidelity=vehicle.named_fidelity("high" if p.high_fidelity else "nominal"), plant=p.plant,
-                          vehicle=vehicle)
+                          vehicle=vehicle, workers=jobs)
         ds.save(open_path)
     # The upper bound: flights of the evaluation reference itself (perturbed, dithered) with the final model.
     per = get_scenario("figure8-fast").steps * DT
@@ -560,7 +582,7 @@ def _controls(s: LearnSettings, out: Path, flights: list[dict], final: str, jobs
     _say(progress, f"controls: {n_up} flights of figure8-fast itself with {Path(final).stem} (upper bound only)")
     up = _flights_stage(s, c / "upper_flights.npz", [FlightJob(s, "upper", 0, k, final) for k in range(n_up)],
                         jobs, progress, "upper bound", held_out=False)
-    up_path = _dataset_file(c / "upper_data.npz", up)
+    up_path = _dataset_file(c / "upper_data.npz", up, p.vehicle)
     todo = {
         "openloop": (open_path, {"flights": n_open, "flight_minutes": n_open * OPEN_LOOP_FLIGHT_S / 60.0,
                                  "kind": f"open-loop excitation ({p.open_loop})"}),
@@ -600,8 +622,8 @@ def _evaluate(s: LearnSettings, out: Path, models_dir, final: str, controls: dic
     from .versus import VERSUS_SCENARIO, WIN_FRACTION, summarize_plant, versus_specs
 
     models = ["nominal"]
-    best = Path(models_dir) / s.spec.best_open_loop
-    if best.is_file():
+    best = None if s.spec.best_open_loop is None else Path(models_dir) / s.spec.best_open_loop
+    if best is not None and best.is_file():
         models.append(str(best))
     models.append(final)
     models += [c["model"] for c in controls.values()]
@@ -638,7 +660,8 @@ def _evaluate(s: LearnSettings, out: Path, models_dir, final: str, controls: dic
         "goal": WIN_FRACTION, "max_speed_mps": sp_f, "nominal_max_speed_mps": sp_n, "ladder_ok": bool(ladder_ok),
         "met": bool(v["fraction"] >= WIN_FRACTION and v["apart"] and ladder_ok)}
     summary["roles"] = {Path(m).stem if m != "nominal" else m: role for m, role in
-                        [("nominal", "nominal equations")] + [(str(best), "best open-loop model")] * best.is_file()
+                        [("nominal", "nominal equations")]
+                        + [(str(best), "best open-loop model")] * (best is not None and best.is_file())
                         + [(final, "final learned model")]
                         + [(c["model"], CONTROL_ROLES[k]) for k, c in controls.items()]}
     return summary

@@ -53,7 +53,8 @@ class VersusPlant:
 
     ``models`` are paths under the models folder, trained on this plant's own data; ``suffix`` turns a
     scenario name into this plant's variant (``+highfi`` on the reference simulator); ``oracle``: the plant's
-    true equations are known and fly too.
+    true equations are known and fly too; ``vehicle`` the vehicle flown (a shipped vehicle's name; None: the
+    default vehicle).
     """
 
     plant: str
@@ -61,6 +62,7 @@ class VersusPlant:
     label: str
     models: tuple
     oracle: bool
+    vehicle: str | None = None
 
     def scenario(self, name: str) -> str:
         return name + self.suffix
@@ -79,7 +81,12 @@ VERSUS_PLANTS = {
         tuple(f"versus/{a}_rotorpy.onnx" for a in ("baseline", "modular", "fourier", "proposed", "hybrid",
                                                    "hybrid_lag")),
         False),
+    # No open-loop model is trained on it: the learning study (pinnmpc learn) flies it.
+    "crazyflie": VersusPlant("rotorpy", "", "RotorPy's Crazyflie 2.0 preset (72 ms motor lag, rotor drag)", (), False,
+                             vehicle="crazyflie"),
 }
+#: The plants flown when none are named: those with models trained on their own open-loop data.
+DEFAULT_VERSUS_PLANTS = ("highfi", "rotorpy")
 
 
 def _count(name: str, v) -> int:
@@ -89,9 +96,9 @@ def _count(name: str, v) -> int:
 
 
 def parse_plants(text: str | None) -> list[str]:
-    """Plant keys from a comma-separated list (None: all of :data:`VERSUS_PLANTS`)."""
+    """Plant keys from a comma-separated list (None: :data:`DEFAULT_VERSUS_PLANTS`)."""
     if text is None:
-        return list(VERSUS_PLANTS)
+        return list(DEFAULT_VERSUS_PLANTS)
     keys = [k.strip() for k in str(text).split(",") if k.strip()]
     bad = [k for k in keys if k not in VERSUS_PLANTS]
     if bad or not keys:
@@ -116,10 +123,10 @@ def versus_specs(key: str, models: list[str], members: int = 10, ladder_members:
     p = VERSUS_PLANTS[key]
     ens, lad = {}, {}
     for m in models:
-        ens[m] = [RunSpec(p.scenario(VERSUS_SCENARIO), VERSUS_CONTROLLER, m, member=k, plant=p.plant)
-                  for k in range(members)]
+        ens[m] = [RunSpec(p.scenario(VERSUS_SCENARIO), VERSUS_CONTROLLER, m, member=k, plant=p.plant,
+                          vehicle=p.vehicle) for k in range(members)]
         lad[m] = {r: (ens[m] if r == VERSUS_SCENARIO else
-                      [RunSpec(p.scenario(r), VERSUS_CONTROLLER, m, member=k, plant=p.plant)
+                      [RunSpec(p.scenario(r), VERSUS_CONTROLLER, m, member=k, plant=p.plant, vehicle=p.vehicle)
                        for k in range(ladder_members)]) for r in ladder_names()}
     return {"ensemble": ens, "ladder": lad}
 
@@ -164,7 +171,8 @@ def summarize_plant(key: str, models: list[str], results: dict, speeds: dict) ->
     for m in models:
         ens = [results[i] for i in sorted(results) if results[i]["_model"] == m and results[i]["_rung"] is None]
         s = summarize(ens)
-        facts = _model_facts(RunSpec(p.scenario(VERSUS_SCENARIO), VERSUS_CONTROLLER, m, plant=p.plant))
+        facts = _model_facts(RunSpec(p.scenario(VERSUS_SCENARIO), VERSUS_CONTROLLER, m, plant=p.plant,
+                                     vehicle=p.vehicle))
         solve = [r["solve_ms"]["median"] for r in ens if isinstance(r.get("solve_ms"), dict)
                  and r["solve_ms"].get("median") is not None]
         row = {"model": model_name(m), "path": None if m in ("nominal", "oracle") else m, **facts,
@@ -236,11 +244,11 @@ def run_versus(models_dir="models", out_dir="results/versus", members: int = 10,
     keys = parse_plants(None if plants is None else ",".join(plants))
     if not Path(models_dir).is_dir():
         raise ScenarioError(f"models folder {str(models_dir)!r} does not exist")
-    if "rotorpy" in keys:
+    if any(VERSUS_PLANTS[k].plant == "rotorpy" for k in keys):
         from .campaign import rotorpy_available
 
         if not rotorpy_available():
-            raise ScenarioError("plant rotorpy needs RotorPy (pip install -e '.[rotorpy]'), or fly --plants highfi")
+            raise ScenarioError("plants rotorpy and crazyflie need RotorPy (pip install -e '.[rotorpy]'), or fly --plants highfi")
     all_specs, tags = [], []
     models = {k: plant_models(k, models_dir) for k in keys}
     for k in keys:

@@ -26,7 +26,8 @@ SHIPPED = ROOT / "models" / learn.LEARN_DIR
 # Tolerances and budgets of this module.
 TOL = {
     "pieces_exact": 0.0,         # the dataset's pieces are the flights' samples, bit for bit
-    "hover_thrust_rel": 1e-9,    # the synthetic flights' wrench against m g
+    "hover_thrust_rel": 1e-5,    # hover rotor speeds' thrust against m g (their noise: 1e-3 rad/s of about 1800)
+    "mass_rel": 1e-12,           # a loaded model's mass against the vehicle file's
 }
 #: Size budget of the shipped study (its summaries, models and flown data), bytes.
 SHIPPED_BYTES = 45e6
@@ -36,11 +37,12 @@ TIMING_FIELDS = ("stage_seconds", "wall_time_s", "date")
 MEASURED_TIMES = ("training_seconds", "solve_ms_median")
 
 
-def _hover_flight(name: str, n: int, seed: int, ref=None) -> dict:
-    """A synthetic flown flight of ``n`` samples: hover with small seeded noise, hover thrust commanded."""
+def _hover_flight(name: str, n: int, seed: int, ref=None, vehicle=None) -> dict:
+    """A synthetic flown flight of ``n`` samples of ``vehicle``: hover with small seeded noise (rotor speeds exactly
+    at hover but for 1e-3 of noise), hover thrust commanded."""
     from sim.vehicle import load_vehicle
 
-    v = load_vehicle(None)
+    v = load_vehicle(vehicle)
     rng = np.random.default_rng(seed)
     x = np.zeros((n, 12))
     x[:, 2] = -1.0
@@ -129,6 +131,42 @@ def test_flights_round_trip_and_become_pieces_of_equal_length(tmp_path):
         # split of the whole flight: the fifth of every SPLIT_EVERY to validation, the sixth to test
         assert ds.split[j] == {4: 1, 5: 2}.get(i % learn.SPLIT_EVERY, 0)
     assert ds.meta["pieces"] == {"steps": L, "count": len(expect), "flights": len(lengths)}
+
+
+def test_a_flight_crashed_within_its_first_second_is_left_out_and_the_others_keep_their_splits():
+    L = learn.PIECE_STEPS
+    flights = [_hover_flight(f"f{i}", L + 1, i) for i in range(6)]
+    crashed = _hover_flight("crashed", L + 1, 9)
+    crashed["x"][60:] = np.nan                      # 0.6 s of finite samples: too few for a log
+    ds_all = flights_dataset(flights)
+    ds = flights_dataset(flights[:2] + [crashed] + flights[3:])
+    assert ds.x.shape[0] == ds_all.x.shape[0] - 1
+    keep = [0, 1, 3, 4, 5]
+    np.testing.assert_array_equal(ds.split, ds_all.split[keep])
+    np.testing.assert_array_equal(ds.x, ds_all.x[keep])
+    assert list(ds.split[-2:]) == [1, 2]            # flights 4 and 5: validation and test, as without the crash
+
+
+def test_the_crazyflie_study_flies_and_learns_its_own_vehicle():
+    """The Crazyflie plant's flights become data with the Crazyflie's constants, and its runs fly the Crazyflie."""
+    from sim.vehicle import load_vehicle
+
+    cf = load_vehicle("crazyflie")
+    p = LearnSettings(plant="crazyflie").spec
+    assert (p.plant, p.vehicle, p.best_open_loop) == ("rotorpy", "crazyflie", None)
+    flights = [_hover_flight(f"f{i}", learn.PIECE_STEPS + 1, i, vehicle="crazyflie") for i in range(3)]
+    ds = flights_dataset(flights, "crazyflie")
+    assert ds.meta["vehicle"]["name"] == "crazyflie"
+    # the rotors' thrust at hover speed, with the Crazyflie's kt, is its weight (the noise is 1e-3 rad/s of ~1800)
+    thrust = ds.wrench[..., 0]
+    assert np.max(np.abs(thrust / (cf.m * cf.params.g) - 1.0)) < TOL["hover_thrust_rel"]
+    nominal = learn._load("nominal", p)
+    assert nominal.params.m == pytest.approx(cf.m, rel=TOL["mass_rel"])
+    from scenarios.versus import versus_specs
+
+    runs = versus_specs(p.versus, ["nominal"], members=2, ladder_members=1)
+    assert {r.vehicle for r in runs["ensemble"]["nominal"]} == {"crazyflie"}
+    assert {r.vehicle for rung in runs["ladder"]["nominal"].values() for r in rung} == {"crazyflie"}
 
 
 def test_bad_settings_name_the_setting():

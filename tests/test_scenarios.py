@@ -454,11 +454,16 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     # ... and, with motor lag and aerodynamics, the final model of the shipped learning study on RotorPy
     learned_rp = {Path(m).stem for m in learned_models(MODELS, "rotorpy")}
     assert learned_rp == {json.loads((MODELS / "learn" / "rotorpy" / "learn.json").read_text())["final_model"]}
+    # ... and the one on RotorPy's Crazyflie preset, flying the Crazyflie (none where that study is not shipped)
+    learned_cf = {Path(m).stem for m in learned_models(MODELS, "crazyflie")}
+    cf_summary = MODELS / "learn" / "crazyflie" / "learn.json"
+    assert learned_cf == ({json.loads(cf_summary.read_text())["final_model"]} if cf_summary.is_file() else set())
 
     def on_plants(shipped):
         return ({("rotorpy-ideal", "rolling-spider", m) for m in shipped | {"oracle"}}
                 | {("rotorpy", "rolling-spider", m) for m in shipped | {"nominal"} | learned_rp}
-                | {(p, v, "nominal") for p in ("sim", "rotorpy") for v in ("hummingbird", "crazyflie")})
+                | {(p, v, "nominal") for p in ("sim", "rotorpy") for v in ("hummingbird", "crazyflie")}
+                | {("rotorpy", "crazyflie", m) for m in learned_cf})
     assert {(s.scenario, s.controller) for s in other} == {("figure8-fast", "sqp")}
     assert {(s.plant, s.vehicle_data.name, s.model_name) for s in other} == on_plants(
         {Path(m).stem for m in PLANT_DEFAULT_MODELS})

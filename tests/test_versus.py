@@ -83,7 +83,8 @@ def test_specs_reuse_the_ensemble_as_its_rung():
 
 
 def test_parse_plants():
-    assert parse_plants(None) == list(VERSUS_PLANTS)
+    assert parse_plants(None) == ["highfi", "rotorpy"]          # the plants with open-loop models
+    assert parse_plants("crazyflie") == ["crazyflie"] and "crazyflie" in VERSUS_PLANTS
     assert parse_plants("rotorpy, highfi,rotorpy") == ["rotorpy", "highfi"]
     for bad in ("", "sim", "highfi,wind"):
         with pytest.raises(ScenarioError, match="plants"):
