@@ -97,7 +97,8 @@ def learn_section(studies: dict | None, run_dir: Path, figure_md) -> str:
     for plant, st in sorted(studies.items()):
         ev = st["evaluation"]
         parts.append(f"**{ev['label']}** (`{ev['scenario']}`; {st['settings']['members']} members, "
-                     f"{fmt(st['wall_time_s'] / 60, '.0f')} min on two cores, {st.get('date', 'undated')})")
+                     f"{fmt(st.get('study_seconds', st['wall_time_s']) / 60, '.0f')} min on two cores, "
+                     f"{st.get('date', 'undated')})")
         rows = [[r["iteration"], f"`{r['model']}`", r["flights"], fmt(r["flight_minutes"], ".1f"),
                  mm_ci(r["ensemble"]), f"{r['ensemble']['crashes']}/{r['ensemble']['runs']}"] for r in st["curve"]]
         parts.append(md_table(["iteration", "model", "flights learned from", "minutes", "RMSE, mm (95 %)",

@@ -13,8 +13,8 @@
 * each iteration's model flies the held-out ``figure8-fast`` (``members`` ensemble members): one row of the
   learning curve (RMSE against iteration and against the minutes of flight it learned from);
 * two **controls** are trained the same way: the same minutes of open-loop excitation (``pinnmpc data``'s
-  random references flown by the hover LQR with dither), and an **upper bound** from flights of the evaluation
-  reference itself (never a result: it has seen the test);
+  random references flown by the hover LQR with dither), and an **upper bound** from the final model's flights
+  plus an iteration's worth of flights of the evaluation reference itself (never a result: it has seen the test);
 * the **evaluation** flies the nominal equations, the plant's best open-loop model shipped in ``models/``, the
   final model and the controls on ``figure8-fast`` and the figure-8 speed ladder (a resumable sweep).
 
@@ -55,7 +55,9 @@ PIECE_STEPS = 400
 LEARN_DIR = "learn"
 #: What each control is, as the report says it.
 CONTROL_ROLES = {"openloop": "control: same minutes of open-loop excitation",
-                 "upper": "upper bound: trained on flights of figure8-fast itself"}
+                 "upper": "upper bound: the final model's flights plus flights of figure8-fast itself"}
+#: File of a study's stage times, kept across resumed runs.
+STAGE_TIMES = "stage_seconds.json"
 #: Training budgets: a profile of :data:`pinn.train.PROFILES` and settings changed from it. ``smoke`` is for tests of
 #: the loop itself (seconds; its models are not meant to fly well).
 #: ``scaled`` (the default) is the ``full`` profile of the shipped models in 20 epochs, with as many steps as make
@@ -469,6 +471,34 @@ def _flights_stage(settings: LearnSettings, path: Path, jobs_list: list[FlightJo
     return load_flights(path)    # as written, so that a resumed study trains on the same bytes
 
 
+class _StageTimes:
+    """Seconds of each stage of a study, kept in ``OUT/PLANT/stage_seconds.json`` across resumed runs.
+
+    A stage that a rerun finds done (its file ``done`` exists) keeps the seconds of the run that did it, so that
+    a study's total (``study_seconds``) is the compute it took however often it was resumed; a stage a rerun
+    redoes, or part-redoes (the evaluation's sweep, which resumes run by run), counts that rerun's seconds. A study
+    summarized before this file existed keeps the stage times of its ``learn.json``.
+    """
+
+    def __init__(self, out: Path):
+        self.path = out / STAGE_TIMES
+        self.seconds: dict[str, float] = {}
+        if self.path.is_file():
+            self.seconds = json.loads(self.path.read_text())
+        elif (out / "learn.json").is_file():
+            self.seconds = dict(json.loads((out / "learn.json").read_text()).get("stage_seconds", {}))
+        self._name, self._t0, self._kept = None, 0.0, False
+
+    def start(self, name: str, done: Path | None) -> None:
+        self._name, self._t0 = name, time.perf_counter()
+        self._kept = done is not None and done.is_file() and name in self.seconds
+
+    def stop(self) -> None:
+        if not self._kept:
+            self.seconds[self._name] = round(time.perf_counter() - self._t0, 1)
+            write_json(self.path, self.seconds)
+
+
 @locks_out_dir
 def run_learn(settings: LearnSettings, out_dir="results/learn", models_dir="models", jobs: int = 2,
               progress=print) -> dict:
@@ -498,7 +528,7 @@ def run_learn(settings: LearnSettings, out_dir="results/learn", models_dir="mode
                             f"give another --out, or remove it")
     write_json(recorded, mine)
     t_start = time.perf_counter()
-    stages = {}
+    timer = _StageTimes(out)
     flights: list[dict] = []
     curve: list[dict] = []
     trainings: list[dict] = []
@@ -506,8 +536,8 @@ def run_learn(settings: LearnSettings, out_dir="results/learn", models_dir="mode
     for i in range(s.iterations + 1):
         it = out / f"it{i}"
         if i > 0:
-            t0 = time.perf_counter()
             name = f"learn_{p.key}_it{i}"
+            timer.start(f"train {i}", it / f"{name}.json")
             _check_held_out(flights)          # what enters training, by content
             data = {"flights": len(flights), "flight_minutes": sum(f["seconds"] for f in flights) / 60.0,
                     "kind": "closed loop", "iterations": list(range(i))}
@@ -517,31 +547,31 @@ def run_learn(settings: LearnSettings, out_dir="results/learn", models_dir="mode
             rec = _stage(it / f"{name}.json", lambda: train_model(s, path, it, name, min(jobs, 2), data))
             trainings.append(rec)
             model = str(it / f"{name}.onnx")
-            stages[f"train {i}"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
+            timer.stop()
+        timer.start(f"curve {i}", it / "curve.json")
         curve.append(_stage(it / "curve.json", lambda: _curve_row(s, out, i, model, flights, jobs, progress)))
-        stages[f"curve {i}"] = time.perf_counter() - t0
+        timer.stop()
         if i < s.iterations:
-            t0 = time.perf_counter()
+            timer.start(f"fly {i}", it / "flights.npz")
             n_refs = len(training_refs_of(s, i))
             _say(progress, f"iteration {i}: flying {n_refs} training references with "
                            f"{'the nominal equations' if model == 'nominal' else Path(model).stem}")
             jobs_i = [FlightJob(s, "train", i, k, model) for k in range(n_refs)]
             flights = flights + _flights_stage(s, it / "flights.npz", jobs_i, jobs, progress, f"iteration {i}")
-            stages[f"fly {i}"] = time.perf_counter() - t0
+            timer.stop()
     final = model
     controls = {}
     if s.controls:
-        t0 = time.perf_counter()
+        timer.start("controls", out / "controls" / f"learn_{p.key}_upper.json")
         controls = _controls(s, out, flights, final, jobs, progress)
-        stages["controls"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
+        timer.stop()
+    timer.start("evaluation", None)
     evaluation = _evaluate(s, out, models_dir, final, controls, jobs, progress)
-    stages["evaluation"] = time.perf_counter() - t0
+    timer.stop()
     summary = {"plant": p.key, "label": evaluation["label"], "settings": mine, "curve": curve,
                "trainings": trainings, "controls": {k: v["record"] for k, v in controls.items()},
                "evaluation": evaluation, "final_model": Path(final).stem,
-               "stage_seconds": {k: round(v, 1) for k, v in stages.items()},
+               "stage_seconds": dict(timer.seconds), "study_seconds": round(sum(timer.seconds.values()), 1),
                "wall_time_s": round(time.perf_counter() - t_start, 1), "date": time.strftime("%Y-%m-%d")}
     write_json(out / "learn.json", summary)
     return summary
@@ -555,12 +585,13 @@ def training_refs_of(settings: LearnSettings, iteration: int):
 
 
 def _controls(s: LearnSettings, out: Path, flights: list[dict], final: str, jobs: int, progress) -> dict:
-    """The two controls, trained on as many minutes of flight as the final model (two trainings at once)."""
+    """The two controls (two trainings at once): as many minutes of open-loop excitation as the final model flew, and
+    the upper bound, trained on the final model's flights plus as many flights of ``figure8-fast`` as an
+    iteration flies."""
     from sim.excitation import make_dataset
     from sim.params import NoiseModel
     from sim.vehicle import load_vehicle
 
-    from .library import get_scenario
     from .pool import run_pool
 
     p = s.spec
@@ -576,18 +607,21 @@ def _controls(s: LearnSettings, out: Path, flights: list[dict], final: str, jobs
                           fidelity=vehicle.named_fidelity("high" if p.high_fidelity else "nominal"), plant=p.plant,
                           vehicle=vehicle, workers=jobs)
         ds.save(open_path)
-    # The upper bound: flights of the evaluation reference itself (perturbed, dithered) with the final model.
-    per = get_scenario("figure8-fast").steps * DT
-    n_up = max(2, math.ceil(seconds / per - 1e-9))
+    # The upper bound: the final model's flights plus one iteration's worth of flights of the evaluation reference
+    # itself (perturbed, dithered), flown with the final model: what the loop would reach had it been allowed to fly
+    # the test.
+    n_up = len(training_refs_of(s, 0))
     _say(progress, f"controls: {n_up} flights of figure8-fast itself with {Path(final).stem} (upper bound only)")
     up = _flights_stage(s, c / "upper_flights.npz", [FlightJob(s, "upper", 0, k, final) for k in range(n_up)],
                         jobs, progress, "upper bound", held_out=False)
-    up_path = _dataset_file(c / "upper_data.npz", up, p.vehicle)
+    up_path = _dataset_file(c / "upper_data.npz", flights + up, p.vehicle)
     todo = {
         "openloop": (open_path, {"flights": n_open, "flight_minutes": n_open * OPEN_LOOP_FLIGHT_S / 60.0,
                                  "kind": f"open-loop excitation ({p.open_loop})"}),
-        "upper": (up_path, {"flights": len(up), "flight_minutes": sum(f["seconds"] for f in up) / 60.0,
-                            "kind": "closed loop on the evaluation reference (upper bound)"}),
+        "upper": (up_path, {"flights": len(flights) + len(up),
+                            "flight_minutes": sum(f["seconds"] for f in flights + up) / 60.0,
+                            "kind": f"the final model's flights plus {len(up)} of the evaluation reference "
+                                    f"(upper bound)"}),
     }
     recs = {}
     items = []
@@ -694,7 +728,8 @@ def format_learn(out: dict) -> str:
         lines.append(f"  final model {v['model']}: {100 * v['fraction']:.0f} % better than nominal (goal "
                      f"{100 * v['goal']:.0f} %, intervals {'apart' if v['apart'] else 'overlap'}, ladder "
                      f"{'kept' if v['ladder_ok'] else 'lost speed'}): {'met' if v['met'] else 'missed'}")
-    lines.append(f"wall time {out['wall_time_s'] / 60:.1f} min")
+    total = out.get("study_seconds", out["wall_time_s"])
+    lines.append(f"study time {total / 60:.1f} min (this run {out['wall_time_s'] / 60:.1f} min)")
     return "\n".join(lines)
 
 
