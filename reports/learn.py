@@ -12,7 +12,7 @@ from .versus import mm_ci, pct_ci
 
 #: Shown when the results folder has no learning study.
 NO_LEARN = ("No `learn_<plant>.json` in this folder: `pinnmpc learn --plant highfi|rotorpy|crazyflie --publish` flies, learns "
-            "from its flights and flies again (about 45 minutes per plant on two cores), and writes a copy into "
+            "from its flights and flies again (30-40 minutes per plant on two cores), and writes a copy into "
             "`models/learn/`, which the next `pinnmpc run` copies here.")
 
 
