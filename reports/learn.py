@@ -11,9 +11,9 @@ from .tables import MISSING, fmt, md_table
 from .versus import mm_ci, pct_ci
 
 #: Shown when the results folder has no learning study.
-NO_LEARN = ("No `learn_<plant>.json` in this folder: `pinnmpc learn --plant highfi|rotorpy|crazyflie --publish` flies, learns "
-            "from its flights and flies again (30-40 minutes per plant on two cores), and writes a copy into "
-            "`models/learn/`, which the next `pinnmpc run` copies here.")
+NO_LEARN = ("No `learn_<plant>.json` in this folder: `pinnmpc learn --plant highfi|rotorpy|crazyflie --publish` "
+            "flies, learns from its flights and flies again (30-40 minutes per plant on two cores), and writes a copy "
+            "into `models/learn/`, which the next `pinnmpc run` copies here.")
 
 
 def goal_mm(study: dict) -> float | None:
@@ -90,7 +90,8 @@ def learn_section(studies: dict | None, run_dir: Path, figure_md) -> str:
              "trains physics plus network with the rotor speeds as states on every flight flown so far (random "
              "min-snap paths and orbits at 1-3 m/s, perturbed, with input dither; never a figure-8), and its model "
              "flies the next iteration's references. The controls are trained the same way on the same minutes of "
-             "open-loop excitation, and (an upper bound only) on flights of `figure8-fast` itself."]
+             "open-loop excitation, and (an upper bound only) on the final model's flights plus flights of "
+             "`figure8-fast` itself."]
     f = learning_figure(studies, run_dir)
     if f is not None:
         parts.append(figure_md(f))

@@ -167,8 +167,9 @@ def register(sub) -> None:
                                    "flight so far, fly the new model on fresh references, and repeat. Each "
                                    "iteration's model flies the held-out figure8-fast: the learning curve. Then two "
                                    "controls (the same minutes of open-loop excitation, and an upper bound trained "
-                                   "on flights of figure8-fast itself) and the evaluation on figure8-fast and the "
-                                   "speed ladder against the nominal equations. Writes OUT/PLANT/learn.json; "
+                                   "on the flights plus 18 of figure8-fast itself) and the evaluation on "
+                                   "figure8-fast and the speed ladder against the nominal equations. Writes "
+                                   "OUT/PLANT/learn.json; "
                                    "resumable: a rerun reuses every stage already written (docs/learning.md).")
     p.add_argument("--plant", required=True, choices=("highfi", "rotorpy", "crazyflie"),
                    help="highfi: our simulator's high-fidelity set-up; rotorpy: RotorPy with its motor lag and "

@@ -248,7 +248,8 @@ def run_versus(models_dir="models", out_dir="results/versus", members: int = 10,
         from .campaign import rotorpy_available
 
         if not rotorpy_available():
-            raise ScenarioError("plants rotorpy and crazyflie need RotorPy (pip install -e '.[rotorpy]'), or fly --plants highfi")
+            raise ScenarioError("plants rotorpy and crazyflie need RotorPy (pip install -e '.[rotorpy]'), or fly "
+                                "--plants highfi")
     all_specs, tags = [], []
     models = {k: plant_models(k, models_dir) for k in keys}
     for k in keys:
