@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .figures import STYLE, FigureOut, _save
 from scenarios.versus import WIN_FRACTION
 
+from .figures import STYLE, FigureOut, _save
 from .tables import MISSING, fmt, md_table
 from .versus import mm_ci, pct_ci
 

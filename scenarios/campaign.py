@@ -181,9 +181,13 @@ def plant_plan(models_dir="models", full: bool = False) -> list[RunSpec]:
         models = [m for m in models if Path(m).name in PLANT_DEFAULT_MODELS]
     sc, c = PLANT_SCENARIO, PLANT_CONTROLLER
     specs = [RunSpec(sc, c, m, plant="rotorpy-ideal") for m in ["oracle", *models]]
-    specs += [RunSpec(sc, c, m, plant="rotorpy") for m in ["nominal", *models, *learned_models(models_dir, "rotorpy")]]
+    specs += [RunSpec(sc, c, m, plant="rotorpy") for m in ["nominal", *models]]
     specs += [RunSpec(sc, c, "nominal", plant=pl, vehicle=v) for v in PLANT_VEHICLES for pl in ("sim", "rotorpy")]
-    specs += [RunSpec(sc, c, m, plant="rotorpy", vehicle="crazyflie") for m in learned_models(models_dir, "crazyflie")]
+    # the final model of each shipped learning study on RotorPy, flying that study's vehicle
+    from .learn import LEARN_PLANTS
+
+    specs += [RunSpec(sc, c, m, plant=lp.plant, vehicle=lp.vehicle) for key, lp in LEARN_PLANTS.items()
+              if lp.plant == "rotorpy" for m in learned_models(models_dir, key)]
     return specs
 
 

@@ -171,7 +171,9 @@ def register(sub) -> None:
                                    "figure8-fast and the speed ladder against the nominal equations. Writes "
                                    "OUT/PLANT/learn.json; "
                                    "resumable: a rerun reuses every stage already written (docs/learning.md).")
-    p.add_argument("--plant", required=True, choices=("highfi", "rotorpy", "crazyflie"),
+    from .learn import LEARN_PLANTS
+
+    p.add_argument("--plant", required=True, choices=tuple(LEARN_PLANTS),
                    help="highfi: our simulator's high-fidelity set-up; rotorpy: RotorPy with its motor lag and "
                         "aerodynamics; crazyflie: RotorPy's Crazyflie 2.0 preset, 72 ms motor lag (both need the "
                         "rotorpy extra)")

@@ -82,11 +82,17 @@ class LearnPlant:
     """
 
     key: str
-    plant: str
     high_fidelity: bool
     versus: str
     open_loop: str
     best_open_loop: str | None
+
+    @property
+    def plant(self) -> str:
+        """The plant flown (:data:`sim.plants.PLANTS`)."""
+        from .versus import VERSUS_PLANTS
+
+        return VERSUS_PLANTS[self.versus].plant
 
     @property
     def vehicle(self) -> str | None:
@@ -97,9 +103,9 @@ class LearnPlant:
 
 
 LEARN_PLANTS = {
-    "highfi": LearnPlant("highfi", "sim", True, "highfi", "aggressive", "versus/hybrid_lag_aggressive_highfi.onnx"),
-    "rotorpy": LearnPlant("rotorpy", "rotorpy", False, "rotorpy", "small", "versus/hybrid_lag_rotorpy.onnx"),
-    "crazyflie": LearnPlant("crazyflie", "rotorpy", False, "crazyflie", "small", None),
+    "highfi": LearnPlant("highfi", True, "highfi", "aggressive", "versus/hybrid_lag_aggressive_highfi.onnx"),
+    "rotorpy": LearnPlant("rotorpy", False, "rotorpy", "small", "versus/hybrid_lag_rotorpy.onnx"),
+    "crazyflie": LearnPlant("crazyflie", False, "crazyflie", "small", None),
 }
 
 
@@ -272,7 +278,7 @@ def flights_dataset(flights: list[dict], vehicle=None):
     ``vehicle`` is the vehicle flown (a name, file or :class:`sim.vehicle.Vehicle`; None: the default vehicle).
     """
     from sim.excitation import Dataset
-    from sim.flightlog import MIN_SAMPLES, flights_to_dataset, flown_flight
+    from sim.flightlog import MIN_SAMPLES, finite_samples, flights_to_dataset, flown_flight
     from sim.vehicle import load_vehicle
 
     vehicle = load_vehicle(vehicle)
@@ -281,7 +287,7 @@ def flights_dataset(flights: list[dict], vehicle=None):
     # is no log: it is left out here, and the others keep their splits.
     fl, splits = [], {}
     for i, f in enumerate(flights):
-        if _finite_samples(f) < MIN_SAMPLES:
+        if finite_samples(f["x"], f["rotor_speed"]) < MIN_SAMPLES:
             continue
         fl.append(flown_flight(f["name"], f["t"], f["x"], f["rotor_speed"], vehicle, command=f["command"],
                                reference=f["reference"]))
@@ -305,12 +311,6 @@ def flights_dataset(flights: list[dict], vehicle=None):
     split = np.array([ds.split[i] for i, _ in rows])
     meta = {**ds.meta, "pieces": {"steps": L, "count": len(rows), "flights": len(fl)}}
     return Dataset(**take, split=split, meta=meta)
-
-
-def _finite_samples(flight: dict) -> int:
-    """Samples of a flight before its first non-finite state or rotor speed (all of them if none)."""
-    finite = np.all(np.isfinite(flight["x"]), axis=1) & np.all(np.isfinite(flight["rotor_speed"]), axis=1)
-    return len(finite) if finite.all() else int(np.argmin(finite))
 
 
 # ------------------------------------------------------------------ stages
@@ -414,14 +414,12 @@ def _dataset_file(path: Path, flights: list[dict], vehicle) -> Path:
 def _curve_row(settings: LearnSettings, out: Path, iteration: int, model: str, flights: list[dict], jobs: int,
                progress) -> dict:
     """Fly ``model`` on the held-out ``figure8-fast`` (``settings.members`` members): one row of the learning curve."""
-    from .runner import RunSpec
     from .stats import summarize
     from .sweep import sweep
-    from .versus import VERSUS_PLANTS, VERSUS_SCENARIO
+    from .versus import versus_specs
 
-    vp = VERSUS_PLANTS[settings.spec.versus]
-    specs = [RunSpec(vp.scenario(VERSUS_SCENARIO), "sqp", model, member=k, plant=vp.plant, vehicle=vp.vehicle)
-             for k in range(settings.members)]
+    # the evaluation's own ensemble runs on figure8-fast, so that the evaluation finds them flown
+    specs = versus_specs(settings.spec.versus, [model], settings.members, ladder_members=1)["ensemble"][model]
     results = sweep(specs, out / "evaluation", jobs=jobs, progress=False)
     _no_errors(results)
     s = summarize(results)

@@ -530,6 +530,12 @@ def _rates_check(x, ok) -> dict:
     return {"slope": _slope(measured, derived), "rms_rad_s": float(np.sqrt(np.mean((measured - derived) ** 2)))}
 
 
+def finite_samples(x, rotor_speed) -> int:
+    """Samples before the first with a non-finite state (n, 12) or rotor speed (n, 4): all n if there is none."""
+    finite = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(rotor_speed), axis=1)
+    return len(finite) if finite.all() else int(np.argmin(finite))
+
+
 def flown_flight(name: str, t, x, rotor_speed, vehicle: Vehicle, command=None, reference=None,
                  source: str = "a flight of this project's plants") -> Flight:
     """A flight flown here (a closed-loop run's trace) as a :class:`Flight`, as the import would give it.
@@ -571,8 +577,7 @@ def flown_flight(name: str, t, x, rotor_speed, vehicle: Vehicle, command=None, r
                              f"{x.shape} and {rot.shape}")
     if n > 1 and not np.allclose(np.diff(t), DT, rtol=0.0, atol=1e-9):
         raise FlightLogError(f"{name}: the samples must be {DT:g} s apart")
-    finite = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(rot), axis=1)
-    keep = n if finite.all() else int(np.argmin(finite))
+    keep = finite_samples(x, rot)
     if keep < MIN_SAMPLES:
         raise FlightLogError(f"{name}: fewer than {MIN_SAMPLES} finite samples ({keep})")
     t, x, rot = t[:keep], x[:keep], rot[:keep]
