@@ -24,7 +24,6 @@ fall back to the hover LQR ("lqr_fallback"). Both are counted.
 from __future__ import annotations
 
 import time
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,16 +36,15 @@ from .base import MPCBase
 from .controller import ControlInfo, Reference, Timer, check_common_settings, check_measured
 from .errors import ConfigurationError
 from .models import PredictionModel
+from .timing import PeriodClock
 
-#: OSQP's "no time limit" (its default setting), s.
-NO_TIME_LIMIT = 1e10
 #: Status of a period whose plan could not be made before its deadline (:meth:`LTVMPC.set_deadline`).
 DEADLINE_STATUS = "deadline"
-#: Least time OSQP is given before a deadline, s: with less, the period takes its fallback at once.
-MIN_QP_TIME_S = 3e-4
-#: The expected time of a period's first derivatives and QP assembly (for the deadline) is the median of this
-#: many recent periods (one slow period does not make the next ones give up).
-RECENT_PERIODS = 20
+#: Status of a period whose model returned NaN or inf along the plan (OSQP never sees it).
+NON_FINITE_STATUS = "non-finite model output"
+#: The parts of a period's time the QP controllers measure (s): the model's derivatives (and steps), the QP's
+#: assembly (including OSQP's matrix update), OSQP's solve and the SQP's line search.
+SPLIT = ("derivatives", "assembly", "osqp", "line_search")
 
 
 def csc_in_entry_order(rows, cols, vals, shape):
@@ -135,8 +133,7 @@ class LTVMPC(MPCBase):
         self._build_pattern()
         self._status = osqp.SolverStatus
         self._deadline: float | None = None
-        self._recent_s = {"derivatives": deque(maxlen=RECENT_PERIODS), "assembly": deque(maxlen=RECENT_PERIODS),
-                          "line_search": deque(maxlen=RECENT_PERIODS)}
+        self.clock = PeriodClock()      # the timing rules of a period (its budget, its deadline, recent times)
         self._solver = osqp.OSQP()
         settings_ = dict(verbose=False, warm_starting=True, max_iter=self.s.max_iter, eps_abs=self.s.eps_abs,
                          eps_rel=self.s.eps_rel, polishing=self.s.polish,
@@ -147,7 +144,6 @@ class LTVMPC(MPCBase):
         self._plan_x: np.ndarray | None = None
         self._plan_u: np.ndarray | None = None
         self._z: np.ndarray | None = None
-        self._plan_is_current = False   # the plan was made for the next call's time (a pre-flight plan): no shift
 
     def _set_offset(self, offset) -> None:
         self.model.offset = offset
@@ -174,7 +170,8 @@ class LTVMPC(MPCBase):
 
         For the next call only (a real-time loop sets it every period). When
         the period's first derivatives and QP would not fit before it (from
-        their median times over :data:`RECENT_PERIODS` periods), or OSQP
+        their median times over
+        :data:`mpc.timing.RECENT_PERIODS` periods), or OSQP
         stops at the time left, the call returns at once with the fallback of
         a failed solve (the shifted plan, or the LQR) and the status
         :data:`DEADLINE_STATUS`. A cold start (no plan to fall back on) ignores
@@ -244,197 +241,111 @@ class LTVMPC(MPCBase):
         return sp.triu(sp.block_diag([sp.csc_matrix(self.Q)] * N + [sp.csc_matrix(self.P)]
                                      + [sp.csc_matrix(self.R)] * N, format="csc"), format="csc")
 
-    def _hessian_values(self, X, U, y):
-        """``(Px, dq)``: the QP's Hessian values (CSC order) and linear-cost change for the iterate ``(X, U)`` and the
-        dynamics multipliers ``y`` (N, 12) of the last QP, or None to keep the cost's own Hessian."""
-        return None
-
     # ------------------------------------------------------------- control
     def _nominal(self, x: np.ndarray, u_ref: np.ndarray):
-        """First iterate (N + 1, nx), (N, 4): the shifted previous plan, or the state held under the feed-forward."""
+        """First iterate (N + 1, nx), (N, 4): the previous plan shifted by one period, or the state held under the
+        feed-forward."""
         N = self.N
         if self._plan_x is None:
             return np.tile(x, (N + 1, 1)), u_ref.copy()
-        if self._plan_is_current:
-            xs, us = self._plan_x.copy(), self._plan_u.copy()
-        else:
-            xs = np.vstack([self._plan_x[1:], self._plan_x[N:N + 1]])
-            us = np.vstack([self._plan_u[1:], self._plan_u[-1:]])
+        xs = np.vstack([self._plan_x[1:], self._plan_x[N:N + 1]])
+        us = np.vstack([self._plan_u[1:], self._plan_u[-1:]])
         xs[0] = x
         return xs, us
-
-    def _shifts_plan(self) -> bool:
-        """This period's first iterate is the previous plan shifted by one period (not a cold start, and not a plan
-        made for this very period before take-off)."""
-        return self._plan_x is not None and not self._plan_is_current
-
-    def _iteration_plan(self):
-        """``(max_iterations, line_search, time_budget_s or None, (step_tol, defect_tol))`` of one period.
-
-        The LTV-MPC is the real-time iteration: one QP along the shifted
-        previous plan, full step. :class:`mpc.sqp.SQPMPC` iterates.
-        """
-        return 1, False, None, (0.0, 0.0)
 
     def __call__(self, x, t: float):
         """Input (4,) and :class:`ControlInfo` for the measured state ``x`` at time ``t`` (s)."""
         x = check_measured(x, self.model)
-        with Timer() as tm:
+        with Timer(self.clock.now) as tm:
             z = self.tracker.full(x, t)     # the measured state, with the model's extra states carried
             ref, u_ref = self._horizon_reference(t)
-            out = self._iterate(z, ref, u_ref, tm)
-        return out[0], ControlInfo(solve_time_s=tm.elapsed, **out[1])
+            u, fields = self._period(z, ref, u_ref, tm)
+        return u, ControlInfo(solve_time_s=tm.elapsed, **fields)
 
-    def _iterate(self, x, ref, u_ref, tm, guess=None):
-        """Gauss-Newton SQP iterations of one period (one for the LTV-MPC); ``(u, ControlInfo fields)``.
+    def _take_deadline(self) -> float | None:
+        """The deadline of this call (:meth:`set_deadline`), cleared for the next one."""
+        deadline, self._deadline = self._deadline, None
+        return deadline
 
-        ``x``: the full state (nx,). ``guess``: a first iterate ``(X (N + 1, nx), U (N, 4))`` that replaces the
-        shifted plan (and the cold start), also as OSQP's primal start.
+    def _period(self, x, ref, u_ref, tm):
+        """One period of the LTV-MPC: one QP along the shifted previous plan, full step; ``(u, ControlInfo fields)``.
+
+        ``x``: the full state (nx,); ``tm``: the call's :class:`Timer`.
         """
         N = self.N
-        max_it, line_search, budget, tol = self._iteration_plan()
-        shifted = False   # the first iterate is the previous plan shifted by one period
-        if guess is None:
-            cold = self._plan_x is None
-            shifted = self._shifts_plan()
-            X, U = self._initial_iterate(x, ref, u_ref)
-            if cold:
-                max_it, budget = self._cold_start_plan(max_it, budget)
-            first_warm = None if self._z is None else self._z if self._plan_is_current else self._shifted(self._z)
-        else:
-            cold = False
-            X, U = np.array(guess[0], dtype=float), np.array(guess[1], dtype=float)
-            X[0] = x
-            first_warm = np.concatenate([X.ravel(), U.ravel()])
-        self._plan_is_current = False
-        merits, alphas = [], []
-        split = {"derivatives": 0.0, "assembly": 0.0, "osqp": 0.0, "line_search": 0.0}
-        done, qp_iterations, status, ok_any, converged = 0, 0, "", False, False
-        ls_failures = late_steps = 0
-        longest = 0.0    # the longest iteration of this period, s (the first with the period's set-up)
-        mu = 0.0
-        y_last = None    # the last QP's dynamics multipliers (N, nx)
-        every = self._jacobian_every()
-        f_next = None    # the model's step along the line search's new iterate (N, nx), when it made one
-        deadline, self._deadline = self._deadline, None    # for this call only
-        if cold:
-            deadline = None     # a cold start makes a plan whatever it takes: its fallback (the LQR) has none
-        expect = {k: float(np.median(v)) if v else 0.0 for k, v in self._recent_s.items()}
-        # A line search takes a varying number of model steps: the longest of the recent ones is expected.
-        expect["line_search"] = max(self._recent_s["line_search"], default=0.0)
-        while done < max_it:
-            t_it = tm.now()
-            if deadline is not None and done == 0 and \
-                    t_it + expect["derivatives"] + expect["assembly"] + MIN_QP_TIME_S > deadline:
-                status, ok = DEADLINE_STATUS, False      # no plan in time: the fallback's input goes out now
-                break
-            # An iteration between Jacobian evaluations keeps A_k, B_k (and OSQP's factorization) and takes only the
-            # model's step at the new iterate (from the line search when it made one).
-            reuse = done % every != 0
-            with np.errstate(all="ignore"):
-                if reuse:
-                    fx = f_next if f_next is not None else self.model.step(X[:N], U)
-                else:
-                    fx, A, B = self._linearize(X[:N], U)
-            split["derivatives"] += tm.now() - t_it
-            if done == 0:
-                self._recent_s["derivatives"].append(tm.now() - t_it)
-            # A reuse iteration's A, B passed this check when they were evaluated (a non-finite one ends the period).
-            finite = np.all(np.isfinite(fx)) and (reuse or (np.all(np.isfinite(A)) and np.all(np.isfinite(B))))
-            if finite and shifted and done == 0:
-                first_warm = self._close_tail(X, U, fx, first_warm)
-            if finite and deadline is not None:
-                # OSQP gets what is left before the deadline once its problem is assembled; too little for the
-                # period's first QP: no QP (a later iteration is bounded by the budget).
-                qp_left = max(deadline - tm.now() - expect["assembly"], 1e-4)
-                if done == 0 and qp_left < MIN_QP_TIME_S:
-                    status, finite = DEADLINE_STATUS, False
-            if finite:
-                limit = NO_TIME_LIMIT
-                if budget is not None and done > 0:
-                    # After the first QP of a period (which must give a plan), one hard QP must not overrun the
-                    # budget: OSQP gets the time left.
-                    limit = max(budget - (tm.now() - tm.start), 1e-4)
-                if deadline is not None:
-                    limit = min(limit, qp_left)
-                if budget is not None or deadline is not None:
-                    self._solver.update_settings(time_limit=limit)
-                assembly_before = split["assembly"]
-                warm = first_warm if done == 0 else None
-                t_h = tm.now()
-                hess = self._hessian_values(X[:N + 1], U, y_last)
-                split["derivatives"] += tm.now() - t_h
-                res = self._solve_qp(x, ref, u_ref, X[:N], U, fx, A, B, warm=warm, split=split, hess=hess,
-                                     same_matrices=reuse)
-                status, qp_iterations = res.info.status, qp_iterations + int(res.info.iter)
-                solved = (self._status.OSQP_SOLVED, self._status.OSQP_SOLVED_INACCURATE)
-                ok = res.info.status_val in solved and res.x is not None and np.all(np.isfinite(res.x))
-                if done == 0:
-                    self._recent_s["assembly"].append(split["assembly"] - assembly_before)
-                    if not ok and deadline is not None and tm.now() > deadline - MIN_QP_TIME_S:
-                        status = DEADLINE_STATUS    # OSQP stopped at the deadline's time limit
-            elif status != DEADLINE_STATUS:  # a model that returns NaN/inf along the plan: OSQP never sees it
-                status, ok = "non-finite model output", False
-            else:
-                ok = False
-            if not ok:
-                break
-            done += 1
-            ok_any = True
-            y_last = res.y[self.nx:self._n_eq].reshape(N, self.nx).copy()
-            optimal = res.info.status_val == self._status.OSQP_SOLVED
-            Xq = res.x[:self.nx_var].reshape(N + 1, self.nx)
-            Uq = res.x[self.nx_var:].reshape(N, NU)
-            # With a budget, a period whose QP ended past it, or so close to it that the longest recent line search
-            # would end past it, takes the QP's full step (the real-time iteration) and stops: no line search (its
-            # model steps and any correction's QP) on top of an overrun.
-            elapsed = tm.now() - tm.start
-            late = budget is not None and (elapsed > budget or
-                                           (line_search and elapsed + expect["line_search"] > budget))
-            if late:
-                late_steps += 1
-            if line_search and not late:
-                t_ls = tm.now()
-                qp_before = split["assembly"] + split["osqp"]   # a correction's QP is counted there, not here
-                mu = max(mu, self._merit_factor * float(np.max(np.abs(y_last))) + 1e-9)
-                Xl, Ul = X[:N], U     # the linearization point, for the second-order correction's QP
+        cold = self._plan_x is None
+        X, U = self._nominal(x, u_ref)
+        warm = None if self._z is None else self._shifted(self._z)
+        deadline = self._take_deadline()
+        clock = self.clock.begin(tm.start, None, None if cold else deadline)   # a cold start plans whatever it takes
+        split = dict.fromkeys(SPLIT, 0.0)
+        res, ok, status = None, False, DEADLINE_STATUS
+        if not clock.no_time_to_start():
+            fx, A, B = self._derivatives(X, U, clock, split, first=True)
+            if not self._finite(fx, A, B):
+                status = NON_FINITE_STATUS
+            elif clock.qp_window(first=True):
+                res, ok, status = self._qp(x, ref, u_ref, X[:N], U, fx, A, B, clock, split, first=True, warm=warm)
+        if ok:
+            X, U = self._unpack(res.x)
+        optimal = ok and res.info.status_val == self._status.OSQP_SOLVED
+        u, fields = self._finish(ok, X, U, status, optimal, x, ref, u_ref)
+        fields["iterations"] = 0 if res is None else int(res.info.iter)
+        return u, fields
 
-                iteration_time = tm.now() - t_it     # derivatives + QP: more than the correction's QP needs
+    def _derivatives(self, X, U, clock, split, first: bool):
+        """``(f(X, U), A, B)`` along the plan's first N stages, timed (the period's first ones also recorded)."""
+        t0 = clock.now()
+        with np.errstate(all="ignore"):
+            fx, A, B = self._linearize(X[:self.N], U)
+        seconds = clock.now() - t0
+        split["derivatives"] += seconds
+        if first:
+            clock.record("derivatives", seconds)
+        return fx, A, B
 
-                def resolve(shift, Xl=Xl, Ul=Ul, fx=fx, A=A, B=B, iteration_time=iteration_time, hess=hess):
-                    if budget is not None:
-                        left = budget - (tm.now() - tm.start)
-                        if left < iteration_time:   # no time for the correction's QP: the caller backtracks instead
-                            return None
-                        self._solver.update_settings(time_limit=left)
-                    # The same matrices (A_k, B_k, Hessian): only the bounds change, OSQP keeps its factorization.
-                    return self._solve_qp(x, ref, u_ref, Xl, Ul, fx + shift, A, B, split=split, hess=hess,
-                                          same_matrices=True)
+    @staticmethod
+    def _finite(fx, A=None, B=None) -> bool:
+        """The model's step (and, when given, its Jacobians) along the plan are finite."""
+        return bool(np.all(np.isfinite(fx)) and (A is None or np.all(np.isfinite(A)))
+                    and (B is None or np.all(np.isfinite(B))))
 
-                Xn, Un, alpha, accepted, phi0, phi, defect, f_next = self._line_search(X, U, Xq, Uq, fx, ref,
-                                                                                       u_ref, mu, resolve)
-                merits.append((phi0, phi, accepted))
-                ls_failures += not accepted
-                split["line_search"] += tm.now() - t_ls - (split["assembly"] + split["osqp"] - qp_before)
-                if budget is not None:
-                    self._recent_s["line_search"].append(tm.now() - t_ls)
-            else:
-                Xn, Un, alpha, defect, f_next = Xq, Uq, 1.0, np.inf, None
-            alphas.append(alpha)
-            # Converged when the QP's full step is small (a step shortened by the line search is not convergence).
-            step = max(np.max(np.abs(Xq - X) / self._sx), np.max(np.abs(Uq - U) / self._su))
-            X, U = Xn, Un
-            # Only an iteration with new Jacobians can say that the plan is a KKT point.
-            if not reuse and (step < tol[0] or defect < tol[1]):
-                converged = True
-                break
-            # Another iteration only if one as long as the longest so far still fits the budget (the first one
-            # carries the period's set-up, so the rule errs towards stopping).
-            longest = max(longest, tm.now() - (tm.start if done == 1 else t_it))
-            if late or (budget is not None and tm.now() - tm.start + longest > budget):
-                break
+    def _qp(self, x, ref, u_ref, xb, ub, fx, A, B, clock, split, first: bool, warm=None, hess=None,
+            same_matrices=False):
+        """Solve the QP linearized along ``(xb, ub)`` within the clock's limits; ``(OSQP result, ok, status)``.
+
+        ``ok``: OSQP solved it (also inaccurately) with a finite solution. A
+        period's ``first`` QP records its assembly time, and a failure of it
+        that ran into the deadline has the status :data:`DEADLINE_STATUS`.
+        """
+        limit = clock.qp_time_limit(first)
+        if limit is not None:
+            self._solver.update_settings(time_limit=limit)
+        assembly_before = split["assembly"]
+        res = self._solve_qp(x, ref, u_ref, xb, ub, fx, A, B, warm=warm, split=split, hess=hess,
+                             same_matrices=same_matrices)
+        ok = self._solved(res)
+        status = res.info.status
+        if first:
+            clock.record("assembly", split["assembly"] - assembly_before)
+            if not ok and clock.missed():
+                status = DEADLINE_STATUS    # OSQP stopped at the deadline's time limit
+        return res, ok, status
+
+    def _solved(self, res) -> bool:
+        """OSQP solved the QP (also inaccurately) and its solution is finite."""
+        return res.info.status_val in (self._status.OSQP_SOLVED, self._status.OSQP_SOLVED_INACCURATE) and \
+            res.x is not None and bool(np.all(np.isfinite(res.x)))
+
+    def _unpack(self, z):
+        """States (N + 1, nx) and inputs (N, 4) of a QP solution (views)."""
+        return z[:self.nx_var].reshape(self.N + 1, self.nx), z[self.nx_var:].reshape(self.N, NU)
+
+    def _finish(self, ok: bool, X, U, status: str, optimal: bool, x, ref, u_ref):
+        """The period's input and its record's fields (no ``iterations``) after a plan ``(X, U)`` was made (``ok``),
+        or the fallback of a failed period (the shifted plan, or the LQR)."""
         fallback = None
-        if ok_any:
+        if ok:
             self._z = np.concatenate([X.ravel(), U.ravel()])
             self._plan_x, self._plan_u = X, U
             self._success()
@@ -451,26 +362,8 @@ class LTVMPC(MPCBase):
                 u = self._plan_u[0]
             info_status = status
         u = self._rotor_feasible(u)
-        extra = {"counts": dict(self.counts)}
-        iterations = qp_iterations
-        if self._reports_sqp:
-            iterations = done
-            extra.update(qp_iterations=qp_iterations, converged=converged, cold_start=cold,
-                         line_search_failures=ls_failures, late_full_steps=late_steps, time_split_s=split, merit=merits,
-                         step_lengths=alphas)
-        return u, dict(status=info_status, iterations=iterations,
-                       predicted=None if self._plan_x is None else self._plan_x.copy(), fallback=fallback,
-                       extra=extra)
-
-    #: The LTV-MPC reports OSQP's iterations; the SQP its own (and OSQP's in ``extra``).
-    _reports_sqp = False
-
-    def _initial_iterate(self, x, ref, u_ref):
-        return self._nominal(x, u_ref)
-
-    def _jacobian_every(self) -> int:
-        """The model's Jacobians are evaluated at the iterations ``0, k, 2k, ...`` of a period (one iteration here)."""
-        return 1
+        return u, dict(status=info_status, predicted=None if self._plan_x is None else self._plan_x.copy(),
+                       fallback=fallback, extra={"counts": dict(self.counts)})
 
     def _rotor_feasible(self, u):
         """``u`` (4,) if the rotors can realize it, else its exact projection onto the rotor-feasible set."""
@@ -479,26 +372,13 @@ class LTVMPC(MPCBase):
             return u
         return realize(u, self.spec).wrench
 
-    def _close_tail(self, X, U, fx, warm):
-        """After the first linearization along a shifted plan: complete its last stage; OSQP's primal start.
-
-        The LTV-MPC keeps the shifted plan as it is (its last state and input
-        repeated) and starts OSQP from the shifted previous solution.
-        """
-        return warm
-
-    def _cold_start_plan(self, max_it, budget):
-        return max_it, budget
-
-    def _line_search(self, X, U, Xq, Uq, fx, ref, u_ref, mu, resolve):  # pragma: no cover - SQP only
-        raise NotImplementedError
-
     def _solve_qp(self, x, ref, u_ref, xb, ub, fx, A, B, warm=None, split=None, hess=None, same_matrices=False):
         """Update the QP's values along ``(xb, ub)`` and solve it; OSQP's result.
 
         ``warm``: a primal start (else OSQP starts from its last solution);
         ``split``: a dict whose ``assembly`` and ``osqp`` times (s) are increased;
-        ``hess``: ``(Px, dq)`` from :meth:`_hessian_values`;
+        ``hess``: ``(Px, dq)``, the Hessian's values (CSC order) and a change of the linear cost, or None (the
+        cost's own Hessian);
         ``same_matrices``: ``A``, ``B`` (and ``Px``) are those of the last QP (only the vectors are updated,
         and OSQP reuses its factorization).
         """

@@ -63,7 +63,7 @@ from sim.rotors import realize
 
 from .controller import ControlInfo, Timer, check_state
 from .errors import ConfigurationError
-from .ltv import LTVMPC, LTVSettings, csc_in_entry_order
+from .ltv import DEADLINE_STATUS, NON_FINITE_STATUS, SPLIT, LTVMPC, LTVSettings, csc_in_entry_order
 
 #: Central-difference step of the exact Hessian, in acceptable deviations (of the default weights).
 EXACT_FD_STEP = 1e-4
@@ -152,7 +152,6 @@ class SQPMPC(LTVMPC):
     correction's QP counts as assembly and OSQP, not as line search.
     """
 
-    _reports_sqp = True
     #: Penalty of the merit function over the QP's largest dynamics multiplier. Measured on 50 states of the
     #: Proposed model's figure8-fast flight (no budget, 400 iterations): 1.1 took 179 iterations on average and
     #: came within 1e-4 of IPOPT's objective on 47 states; 2.0 took 252 and on 38.
@@ -167,18 +166,8 @@ class SQPMPC(LTVMPC):
         self.counts["line_search_failures"] = 0
         self.counts["second_order_corrections"] = 0
 
-    def _iteration_plan(self):
-        s = self.s
-        return s.max_sqp_iter, s.line_search, s.time_budget_s, (s.step_tol, s.defect_tol)
-
-    def _jacobian_every(self) -> int:
-        return self.s.jacobian_every if self.s.hessian == "gauss-newton" else 1
-
-    def _cold_start_plan(self, max_it, budget):
-        self.counts["cold_starts"] += 1
-        return max(max_it, self.s.cold_start_max_iter), None if self._preflight else self.s.cold_start_budget_s
-
-    _preflight = False
+    _preflight = False          # planning before take-off (prepare): a cold start without a budget
+    _plan_is_current = False    # the plan was made for the next call's time (a pre-flight plan): no shift
     #: :class:`ControlInfo` of the plan made before take-off by :meth:`prepare` (None without one).
     preflight: ControlInfo | None = None
 
@@ -199,21 +188,153 @@ class SQPMPC(LTVMPC):
         x0 = check_state(x0)
         self._preflight = True
         try:
-            with Timer() as tm:
+            with Timer(self.clock.now) as tm:
                 z0 = np.concatenate([x0, self.lqr.start_extra(x0, 0.0)]) if self.model.n_extra else x0
-                _, fields = self._iterate(z0, *self._horizon_reference(0.0), tm)
+                _, fields = self._period(z0, *self._horizon_reference(0.0), tm)
         finally:
             self._preflight = False
         self.preflight = ControlInfo(solve_time_s=tm.elapsed, **fields)
         self._plan_is_current = self._plan_x is not None
 
+    def _shifts_plan(self) -> bool:
+        """This period's first iterate is the previous plan shifted by one period (not a cold start, and not a plan
+        made for this very period before take-off)."""
+        return self._plan_x is not None and not self._plan_is_current
+
     def _initial_iterate(self, x, ref, u_ref):
+        """The period's first iterate: the previous plan (shifted, unless made for this period), or at a cold start
+        the model's rollout (or, with ``cold_start="hold"``, the state held under the feed-forward)."""
+        if self._plan_x is not None and self._plan_is_current:
+            X, U = self._plan_x.copy(), self._plan_u.copy()
+            X[0] = x
+            return X, U
         if self._plan_x is not None or self.s.cold_start == "hold":
             X, U = self._nominal(x, u_ref)   # the shifted plan (or, cold, the state held under the feed-forward)
             if self._shifts_plan() and self.s.tail == "model":
                 U[-1] = self._tail_input(X[-2], ref[-2], u_ref[-1])
             return X, U
         return self.rollout(x, ref, u_ref)
+
+    def _period(self, x, ref, u_ref, tm, guess=None):
+        """The SQP iterations of one period; ``(u, ControlInfo fields)``.
+
+        ``x``: the full state (nx,); ``tm``: the call's :class:`Timer`. ``guess``: a first iterate
+        ``(X (N + 1, nx), U (N, 4))`` that replaces the shifted plan (and the cold start), also as OSQP's primal
+        start.
+        """
+        N, s = self.N, self.s
+        max_it, budget = s.max_sqp_iter, s.time_budget_s
+        cold = shifted = False
+        if guess is None:
+            cold = self._plan_x is None
+            shifted = self._shifts_plan()
+            X, U = self._initial_iterate(x, ref, u_ref)
+            if cold:
+                self.counts["cold_starts"] += 1
+                max_it = max(max_it, s.cold_start_max_iter)
+                budget = None if self._preflight else s.cold_start_budget_s
+            warm = None if self._z is None else self._z if self._plan_is_current else self._shifted(self._z)
+        else:
+            X, U = np.array(guess[0], dtype=float), np.array(guess[1], dtype=float)
+            X[0] = x
+            warm = np.concatenate([X.ravel(), U.ravel()])
+        self._plan_is_current = False
+        deadline = self._take_deadline()
+        # A cold start makes a plan whatever it takes: its fallback (the LQR) has none.
+        clock = self.clock.begin(tm.start, budget, None if cold else deadline)
+        every = s.jacobian_every if s.hessian == "gauss-newton" else 1
+        split = dict.fromkeys(SPLIT, 0.0)
+        merits, alphas = [], []
+        done = qp_iterations = ls_failures = late_steps = 0
+        status, optimal, converged = DEADLINE_STATUS, False, False
+        mu = 0.0
+        y_last = None       # the last QP's dynamics multipliers (N, nx)
+        f_next = None       # the model's step along the line search's new iterate (N, nx), when it made one
+        A = B = None
+        while done < max_it:
+            first = done == 0
+            t_it = clock.now()
+            if first and clock.no_time_to_start():
+                break        # no plan in time: the fallback's input goes out now
+            # An iteration between Jacobian evaluations keeps A_k, B_k (and OSQP's factorization) and takes only the
+            # model's step at the new iterate (from the line search when it made one).
+            reuse = done % every != 0
+            if reuse:
+                t0 = clock.now()
+                with np.errstate(all="ignore"):
+                    fx = f_next if f_next is not None else self.model.step(X[:N], U)
+                split["derivatives"] += clock.now() - t0
+                finite = self._finite(fx)   # A, B passed this check when they were evaluated
+            else:
+                fx, A, B = self._derivatives(X, U, clock, split, first)
+                finite = self._finite(fx, A, B)
+            if not finite:
+                status = NON_FINITE_STATUS      # OSQP never sees it
+                break
+            if shifted and first:
+                warm = self._close_tail(X, U, fx, warm)
+            if not clock.qp_window(first):
+                status = DEADLINE_STATUS        # too little time left for the period's first QP
+                break
+            t_h = clock.now()
+            hess = self._hessian_values(X[:N + 1], U, y_last)
+            split["derivatives"] += clock.now() - t_h
+            res, ok, status = self._qp(x, ref, u_ref, X[:N], U, fx, A, B, clock, split, first,
+                                       warm=warm if first else None, hess=hess, same_matrices=reuse)
+            qp_iterations += int(res.info.iter)
+            if not ok:
+                break
+            done += 1
+            y_last = res.y[self.nx:self._n_eq].reshape(N, self.nx).copy()
+            optimal = res.info.status_val == self._status.OSQP_SOLVED
+            Xq, Uq = self._unpack(res.x)
+            # With a budget, a period whose QP ended past it, or so close to it that the longest recent line search
+            # would end past it, takes the QP's full step (the real-time iteration) and stops: no line search (its
+            # model steps and any correction's QP) on top of an overrun.
+            late = clock.late(s.line_search)
+            late_steps += late
+            if s.line_search and not late:
+                t_ls = clock.now()
+                qp_before = split["assembly"] + split["osqp"]   # a correction's QP is counted there, not here
+                mu = max(mu, self._merit_factor * float(np.max(np.abs(y_last))) + 1e-9)
+                iteration_s = clock.now() - t_it     # derivatives + QP: more than the correction's QP needs
+
+                def resolve(shift, Xl=X[:N], Ul=U, fx=fx, A=A, B=B, hess=hess):
+                    if not clock.room_for_correction(iteration_s):
+                        return None     # no time for the correction's QP: the caller backtracks instead
+                    limit = clock.correction_limit()
+                    if limit is not None:
+                        self._solver.update_settings(time_limit=limit)
+                    # The same matrices (A_k, B_k, Hessian): only the bounds change, OSQP keeps its factorization.
+                    return self._solve_qp(x, ref, u_ref, Xl, Ul, fx + shift, A, B, split=split, hess=hess,
+                                          same_matrices=True)
+
+                Xn, Un, alpha, accepted, phi0, phi, defect, f_next = self._line_search(X, U, Xq, Uq, fx, ref,
+                                                                                       u_ref, mu, resolve)
+                merits.append((phi0, phi, accepted))
+                ls_failures += not accepted
+                split["line_search"] += clock.now() - t_ls - (split["assembly"] + split["osqp"] - qp_before)
+                if budget is not None:
+                    clock.record("line_search", clock.now() - t_ls)
+            else:
+                Xn, Un, alpha, defect, f_next = Xq, Uq, 1.0, np.inf, None
+            alphas.append(alpha)
+            # Converged when the QP's full step is small (a step shortened by the line search is not convergence).
+            step = max(np.max(np.abs(Xq - X) / self._sx), np.max(np.abs(Uq - U) / self._su))
+            X, U = Xn, Un
+            # Only an iteration with new Jacobians can say that the plan is a KKT point.
+            if not reuse and (step < s.step_tol or defect < s.defect_tol):
+                converged = True
+                break
+            # Another iteration only if one as long as the longest so far still fits the budget.
+            if late or not clock.another_iteration(clock.now() - (clock.start if done == 1 else t_it)):
+                break
+        u, fields = self._finish(done > 0, X, U, status, optimal, x, ref, u_ref)
+        fields["iterations"] = done
+        fields["extra"].update(qp_iterations=qp_iterations, converged=converged, cold_start=cold,
+                               line_search_failures=ls_failures, late_full_steps=late_steps, time_split_s=split,
+                               merit=merits, step_lengths=alphas)
+        return u, fields
 
     def _tail_input(self, x, r, u_ff):
         """Feed-forward plus hover LQR at a state ``x`` about reference ``r``, projected onto the rotor-feasible set."""
@@ -241,9 +362,9 @@ class SQPMPC(LTVMPC):
         if X0.shape != (self.N + 1, self.nx) or U0.shape != (self.N, 4):
             raise ConfigurationError(f"X0 must be ({self.N + 1}, {self.nx}) and U0 ({self.N}, 4); "
                                      f"found {X0.shape} and {U0.shape}")
-        with Timer() as tm:
+        with Timer(self.clock.now) as tm:
             ref, u_ref = self._horizon_reference(t)
-            _, fields = self._iterate(x, ref, u_ref, tm, guess=(X0, U0))
+            _, fields = self._period(x, ref, u_ref, tm, guess=(X0, U0))
         return self._plan_x.copy(), self._plan_u.copy(), ControlInfo(solve_time_s=tm.elapsed, **fields)
 
     def rollout(self, x, ref, u_ref):

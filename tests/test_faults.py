@@ -612,7 +612,7 @@ def test_a_line_search_that_would_end_past_the_budget_is_skipped_for_the_full_st
     t = 0.5
     X0, U0 = tight._horizon_reference(t)
     x = X0[0] + np.r_[0.05, -0.03, 0.02, np.zeros(9)]
-    tight._recent_s["line_search"].append(budget)  # a line search as long as the whole budget, lately
+    tight.clock.record("line_search", budget)  # a line search as long as the whole budget, lately
     X1, U1, info = tight.solve_from(x, t, X0, U0)
     X2, U2, _ = rti.solve_from(x, t, X0, U0)
     assert info.extra["late_full_steps"] == 1 and info.extra["merit"] == []

@@ -399,11 +399,11 @@ def test_a_plan_made_before_take_off_starts_the_first_period_unshifted():
     assert pre.is_optimal() and pre.extra["cold_start"] and pre.iterations >= 1
     assert sqp.counts["cold_starts"] == 1
     X, U = sqp._plan_x.copy(), sqp._plan_u.copy()
-    Xi, Ui = sqp._nominal(x0, None)     # the plan was made for t = 0: the first period starts from it as it is
+    Xi, Ui = sqp._initial_iterate(x0, *sqp._horizon_reference(0.0))   # made for t = 0: the first period starts from it
     assert np.array_equal(Xi[1:], X[1:]) and np.array_equal(Xi[0], x0) and np.array_equal(Ui, U)
     u, info = sqp(x0, 0.0)
     assert info.is_optimal() and not info.extra["cold_start"] and sqp.counts["cold_starts"] == 1
-    Xi, _ = sqp._nominal(x0, None)      # later periods shift the plan by one step
+    Xi, _ = sqp._initial_iterate(x0, *sqp._horizon_reference(0.01))   # later periods shift the plan by one step
     np.testing.assert_array_equal(Xi[1:-1], sqp._plan_x[2:])
 
 

@@ -1,0 +1,165 @@
+"""The timing rules of a control period (mpc.timing.PeriodClock) on a fake clock: no test here reads the machine's.
+
+The controllers ask the clock every question that depends on the wall clock; these tests give it a clock that
+moves only when told, so each rule is checked at known times on either side of its threshold.
+"""
+
+import numpy as np
+import pytest
+
+from mpc.timing import MIN_QP_TIME_S, MIN_TIME_LIMIT_S, NO_TIME_LIMIT, RECENT_PERIODS, PeriodClock
+
+#: Tolerance of the times compared here (s): the fake clock adds exactly, so only float rounding.
+TOL = {"seconds": 1e-12}
+
+
+class FakeClock:
+    """A clock that reads ``t`` (s) and moves only by :meth:`advance`."""
+
+    def __init__(self, t: float = 100.0):
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance(self, seconds: float) -> None:
+        self.t += seconds
+
+
+def clock_with(recent=()):
+    """A PeriodClock on a fake clock, with recent times ``[(kind, seconds), ...]`` recorded."""
+    fake = FakeClock()
+    c = PeriodClock(fake)
+    for kind, s in recent:
+        c.record(kind, s)
+    return c, fake
+
+
+def test_without_budget_or_deadline_every_rule_lets_the_period_run():
+    c, fake = clock_with([("derivatives", 5.0), ("assembly", 5.0), ("line_search", 5.0)])
+    c.begin(fake())
+    fake.advance(60.0)
+    assert not c.no_time_to_start() and c.qp_window(first=True) and c.qp_time_limit(first=False) is None
+    assert not c.late(line_search=True) and c.room_for_correction(1e6) and c.correction_limit() is None
+    assert c.another_iteration(1e6) and not c.missed()
+
+
+def test_expected_times_are_the_recent_median_and_the_longest_line_search():
+    c, fake = clock_with([("derivatives", s) for s in (1e-3, 9e-3, 2e-3)] + [("assembly", 4e-4)]
+                         + [("line_search", s) for s in (1e-4, 3e-3, 2e-4)])
+    c.begin(fake())
+    assert c.expect["derivatives"] == pytest.approx(2e-3, abs=TOL["seconds"])
+    assert c.expect["assembly"] == pytest.approx(4e-4, abs=TOL["seconds"])
+    assert c.expect["line_search"] == pytest.approx(3e-3, abs=TOL["seconds"])
+    for _ in range(RECENT_PERIODS):           # older periods drop out
+        c.record("derivatives", 5e-4)
+    assert c.begin(fake()).expect["derivatives"] == pytest.approx(5e-4, abs=TOL["seconds"])
+
+
+def test_a_period_starts_only_if_its_first_derivatives_and_qp_fit_before_the_deadline():
+    d, a = 2e-3, 5e-4
+    c, fake = clock_with([("derivatives", d), ("assembly", a)])
+    need = d + a + MIN_QP_TIME_S
+    c.begin(fake(), deadline=fake() + need + 1e-6)
+    assert not c.no_time_to_start()
+    c.begin(fake(), deadline=fake() + need - 1e-6)
+    assert c.no_time_to_start()
+
+
+def test_the_qp_window_is_what_is_left_before_the_deadline_after_the_assembly():
+    c, fake = clock_with([("assembly", 5e-4)])
+    c.begin(fake(), deadline=fake() + 3e-3)
+    fake.advance(1e-3)                                   # the derivatives took 1 ms
+    assert c.qp_window(first=True)
+    assert c.qp_left == pytest.approx(3e-3 - 1e-3 - 5e-4, abs=TOL["seconds"])
+    assert c.qp_time_limit(first=True) == pytest.approx(c.qp_left, abs=TOL["seconds"])
+    # Too little for the first QP: the period gives up; a later QP still gets the floor.
+    c.begin(fake(), deadline=fake() + 5e-4 + MIN_QP_TIME_S - 1e-6)
+    assert not c.qp_window(first=True)
+    c.begin(fake(), deadline=fake() - 1.0)
+    assert c.qp_window(first=False) and c.qp_left == MIN_TIME_LIMIT_S
+
+
+def test_the_first_qp_has_no_budget_limit_and_a_later_one_gets_what_is_left():
+    c, fake = clock_with()
+    c.begin(fake(), budget=8e-3)
+    fake.advance(3e-3)
+    assert c.qp_time_limit(first=True) == NO_TIME_LIMIT
+    assert c.qp_time_limit(first=False) == pytest.approx(5e-3, abs=TOL["seconds"])
+    fake.advance(10e-3)                                   # past the budget: OSQP still gets the floor, not zero
+    assert c.qp_time_limit(first=False) == MIN_TIME_LIMIT_S
+    # With a deadline too, the tighter of the two.
+    c.begin(fake(), budget=8e-3, deadline=fake() + 4e-3)
+    fake.advance(1e-3)
+    assert c.qp_window(first=False)
+    assert c.qp_time_limit(first=False) == pytest.approx(3e-3, abs=TOL["seconds"])
+
+
+def test_a_qp_ending_near_the_budget_is_late_when_the_longest_line_search_would_not_fit():
+    c, fake = clock_with([("line_search", 2e-3)])
+    c.begin(fake(), budget=8e-3)
+    fake.advance(5.9e-3)
+    assert not c.late(line_search=True) and not c.late(line_search=False)
+    fake.advance(0.2e-3)                                  # 6.1 ms: a 2 ms line search would end at 8.1
+    assert c.late(line_search=True) and not c.late(line_search=False)
+    fake.advance(2e-3)                                    # past the budget itself
+    assert c.late(line_search=False)
+
+
+def test_a_correction_runs_only_with_an_iteration_s_worth_of_budget_left():
+    c, fake = clock_with()
+    c.begin(fake(), budget=8e-3)
+    fake.advance(5e-3)
+    assert c.room_for_correction(3e-3 - 1e-6) and not c.room_for_correction(3e-3 + 1e-6)
+    assert c.correction_limit() == pytest.approx(3e-3, abs=TOL["seconds"])
+
+
+def test_another_iteration_needs_room_for_the_longest_one_so_far():
+    c, fake = clock_with()
+    c.begin(fake(), budget=8e-3)
+    fake.advance(3e-3)
+    assert c.another_iteration(3e-3)                    # 3 + 3 <= 8
+    fake.advance(1e-3)
+    assert c.another_iteration(1e-3) and c.longest == 3e-3   # 4 + 3 <= 8: the longest is kept
+    fake.advance(1.5e-3)
+    assert not c.another_iteration(1.5e-3)              # 5.5 + 3 > 8
+
+
+def test_a_failed_qp_is_put_down_to_the_deadline_only_near_it():
+    c, fake = clock_with()
+    c.begin(fake(), deadline=fake() + 1e-3)
+    fake.advance(1e-3 - MIN_QP_TIME_S - 1e-6)
+    assert not c.missed()
+    fake.advance(2e-6)
+    assert c.missed()
+
+
+@pytest.mark.parametrize("bad", [0, -1, 2.5, True])
+def test_a_bad_history_length_is_refused(bad):
+    with pytest.raises(ValueError, match="recent"):
+        PeriodClock(FakeClock(), recent=bad)
+
+
+def test_the_sqp_asks_its_clock_a_deadline_it_cannot_meet_and_sends_the_shifted_plan():
+    """The controller's own use of the rules, on the fake clock: a deadline already past at the period's start
+    makes no derivatives and sends the shifted plan; one far away changes nothing."""
+    from mpc.models import AnalyticModel
+    from mpc.sqp import SQPMPC, SQPSettings
+    from mpc.trajectory import Figure8
+
+    fig8 = Figure8(0.75, 3.0, 1.0)
+    ideal = SQPSettings(time_budget_s=None, cold_start_budget_s=None)
+    sqp, twin = SQPMPC(AnalyticModel(), fig8, ideal), SQPMPC(AnalyticModel(), fig8, ideal)
+    fake = FakeClock(0.0)
+    sqp.clock = PeriodClock(fake)
+    x = fig8(np.array([0.0]))[0]
+    for c in (sqp, twin):
+        c.prepare(1.0, x0=x)
+    sqp.set_deadline(1e9)                  # the fake clock reads 0: far away
+    u, info = sqp(x, 0.0)
+    assert info.is_optimal() and np.array_equal(u, twin(x, 0.0)[0])
+    plan = sqp._plan_u.copy()
+    sqp.set_deadline(-1.0)                 # already past
+    u, info = sqp(x, 0.01)
+    assert info.status == "deadline" and info.fallback == "shifted_plan" and np.array_equal(u, plan[1])
+    assert info.extra["time_split_s"]["derivatives"] == 0.0
