@@ -11,6 +11,11 @@ twice as slow for the models (:func:`slow_machine`: every model call takes twice
 each vehicle flown in its own rotor unit and in normalized units (``n_max`` = 1): the same QP, so the same time
 (:func:`unit_cost`).
 
+``python -m mpc.bench --answers [--members 5] [--jobs 2]`` compares the answers of the SQP's two derivative paths
+(:data:`PATHS`) in ideal timing: median RMSE over ensemble members on figure8-fast, figure8-slow and hover with the
+oracle and every shipped model, and the crashes of every zoo model on figure8-fast (:func:`same_answers`,
+:func:`zoo_crashes`).
+
 For the oracle and each shipped ONNX model, each controller flies a 5 s
 hover (from a 0.3 m offset) and two laps of ``figure8-fast`` (period 3 s,
 A = 0.75 m) on the nominal simulator, with the input applied at once. The
@@ -23,7 +28,10 @@ cold-start periods) with the deadline misses (> 10 ms), solver failures and
 fallbacks and the position RMSE of the run; for the SQP also the SQP
 iterations per period and the split of its time: derivative graph, QP
 assembly (including OSQP's matrix update), OSQP's solve, line search, and
-the rest (Python). It also prints the floor: one batched model + Jacobian
+the rest (Python). The SQP flies each case by both of its derivative paths
+(:data:`PATHS`: today's full refresh and the partial one), with the share of
+periods that refreshed every stage's Jacobians, and the partial path's median
+and p95 over the full one's are printed per model. It also prints the floor: one batched model + Jacobian
 evaluation over the whole horizon, with float64 Jacobians (as IPOPT uses
 them) and with float32 ones (as the QP controllers do). Nothing is asserted; the
 figures are written as JSON.
@@ -55,32 +63,38 @@ from .trajectory import Figure8
 HORIZON = 30
 CONTROLLERS = ("nmpc", "sqp", "ltv", "lqr")
 SPLIT = ("derivatives", "assembly", "osqp", "line_search")
+#: The SQP's two ways to its derivatives, flown side by side: today's (every Jacobian in every iteration that
+#: evaluates them) and the partial refresh (:class:`mpc.sqp.SQPSettings`).
+PATHS = {"full": {"jacobian_refresh": "full"}, "partial": {"jacobian_refresh": "partial"}}
+#: The cases of the same-answers comparison.
+ANSWER_CASES = ("figure8-fast", "figure8-slow", "hover")
 
 
-def _controller(kind: str, model, reference):
+def _controller(kind: str, model, reference, path: str = "full"):
     if kind == "nmpc":
         return NMPC(model, reference, NMPCSettings(horizon=HORIZON))
     if kind == "sqp":
-        return SQPMPC(model, reference, SQPSettings(horizon=HORIZON))
+        return SQPMPC(model, reference, SQPSettings(horizon=HORIZON, **PATHS[path]))
     if kind == "ltv":
         return LTVMPC(model, reference, LTVSettings(horizon=HORIZON))
     return LQRController(reference, model)
 
 
-def run(kind: str, model, reference, x0: np.ndarray, seconds: float, fidelity=None) -> dict:
+def run(kind: str, model, reference, x0: np.ndarray, seconds: float, fidelity=None, path: str = "full") -> dict:
     """Fly one case; solve-time statistics, counts, position RMSE and (SQP) iterations and time split.
 
-    ``fidelity``: the simulator's (nominal when None); with a motor lag its rotor speeds carry over.
+    ``fidelity``: the simulator's (nominal when None); with a motor lag its rotor speeds carry over. ``path``: the
+    SQP's way to its derivatives (:data:`PATHS`).
     """
     from sim.params import NOMINAL
 
-    ctrl = _controller(kind, model, reference)
+    ctrl = _controller(kind, model, reference, path)
     steps = int(round(seconds / DT))
     ctrl.prepare(steps * DT, x0=x0)   # the SQP plans its first period before take-off
     sim = Simulator(fidelity=NOMINAL if fidelity is None else fidelity)
     n = None
     x = x0.copy()
-    times, err, iters, cold = [], [], [], []
+    times, err, iters, cold, full = [], [], [], [], []
     split = dict.fromkeys(SPLIT, 0.0)
     failures = fallbacks = 0
     for k in range(steps):
@@ -93,6 +107,7 @@ def run(kind: str, model, reference, x0: np.ndarray, seconds: float, fidelity=No
         if kind == "sqp":
             iters.append(info.iterations)
             cold.append(info.extra["cold_start"])
+            full.append(info.extra["full_refreshes"] > 0)
             for key in SPLIT:
                 split[key] += info.extra["time_split_s"][key]
         out = sim.step_full(x, u, rotor_speed=n)
@@ -114,7 +129,7 @@ def run(kind: str, model, reference, x0: np.ndarray, seconds: float, fidelity=No
         parts = {key: 1e3 * v / n for key, v in split.items()}
         parts["python"] = float(np.mean(ms)) - sum(parts.values())
         out.update(iterations={"mean": float(it.mean()), "counts": np.bincount(it).tolist()},
-                   cold_starts=int(np.sum(cold)), time_split_ms=parts)
+                   cold_starts=int(np.sum(cold)), time_split_ms=parts, full_refresh_share=float(np.mean(full)))
     return out
 
 
@@ -210,6 +225,11 @@ def main(argv=None) -> int:
                     help="with --units: vehicle names or files (default crazyflie,hummingbird)")
     ap.add_argument("--plant", default="rotorpy", help="with --units: the plant flown (default rotorpy)")
     ap.add_argument("--repeats", type=int, default=3, help="with --units: flights per vehicle and unit (default 3)")
+    ap.add_argument("--answers", action="store_true",
+                    help="only the same-answers comparison: the SQP by both derivative paths in ideal timing on "
+                         "figure8-fast, figure8-slow and hover, --members ensemble members, and the zoo's crashes")
+    ap.add_argument("--members", type=int, default=5, help="with --answers: ensemble members per case (default 5)")
+    ap.add_argument("--jobs", type=int, default=2, help="with --answers: processes (default 2)")
     ap.add_argument("--slowdown", type=float, default=None, metavar="FACTOR",
                     help="only the SQP on figure8-fast in real time with every model call FACTOR times as long (a "
                          "machine that much slower); with --estimator, the state estimator flies too")
@@ -220,6 +240,10 @@ def main(argv=None) -> int:
         return _main_slowdown(args)
     if args.units:
         return _main_units(args)
+    if args.answers:
+        if args.members < 1 or args.jobs < 1:
+            raise SystemExit(f"--members and --jobs: integers >= 1 expected; found {args.members}, {args.jobs}")
+        return _main_answers(args)
     if args.derivatives:
         return _main_derivatives(args)
     if args.estimator:
@@ -245,7 +269,7 @@ def main(argv=None) -> int:
     models = [("oracle", AnalyticModel()), ("oracle_highfi", AnalyticModel(fidelity=HIGH_FIDELITY))] + [
         (f.stem, OnnxModel(f)) for f in files]
     out = {"python": platform.python_version(), "cpus": os.cpu_count(), "horizon": HORIZON, "cases": []}
-    print(f"{'ctrl':<6}{'model':<22}{'case':<14}{'median':>8}{'p95':>8}{'max':>8}{'max*':>8} ms"
+    print(f"{'ctrl':<12}{'model':<22}{'case':<14}{'median':>8}{'p95':>8}{'max':>8}{'max*':>8} ms"
           f"{'misses':>8}{'fail':>6}{'fallb':>6}{'RMSE m':>9}{'floor us':>10}{'f32 us':>8}")
     sqp_rows = []
     for name, model in models:
@@ -258,22 +282,37 @@ def main(argv=None) -> int:
                 continue  # about 0.4 s per IPOPT solve with the 16-state high-fidelity equations
             for case in cases:
                 ref, x0, secs = all_cases[case]
-                r = run(kind, model, ref, x0, secs, fidelity=getattr(model, "fidelity", None))
-                out["cases"].append({"controller": kind, "model": name, "case": case, "floor_us": fl, "floor_single_us": fl32, **r})
-                s = r["solve_ms"]
-                print(f"{kind:<6}{name:<22}{case:<14}{s['median']:>8.2f}{s['p95']:>8.2f}{s['max']:>8.1f}"
-                      f"{s['max_without_cold_starts']:>8.1f}   {r['deadline_misses']:>8}{r['solver_failures']:>6}"
-                      f"{r['fallbacks']:>6}{r['rmse_position_m']:>9.4f}{fl:>10.0f}{fl32:>8.0f}", flush=True)
-                if kind == "sqp":
-                    sqp_rows.append((name, case, r))
+                for path in (PATHS if kind == "sqp" else ("full",)):
+                    r = run(kind, model, ref, x0, secs, fidelity=getattr(model, "fidelity", None), path=path)
+                    label = f"sqp/{path}" if kind == "sqp" else kind
+                    out["cases"].append({"controller": kind, "path": path if kind == "sqp" else None, "model": name,
+                                         "case": case, "floor_us": fl, "floor_single_us": fl32, **r})
+                    s = r["solve_ms"]
+                    print(f"{label:<12}{name:<22}{case:<14}{s['median']:>8.2f}{s['p95']:>8.2f}{s['max']:>8.1f}"
+                          f"{s['max_without_cold_starts']:>8.1f}   {r['deadline_misses']:>8}{r['solver_failures']:>6}"
+                          f"{r['fallbacks']:>6}{r['rmse_position_m']:>9.4f}{fl:>10.0f}{fl32:>8.0f}", flush=True)
+                    if kind == "sqp":
+                        sqp_rows.append((name, case, path, r))
     if sqp_rows:
-        print("\nmax*: without the SQP's counted cold-start periods. SQP iterations and time split per period (ms):")
-        print(f"{'model':<22}{'case':<14}{'iter mean':>10}  {'counts 0,1,2..':<18}"
-              + "".join(f"{k:>12}" for k in (*SPLIT, "python")))
-        for name, case, r in sqp_rows:
+        print("\nmax*: without the SQP's counted cold-start periods. SQP iterations, time split per period (ms) and the "
+              "share of periods with a full Jacobian refresh:")
+        print(f"{'model':<22}{'case':<14}{'path':<9}{'iter mean':>10}  {'counts 0,1,2..':<18}"
+              + "".join(f"{k:>12}" for k in (*SPLIT, "python")) + f"{'full refr.':>11}")
+        for name, case, path, r in sqp_rows:
             sp = r["time_split_ms"]
-            print(f"{name:<22}{case:<14}{r['iterations']['mean']:>10.2f}  {str(r['iterations']['counts']):<18}"
-                  + "".join(f"{sp[k]:>12.2f}" for k in (*SPLIT, "python")))
+            print(f"{name:<22}{case:<14}{path:<9}{r['iterations']['mean']:>10.2f}  {str(r['iterations']['counts']):<18}"
+                  + "".join(f"{sp[k]:>12.2f}" for k in (*SPLIT, "python")) + f"{r['full_refresh_share']:>11.2f}")
+        by = {(n, c, p): r for n, c, p, r in sqp_rows}
+        print("\nThe partial path against today's (full), same run: median and p95 ratios (partial / full)")
+        out["ratios"] = []
+        for (n, c, p), r in by.items():
+            if p != "partial" or (n, c, "full") not in by:
+                continue
+            f = by[(n, c, "full")]["solve_ms"]
+            ratio = {"model": n, "case": c, "median": r["solve_ms"]["median"] / f["median"],
+                     "p95": r["solve_ms"]["p95"] / f["p95"]}
+            out["ratios"].append(ratio)
+            print(f"{n:<22}{c:<14}{ratio['median']:>8.2f}{ratio['p95']:>8.2f}")
     write_json(args.json, out)
     print(f"wrote {args.json}")
     return 0
@@ -326,9 +365,9 @@ def clock_stalls(seconds: float = 10.0) -> dict:
 class SlowedModel(PredictionModel):
     """A prediction model whose every call takes ``factor`` times as long: a machine that slow, for the model.
 
-    Each call of ``step``, ``linearize`` and ``linearize_single`` is timed and followed by a busy wait of
-    ``factor - 1`` times its duration (a sleep would hand the core away and come back late). Everything else is
-    the wrapped model's. The controllers' own Python, the QP solver and the simulator keep this machine's speed:
+    Each call of ``step``, ``linearize``, ``linearize_single`` and ``jacobians`` is timed and followed by a busy
+    wait of ``factor - 1`` times its duration (a sleep would hand the core away and come back late). Everything
+    else is the wrapped model's. The controllers' own Python, the QP solver and the simulator keep this machine's speed:
     the model and its derivative graph are most of a period's time (:func:`run`'s time split).
     """
 
@@ -362,10 +401,15 @@ class SlowedModel(PredictionModel):
     def linearize_single(self, x, u):
         return self._slowed(self.base.linearize_single, x, u)
 
+    def jacobians(self, x, u):
+        return self._slowed(self.base.jacobians, x, u)
 
-def slow_machine(model: str, factor: float = 2.0, scenario: str = "figure8-fast", estimator: str = "none") -> dict:
+
+def slow_machine(model: str, factor: float = 2.0, scenario: str = "figure8-fast", estimator: str = "none",
+                 path: str = "full") -> dict:
     """The SQP on ``scenario`` in real-time timing with ``model`` ('oracle' or a file) made ``factor`` times slower
-    (:class:`SlowedModel`; the state estimator's model calls too, with ``estimator="ekf"``).
+    (:class:`SlowedModel`; the state estimator's model calls too, with ``estimator="ekf"``), the SQP by its
+    derivative ``path`` (:data:`PATHS`).
 
     Returns the time charged per period, ms (median / p95 / max), the periods charged more than the 10 ms period
     (the deadline misses), the periods that sent the shifted plan because no plan could be made in time, and the
@@ -374,7 +418,7 @@ def slow_machine(model: str, factor: float = 2.0, scenario: str = "figure8-fast"
     from scenarios.runner import RunSpec, fly, load_run_model
 
     spec = RunSpec(scenario, "sqp", model, timing="realtime", estimator=estimator)
-    r, tr = fly(spec, model=SlowedModel(load_run_model(spec), factor))
+    r, tr = fly(spec, model=SlowedModel(load_run_model(spec), factor), sqp=PATHS[path])
     called = np.asarray(tr["called"], dtype=bool)
     charged = np.asarray(tr["solve_s"], dtype=float)[called]
     if tr.get("estimator_s") is not None and len(tr["estimator_s"]):
@@ -397,18 +441,19 @@ def _main_slowdown(args) -> int:
           f"{stalls['over_1ms']} / {stalls['over_2ms']} / {stalls['over_4ms']}, longest {stalls['longest_ms']:.1f} ms")
     print(f"The SQP{' with the state estimator' if args.estimator else ''}, figure8-fast, real-time timing, every "
           f"model call {args.slowdown:g} times as long; ms charged per period")
-    print(f"{'model':<22}{'median':>8}{'p95':>8}{'max':>8}{'>10 ms':>8}{'late':>6}{'RMSE m':>9}")
+    print(f"{'model':<22}{'path':<9}{'median':>8}{'p95':>8}{'max':>8}{'>10 ms':>8}{'late':>6}{'RMSE m':>9}")
     for m in models:
         name = Path(m).stem if m != "oracle" else m
-        r = slow_machine(m, args.slowdown, estimator=est)
-        out["models"][name] = r
-        c = r["charged_ms"]
-        if r["error"]:
-            print(f"{name:<22}could not fly: {r['error']}", flush=True)
-            continue
-        rmse = "crashed" if r["crashed"] else format(r["rmse_position_m"], ".4f")
-        print(f"{name:<22}{c['median']:>8.2f}{c['p95']:>8.2f}{c['max']:>8.1f}{r['over_10ms']:>8}"
-              f"{r['deadline_fallbacks']:>6}{rmse:>9}", flush=True)
+        for path in PATHS:
+            r = slow_machine(m, args.slowdown, estimator=est, path=path)
+            out["models"][f"{name}/{path}"] = r
+            c = r["charged_ms"]
+            if r["error"]:
+                print(f"{name:<22}{path:<9}could not fly: {r['error']}", flush=True)
+                continue
+            rmse = "crashed" if r["crashed"] else format(r["rmse_position_m"], ".4f")
+            print(f"{name:<22}{path:<9}{c['median']:>8.2f}{c['p95']:>8.2f}{c['max']:>8.1f}{r['over_10ms']:>8}"
+                  f"{r['deadline_fallbacks']:>6}{rmse:>9}", flush=True)
     out["idle_clock_loop_after"] = after = clock_stalls()
     print(f"The same clock loop after: gaps over 1 / 2 / 4 ms {after['over_1ms']} / {after['over_2ms']} / "
           f"{after['over_4ms']}, longest {after['longest_ms']:.1f} ms")
@@ -503,6 +548,80 @@ def _main_units(args) -> int:
                   f"{r['own']['deadline_misses']:>4} /{r['normalized']['deadline_misses']:>3}"
                   f"{r['own']['iterations']:>8} /{r['normalized']['iterations']:>7}", flush=True)
     return _write(args.json or Path("bench_units.json"), out)
+
+
+def _fly_path(task):
+    """One ideal-timing SQP run of ``(model, scenario, member, path)``: ``(RMSE m, crashed)``."""
+    from scenarios.runner import RunSpec, fly
+
+    model, scenario, member, path = task
+    r, _ = fly(RunSpec(scenario, "sqp", model, member=member), sqp=PATHS[path])
+    return r["rmse_position_m"], bool(r["crashed"])
+
+
+def same_answers(models: dict, cases=ANSWER_CASES, members: int = 5, jobs: int = 2) -> dict:
+    """Each model (``{name: "oracle" or file}``) on each case, ``members`` ensemble members, by both paths in ideal
+    timing (the runs are reproducible, so the paths' differences are theirs): per path the median RMSE (m) and the
+    crashes, and the partial path's median over the full one's (``ratio``) and their difference (m)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    tasks = [(m, c, i, p) for m in models.values() for c in cases for i in range(members) for p in PATHS]
+    with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as ex:
+        flown = dict(zip(tasks, ex.map(_fly_path, tasks)))
+    out = {}
+    for name, m in models.items():
+        for c in cases:
+            row = {}
+            for p in PATHS:
+                runs = [flown[(m, c, i, p)] for i in range(members)]
+                rmse = [r for r, crashed in runs if not crashed and r is not None]
+                row[p] = {"median_rmse_m": float(np.median(rmse)) if rmse else None,
+                          "rmse_m": [r for r, _ in runs], "crashes": sum(crashed for _, crashed in runs)}
+            f, q = row["full"]["median_rmse_m"], row["partial"]["median_rmse_m"]
+            row["ratio"] = None if not (f and q) else q / f
+            row["difference_m"] = None if f is None or q is None else q - f
+            out[f"{name}/{c}"] = row
+    return out
+
+
+def zoo_crashes(models_dir, jobs: int = 2) -> dict:
+    """Every zoo model on ``figure8-fast`` (ensemble member 0) by both paths: ``{model: {path: crashed}}``."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    files = model_files(models_dir)
+    tasks = [(str(f), "figure8-fast", 0, p) for f in files for p in PATHS]
+    with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as ex:
+        flown = dict(zip(tasks, ex.map(_fly_path, tasks)))
+    return {f.stem: {p: flown[(str(f), "figure8-fast", 0, p)][1] for p in PATHS} for f in files}
+
+
+def _main_answers(args) -> int:
+    if not args.models.is_dir():
+        raise SystemExit(f"--models: {str(args.models)!r} is not a folder")
+    models = {"oracle": "oracle", **{f.stem: str(f) for f in model_files(args.models)}}
+    out = {"python": platform.python_version(), "cpus": os.cpu_count(), "members": args.members,
+           "timing": "ideal", "controller": "sqp", "paths": PATHS}
+    print(f"The SQP by both paths, ideal timing, {args.members} ensemble members: median position RMSE (mm), "
+          f"crashes, partial / full")
+    out["cases"] = rows = same_answers(models, members=args.members, jobs=args.jobs)
+    print(f"{'model / case':<40}{'full':>10}{'partial':>10}{'crashes':>9}{'ratio':>8}{'diff mm':>9}")
+    for key, r in rows.items():
+        def mm(v):
+            return "–" if v is None else f"{1e3 * v:.2f}"
+        ratio = "–" if r["ratio"] is None else f"{r['ratio']:.3f}"
+        print(f"{key:<40}{mm(r['full']['median_rmse_m']):>10}{mm(r['partial']['median_rmse_m']):>10}"
+              f"{r['full']['crashes']:>4} /{r['partial']['crashes']:>2}{ratio:>8}{mm(r['difference_m']):>9}")
+    zoo = args.models / "zoo"
+    if zoo.is_dir():
+        out["zoo"] = crashes = zoo_crashes(zoo, jobs=args.jobs)
+        changed = {k: v for k, v in crashes.items() if v["full"] != v["partial"]}
+        print(f"Zoo on figure8-fast (member 0): {sum(v['full'] for v in crashes.values())} crashes by the full path, "
+              f"{sum(v['partial'] for v in crashes.values())} by the partial one, of {len(crashes)} models; changed: "
+              + (", ".join(f"{k} ({'crashes' if v['partial'] else 'flies'} now)" for k, v in changed.items())
+                 or "none"))
+    return _write(args.json or Path("bench_answers.json"), out)
 
 
 def _main_derivatives(args) -> int:

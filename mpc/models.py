@@ -83,6 +83,12 @@ class PredictionModel:
         """
         return self.linearize(x, u)
 
+    def jacobians(self, x, u):
+        """``(A (N, nx, nx), B (N, nx, 4))`` as :meth:`linearize_single` gives them, without the model's step (for
+        a controller that has the step already); models without a faster path drop it from
+        :meth:`linearize_single`."""
+        return self.linearize_single(x, u)[1:]
+
 
 class AnalyticModel(PredictionModel):
     """The simulator's equations in CasADi, RK4 over one control period.
@@ -308,6 +314,15 @@ class OnnxModel(PredictionModel):
         xn = self._model.run(["x_next"], {"x": x.astype(self.dtype), "u": u.astype(self.dtype)})[0]
         A, B = self._jac_single.run(["A", "B"], {"x": x.astype(np.float32), "u": u.astype(np.float32)})
         return xn.astype(float), A.astype(float), B.astype(float)
+
+    def jacobians(self, x, u):
+        """``(A, B)`` from the float32 derivative graph (or the float64 one, or central differences, as
+        :meth:`linearize_single`), one onnxruntime call, no step of the model."""
+        if self._jac_single is None:
+            return self.linearize_single(x, u)[1:]
+        x, u = _batch(x, u, self.nx)
+        A, B = self._jac_single.run(["A", "B"], {"x": x.astype(np.float32), "u": u.astype(np.float32)})
+        return A.astype(float), B.astype(float)
 
     def _single_precision_session(self, threads: int):
         """A float32 session of the derivative graph, or None (float32 model, or the copy disagrees)."""

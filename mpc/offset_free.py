@@ -117,6 +117,9 @@ class DisturbedModel:
         xn, A, B = self.base.linearize_single(x, u)
         return (xn if self.offset is None else xn + self.offset), A, B
 
+    def jacobians(self, x, u):
+        return self.base.jacobians(x, u)      # a constant offset has no derivatives
+
 
 #: The states a steady-state target holds at the reference: position (NED) and yaw. The rest (attitude, rates,
 #: velocity, extra states) and the inputs are free, so the target problem is square (Pannocchia's rank condition:

@@ -117,10 +117,21 @@ class SQPSettings(LTVSettings):
     # timing): 2 gives the same RMSE as 1 (median 0.121 m both; spread 6.3 against 6.9 %) with a median solve time
     # of 2.7 ms against 4.3. The exact Hessian needs new derivatives every iteration: it ignores this setting.
     jacobian_every: int = 2
+    # Which stages' Jacobians an iteration with new Jacobians evaluates: "full" (all N, in one batched call) or
+    # "partial": only the stages whose point (state and input, in acceptable deviations) lies more than refresh_tol
+    # from where their Jacobians were last evaluated, at most max_refresh_stages of them per iteration (the farthest
+    # first; the others keep theirs until a later period). The plan moves by one stage a period, so most stages sit
+    # near the points of the period before. The model's step, and so the dynamics the QP restores, is evaluated
+    # along the whole plan either way. A cold start (no Jacobians yet) evaluates all of them.
+    jacobian_refresh: str = "full"
+    refresh_tol: float = 0.05               # acceptable deviations (max over the state and input)
+    max_refresh_stages: int = 8             # stages refreshed per iteration at most
+    full_refresh_above: int = 15            # more stages than this moved (the plan changed): all are refreshed
 
     def __post_init__(self):
         super().__post_init__()
-        for name in ("max_sqp_iter", "cold_start_max_iter", "jacobian_every"):
+        for name in ("max_sqp_iter", "cold_start_max_iter", "jacobian_every", "max_refresh_stages",
+                     "full_refresh_above"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
                 raise ConfigurationError(f"{name} must be an integer >= 1; found {v!r}")
@@ -132,12 +143,19 @@ class SQPSettings(LTVSettings):
             raise ConfigurationError(f"hessian must be 'gauss-newton' or 'exact'; found {self.hessian!r}")
         if self.tail not in ("model", "hold"):
             raise ConfigurationError(f"tail must be 'model' or 'hold'; found {self.tail!r}")
+        if self.jacobian_refresh not in ("full", "partial"):
+            raise ConfigurationError(f"jacobian_refresh must be 'full' or 'partial'; found {self.jacobian_refresh!r}")
         if self.cold_start not in ("rollout", "hold"):
             raise ConfigurationError(f"cold_start must be 'rollout' or 'hold'; found {self.cold_start!r}")
-        for name in ("step_tol", "defect_tol"):
+        for name in ("step_tol", "defect_tol", "refresh_tol"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ConfigurationError(f"{name} must be >= 0; found {v}")
+
+
+def _same(a, b) -> bool:
+    """Two offsets (arrays or None) are equal."""
+    return (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
 
 
 class SQPMPC(LTVMPC):
@@ -165,6 +183,12 @@ class SQPMPC(LTVMPC):
         self.counts["cold_starts"] = 0
         self.counts["line_search_failures"] = 0
         self.counts["second_order_corrections"] = 0
+        self.counts["full_refreshes"] = 0         # iterations that evaluated the Jacobians of every stage
+        self._jac_points = self._jac_A = self._jac_B = None   # where each stage's Jacobians were evaluated, and they
+        self._f_points = self._f_values = self._f_offset = None   # the model's steps along the last plan
+        self._z_scale = np.r_[self._sx, self._su]
+        self._refreshed = 0                       # stages whose Jacobians this period evaluated
+        self._full_refreshes = 0                  # iterations of this period that evaluated all of them
 
     _preflight = False          # planning before take-off (prepare): a cold start without a budget
     _plan_is_current = False    # the plan was made for the next call's time (a pre-flight plan): no shift
@@ -239,6 +263,9 @@ class SQPMPC(LTVMPC):
             X[0] = x
             warm = np.concatenate([X.ravel(), U.ravel()])
         self._plan_is_current = False
+        if shifted:
+            self._shift_kept()
+        self._refreshed = self._full_refreshes = 0
         deadline = self._take_deadline()
         # A cold start makes a plan whatever it takes: its fallback (the LQR) has none.
         clock = self.clock.begin(tm.start, budget, None if cold else deadline)
@@ -330,11 +357,78 @@ class SQPMPC(LTVMPC):
             if late or not clock.another_iteration(clock.now() - (clock.start if done == 1 else t_it)):
                 break
         u, fields = self._finish(done > 0, X, U, status, optimal, x, ref, u_ref)
+        self._keep_steps(X, U, f_next if done > 0 else None)
         fields["iterations"] = done
         fields["extra"].update(qp_iterations=qp_iterations, converged=converged, cold_start=cold,
                                line_search_failures=ls_failures, late_full_steps=late_steps, time_split_s=split,
-                               merit=merits, step_lengths=alphas)
+                               merit=merits, step_lengths=alphas, refreshed_stages=self._refreshed,
+                               full_refreshes=self._full_refreshes)
         return u, fields
+
+    def _derivatives(self, X, U, clock, split, first: bool):
+        """``(f(X, U), A, B)`` along the plan's first N stages: all new (``jacobian_refresh="full"``, or nothing
+        kept yet), or, with ``"partial"``, the Jacobians of the stages that moved and the steps of the stages not
+        already stepped at exactly their point (:class:`SQPSettings`)."""
+        N, s = self.N, self.s
+        Z = np.hstack([X[:N], U])
+        if s.jacobian_refresh == "partial" and self._jac_points is not None and s.hessian != "exact":
+            far = np.max(np.abs(Z - self._jac_points) / self._z_scale, axis=1)
+            far = np.where(np.isfinite(far), far, np.inf)
+            stale = np.flatnonzero(far > s.refresh_tol)
+        # Under a deadline, a full refresh that would not leave time for the QP is cut to a partial one.
+        if s.jacobian_refresh == "full" or self._jac_points is None or s.hessian == "exact" or \
+                (len(stale) > s.full_refresh_above and clock.fits(clock.expect["full_derivatives"])):
+            t0 = clock.now()
+            fx, A, B = super()._derivatives(X, U, clock, split, first)
+            clock.record("full_derivatives", clock.now() - t0)
+            self.counts["full_refreshes"] += 1
+            self._full_refreshes += 1
+            self._refreshed += N
+            if s.jacobian_refresh == "partial":
+                self._jac_points, self._jac_A, self._jac_B = Z, A.copy(), B.copy()
+            return fx, A, B
+        t0 = clock.now()
+        with np.errstate(all="ignore"):
+            fx = self._steps(X[:N], U, Z)
+            if len(stale) > s.max_refresh_stages:
+                stale = np.sort(stale[np.argsort(-far[stale], kind="stable")[:s.max_refresh_stages]])
+            if len(stale):
+                A_s, B_s = self.model.jacobians(X[stale], U[stale])
+                self._jac_A[stale], self._jac_B[stale], self._jac_points[stale] = A_s, B_s, Z[stale]
+        self._refreshed += len(stale)
+        seconds = clock.now() - t0
+        split["derivatives"] += seconds
+        if first:
+            clock.record("derivatives", seconds)
+        return fx, self._jac_A.copy(), self._jac_B.copy()
+
+    def _steps(self, X, U, Z):
+        """The model's steps (N, nx) at the stages ``(X, U)`` (points ``Z``): kept ones where a stage is exactly a
+        point stepped before (under the same offset), new ones elsewhere (one batched call)."""
+        kept = self._f_points is not None and _same(self._f_offset, self.model.offset)
+        same = np.all(Z == self._f_points, axis=1) if kept else np.zeros(len(Z), dtype=bool)
+        if not same.any():
+            return self.model.step(X, U)
+        fx = self._f_values.copy()
+        if not same.all():
+            miss = ~same
+            fx[miss] = self.model.step(X[miss], U[miss])
+        return fx
+
+    def _keep_steps(self, X, U, f) -> None:
+        """Keep the model's steps ``f`` (N, nx) along the plan ``(X, U)`` for the next period (None: none)."""
+        if f is None or self.s.jacobian_refresh != "partial":
+            self._f_points = self._f_values = None
+            return
+        self._f_points, self._f_values = np.hstack([X[:self.N], U]), f
+        self._f_offset = None if self.model.offset is None else np.array(self.model.offset)
+
+    def _shift_kept(self) -> None:
+        """The kept Jacobians and steps follow the plan's shift by one stage (the last stage keeps its own)."""
+        def shift(a):
+            return None if a is None else np.concatenate([a[1:], a[-1:]])
+        self._jac_points, self._jac_A, self._jac_B = (shift(a) for a in (self._jac_points, self._jac_A, self._jac_B))
+        self._f_points, self._f_values = shift(self._f_points), shift(self._f_values)
 
     def _tail_input(self, x, r, u_ff):
         """Feed-forward plus hover LQR at a state ``x`` about reference ``r``, projected onto the rotor-feasible set."""

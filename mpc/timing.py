@@ -34,8 +34,9 @@ MIN_TIME_LIMIT_S = 1e-4
 #: The expected time of a period's first derivatives and QP assembly is the median of this many recent periods
 #: (one slow period does not make the next ones give up); a line search's, the longest of them.
 RECENT_PERIODS = 20
-#: What the clock keeps recent times of.
-RECORDED = ("derivatives", "assembly", "line_search")
+#: What the clock keeps recent times of: a period's first derivatives and QP assembly, line searches, and the
+#: derivatives of every stage (a full refresh of the SQP's partial path).
+RECORDED = ("derivatives", "assembly", "line_search", "full_derivatives")
 
 
 class PeriodClock:
@@ -71,7 +72,7 @@ class PeriodClock:
         return self
 
     def record(self, kind: str, seconds: float) -> None:
-        """Keep the time (s) of a period's first derivatives, first QP assembly or a line search."""
+        """Keep the time (s) of a period's first derivatives, first QP assembly, a line search or a full refresh."""
         self._recent[kind].append(seconds)
 
     def elapsed(self) -> float:
@@ -83,6 +84,12 @@ class PeriodClock:
         """The period's first derivatives and QP, at their expected times, would end past the deadline."""
         return self.deadline is not None and \
             self.now() + self.expect["derivatives"] + self.expect["assembly"] + MIN_QP_TIME_S > self.deadline
+
+    def fits(self, seconds: float) -> bool:
+        """Work of ``seconds`` started now, then the QP's assembly and the least QP time, ends before the deadline
+        (or there is none)."""
+        return self.deadline is None or \
+            self.now() + seconds + self.expect["assembly"] + MIN_QP_TIME_S <= self.deadline
 
     def qp_window(self, first: bool) -> bool:
         """After the derivatives: set what OSQP may take before the deadline once its problem is assembled; False

@@ -269,7 +269,7 @@ ESTIMATOR_RESERVE_S = 0.003
 
 
 def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing: str = "ideal", vehicle=None,
-                    estimator: str = "none"):
+                    estimator: str = "none", sqp: dict | None = None):
     """The controller ``kind`` (``nmpc``, ``sqp``, ``ltv``, ``lqr``) on prediction ``model`` following ``reference``.
 
     The controller gets the model, the reference and the vehicle's datasheet
@@ -279,6 +279,7 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
     without its wall-clock budget (at most its iteration limit), so that the
     run is reproducible bit for bit; with ``realtime`` timing the budget applies, less
     :data:`ESTIMATOR_RESERVE_S` with a state ``estimator`` (its time counts against the same period).
+    ``sqp``: other :class:`mpc.sqp.SQPSettings` values for the SQP (for example ``{"jacobian_refresh": "full"}``).
     """
     from mpc.lqr import LQRController
     from mpc.ltv import LTVMPC, LTVSettings
@@ -290,13 +291,14 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
         return NMPC(model, reference, NMPCSettings(horizon=horizon), spec=spec)
     if kind == "sqp":
         from mpc.sqp import SQPMPC, SQPSettings
+        other = dict(sqp or {})
         if timing == "ideal":
-            return SQPMPC(model, reference, SQPSettings(horizon=horizon, time_budget_s=None, cold_start_budget_s=None),
-                          spec=spec)
-        st = SQPSettings(horizon=horizon)
+            return SQPMPC(model, reference, SQPSettings(horizon=horizon, time_budget_s=None, cold_start_budget_s=None,
+                                                        **other), spec=spec)
+        st = SQPSettings(horizon=horizon, **other)
         if estimator != "none":
             st = SQPSettings(horizon=horizon, time_budget_s=st.time_budget_s - ESTIMATOR_RESERVE_S,
-                             cold_start_budget_s=st.cold_start_budget_s - ESTIMATOR_RESERVE_S)
+                             cold_start_budget_s=st.cold_start_budget_s - ESTIMATOR_RESERVE_S, **other)
         return SQPMPC(model, reference, st, spec=spec)
     if kind == "ltv":
         return LTVMPC(model, reference, LTVSettings(horizon=horizon), spec=spec)
@@ -382,7 +384,8 @@ def make_run_plant(spec: "RunSpec", sc):
                       wind=_wind(sc))
 
 
-def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_config=None) -> tuple[dict, dict]:
+def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_config=None,
+        sqp: dict | None = None) -> tuple[dict, dict]:
     """Fly one closed-loop run; ``(result, trace)``.
 
     Raises only for bad input (unknown names, a model that fails the
@@ -391,7 +394,8 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
     ``scenario`` (a :class:`scenarios.library.Scenario`) replaces the named
     scenario's data, for example with a perturbed initial state; ``model`` (a
     loaded :class:`mpc.models.PredictionModel`) saves loading ``spec.model`` again. ``ekf_config`` (an
-    :class:`mpc.estimator.EKFConfig`) replaces the estimator's default tuning.
+    :class:`mpc.estimator.EKFConfig`) replaces the estimator's default tuning. ``sqp``: other
+    :class:`mpc.sqp.SQPSettings` values for the SQP (:func:`make_controller`; benchmarks compare its paths).
     """
     from .loop import IdealClock, RealtimeClock, StateSensor, Trace, fly_loop
 
@@ -424,7 +428,8 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
     t0 = time.perf_counter()
     realtime = spec.timing == "realtime"
     try:
-        ctrl = make_controller(spec.controller, model, ref, spec.horizon, spec.timing, vehicle, spec.estimator)
+        ctrl = make_controller(spec.controller, model, ref, spec.horizon, spec.timing, vehicle, spec.estimator,
+                               sqp=sqp)
         # The reference is known before take-off: its feed-forward is fitted now, and a controller that plans
         # ahead (the SQP) makes its first plan from the state the vehicle stands in.
         ctrl.prepare(K * DT, x0=x0.copy())
