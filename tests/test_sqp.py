@@ -268,7 +268,7 @@ def test_the_exact_hessian_is_the_models_curvature_weighted_by_the_multipliers()
 def test_the_ltv_mpc_is_the_one_iteration_full_step_case():
     model = OnnxModel(PROPOSED)
     one = SQPSettings(max_sqp_iter=1, line_search=False, time_budget_s=None, cold_start_budget_s=None,
-                      cold_start_max_iter=1, cold_start="hold", tail="hold")
+                      cold_start_max_iter=1, cold_start="hold", tail="hold", jacobian_refresh="full")
     ltv, sqp = LTVMPC(model, FIG8_FAST), SQPMPC(model, FIG8_FAST, one)
     sim = Simulator(QuadParams())
     x = FIG8_FAST(np.array([0.0]))[0]
@@ -312,7 +312,7 @@ def test_iterations_between_jacobian_evaluations_do_not_linearize_the_model(ever
     model = nan_jacobians_after(AnalyticModel(), 10 ** 9)     # the oracle, its linearizations counted
     sqp = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None, max_sqp_iter=5,
                                                step_tol=0.0, defect_tol=0.0, jacobians="float64",
-                                               jacobian_every=every))
+                                               jacobian_every=every, jacobian_refresh="full"))
     t, x = sampled_states(1, seed=2)[0]
     sqp.prepare(1.0, x0=x)          # the feed-forward fit and the pre-flight plan linearize too: not counted
     model.linearizations = 0
@@ -327,7 +327,7 @@ def test_iterations_between_jacobian_evaluations_leave_the_converged_plan_unchan
     def converged(every):
         s = SQPSettings(time_budget_s=None, cold_start_budget_s=None, max_sqp_iter=100, step_tol=1e-7,
                         defect_tol=0.0, eps_abs=1e-10, eps_rel=1e-10, max_iter=100000, polish=True,
-                        jacobians="float64", jacobian_every=every)
+                        jacobians="float64", jacobian_every=every, jacobian_refresh="full")
         sqp, out = SQPMPC(AnalyticModel(), FIG8_FAST, s), []
         for t, x in sampled_states(8, seed=3):
             ref, u_ref = sqp._horizon_reference(t)

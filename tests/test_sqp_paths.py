@@ -70,7 +70,7 @@ def test_with_a_zero_tolerance_the_partial_path_is_the_full_one_bit_for_bit():
     point: with the oracle (CasADi evaluates each stage on its own) the flight is the full path's, bit for bit."""
     strict = SQPSettings(jacobian_refresh="partial", refresh_tol=0.0, max_refresh_stages=30, full_refresh_above=30,
                          **IDEAL)
-    _, r_full, full = fly(AnalyticModel(), SQPSettings(**IDEAL), seconds=0.3)
+    _, r_full, full = fly(AnalyticModel(), SQPSettings(jacobian_refresh="full", **IDEAL), seconds=0.3)
     c, r_part, part = fly(AnalyticModel(), strict, seconds=0.3)
     assert r_full == r_part
     for a, b in zip(full, part):
@@ -109,11 +109,11 @@ def test_a_plan_that_moved_everywhere_gets_a_full_refresh_unless_the_deadline_fo
 
 
 def test_the_partial_path_flies_as_the_full_one():
-    _, full, _ = fly(AnalyticModel(), SQPSettings(**IDEAL))
+    _, full, _ = fly(AnalyticModel(), SQPSettings(jacobian_refresh="full", **IDEAL))
     _, part, _ = fly(AnalyticModel(), SQPSettings(jacobian_refresh="partial", **IDEAL))
     assert abs(part - full) <= TOL["oracle_rmse_abs_m"]
     base = OnnxModel(ROOT / "models" / "baseline.onnx")
-    _, full, _ = fly(base, SQPSettings(**IDEAL))
+    _, full, _ = fly(base, SQPSettings(jacobian_refresh="full", **IDEAL))
     _, part, _ = fly(base, SQPSettings(jacobian_refresh="partial", **IDEAL))
     assert abs(part / full - 1.0) <= TOL["baseline_rmse_rel"]
 
