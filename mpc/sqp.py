@@ -194,6 +194,7 @@ class SQPMPC(LTVMPC):
         self._z_scale = np.r_[self._sx, self._su]
         self._refreshed = 0                       # stages whose Jacobians this period evaluated
         self._full_refreshes = 0                  # iterations of this period that evaluated all of them
+        self._cold_period = False                 # this period is a cold start (or the pre-flight plan)
 
     _preflight = False          # planning before take-off (prepare): a cold start without a budget
     _plan_is_current = False    # the plan was made for the next call's time (a pre-flight plan): no shift
@@ -271,6 +272,7 @@ class SQPMPC(LTVMPC):
         if shifted:
             self._shift_kept()
         self._refreshed = self._full_refreshes = 0
+        self._cold_period = cold or self._preflight
         deadline = self._take_deadline()
         # A cold start makes a plan whatever it takes: its fallback (the LQR) has none.
         clock = self.clock.begin(tm.start, budget, None if cold else deadline)
@@ -383,9 +385,13 @@ class SQPMPC(LTVMPC):
         # Under a deadline, a full refresh that would not leave time for the QP is cut to a partial one.
         if s.jacobian_refresh == "full" or self._jac_points is None or s.hessian == "exact" or \
                 (len(stale) > s.full_refresh_above and clock.fits(clock.expect["full_derivatives"])):
+            # The partial path's expected first derivatives are a partial refresh's (a full one is checked against
+            # the deadline on its own), and a cold start's say nothing of a warm period's.
+            record = first and (s.jacobian_refresh == "full" or not self._cold_period)
             t0 = clock.now()
-            fx, A, B = super()._derivatives(X, U, clock, split, first)
-            clock.record("full_derivatives", clock.now() - t0)
+            fx, A, B = super()._derivatives(X, U, clock, split, record and s.jacobian_refresh == "full")
+            if record:
+                clock.record("full_derivatives", clock.now() - t0)
             self.counts["full_refreshes"] += 1
             self._full_refreshes += 1
             self._refreshed += N
@@ -404,7 +410,7 @@ class SQPMPC(LTVMPC):
         self._refreshed += len(stale)
         seconds = clock.now() - t0
         split["derivatives"] += seconds
-        if first:
+        if first and not self._cold_period:
             clock.record("derivatives", seconds)
         return fx, self._jac_A.copy(), self._jac_B.copy()
 
