@@ -260,6 +260,7 @@ class SQPMPC(LTVMPC):
             shifted = self._shifts_plan()
             X, U = self._initial_iterate(x, ref, u_ref)
             if cold:
+                self._drop_kept()      # a cold start evaluates every stage's derivatives
                 self.counts["cold_starts"] += 1
                 max_it = max(max_it, s.cold_start_max_iter)
                 budget = None if self._preflight else s.cold_start_budget_s
@@ -304,6 +305,7 @@ class SQPMPC(LTVMPC):
                 finite = self._finite(fx, A, B)
             if not finite:
                 status = NON_FINITE_STATUS      # OSQP never sees it
+                self._drop_kept()               # nothing non-finite is kept for the next period
                 break
             if shifted and first:
                 warm = self._close_tail(X, U, fx, warm)
@@ -434,6 +436,11 @@ class SQPMPC(LTVMPC):
             return
         self._f_points, self._f_values = np.hstack([X[:self.N], U]), f
         self._f_offset = None if self.model.offset is None else np.array(self.model.offset)
+
+    def _drop_kept(self) -> None:
+        """Forget the kept Jacobians and steps: the next Jacobian iteration evaluates every stage."""
+        self._jac_points = self._jac_A = self._jac_B = None
+        self._f_points = self._f_values = self._f_offset = None
 
     def _shift_kept(self) -> None:
         """The kept Jacobians and steps follow the plan's shift by one stage (the last stage keeps its own)."""

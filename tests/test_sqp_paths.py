@@ -123,3 +123,19 @@ def test_the_partial_path_flies_as_the_full_one():
 def test_bad_refresh_settings_are_refused_by_name(field, value):
     with pytest.raises(ConfigurationError, match=field):
         SQPSettings(**{field: value})
+
+
+def test_nothing_non_finite_is_kept_and_a_cold_start_evaluates_every_stage(nan_jacobians_after):
+    model = nan_jacobians_after(AnalyticModel(), 10 ** 9)
+    c = SQPMPC(model, FIG8_FAST, SQPSettings(jacobian_refresh="partial", **IDEAL))
+    x = FIG8_FAST(np.array([0.0]))[0]
+    c.prepare(1.0, x0=x)
+    _, info = c(x, 0.0)
+    assert info.is_optimal() and c._jac_points is not None
+    model.left = 0                                   # every later evaluation of A is NaN
+    c._jac_points = c._jac_points + 10.0             # every stage moved: all are evaluated again
+    _, info = c(x, 0.01)
+    assert info.status == "non-finite model output" and c._jac_points is None and c._f_points is None
+    model.left = 10 ** 9
+    _, info = c(x, 0.02)                             # the next Jacobian iteration evaluates every stage
+    assert info.is_optimal() and info.extra["full_refreshes"] >= 1
