@@ -163,3 +163,13 @@ def test_the_sqp_asks_its_clock_a_deadline_it_cannot_meet_and_sends_the_shifted_
     u, info = sqp(x, 0.01)
     assert info.status == "deadline" and info.fallback == "shifted_plan" and np.array_equal(u, plan[1])
     assert info.extra["time_split_s"]["derivatives"] == 0.0
+
+
+def test_the_expected_time_is_numpys_median_to_the_last_bit():
+    from mpc.timing import _median
+
+    rng = np.random.default_rng(7)
+    for n in range(1, 2 * RECENT_PERIODS):
+        v = list(rng.random(n) * 1e-2)
+        assert _median(v) == float(np.median(v)), n
+    assert _median([]) == 0.0
