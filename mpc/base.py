@@ -12,6 +12,11 @@ from .lqr import LQRController
 from .models import PredictionModel
 
 
+def shift_stages(a: np.ndarray) -> np.ndarray:
+    """A plan's stages (K, ...) moved on by one period: ``a[1:]`` with its last stage repeated (a new array)."""
+    return np.concatenate([a[1:], a[-1:]])
+
+
 class MPCBase:
     """What the LTV-MPC and the NMPC share: set-up of model, reference, weights and LQR, and failure bookkeeping.
 

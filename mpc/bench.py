@@ -294,8 +294,8 @@ def main(argv=None) -> int:
                     if kind == "sqp":
                         sqp_rows.append((name, case, path, r))
     if sqp_rows:
-        print("\nmax*: without the SQP's counted cold-start periods. SQP iterations, time split per period (ms) and the "
-              "share of periods with a full Jacobian refresh:")
+        print("\nmax*: without the SQP's counted cold-start periods. SQP iterations, time split per period (ms) and "
+              "the share of periods with a full Jacobian refresh:")
         print(f"{'model':<22}{'case':<14}{'path':<9}{'iter mean':>10}  {'counts 0,1,2..':<18}"
               + "".join(f"{k:>12}" for k in (*SPLIT, "python")) + f"{'full refr.':>11}")
         for name, case, path, r in sqp_rows:
@@ -559,25 +559,44 @@ def _fly_path(task):
     return r["rmse_position_m"], bool(r["crashed"])
 
 
+def _fly_all(tasks, jobs: int, what: str) -> dict:
+    """``{task: (RMSE m, crashed)}`` for :func:`_fly_path` tasks on ``jobs`` workers of the sweeps' pool
+    (:func:`scenarios.pool.run_pool`, with their worker environment), with a progress bar. A task whose worker
+    died twice is ``(None, None)``: not flown."""
+    from tqdm import tqdm
+
+    from scenarios.engines import worker_init
+    from scenarios.pool import run_pool
+
+    flown = {}
+    with tqdm(total=len(tasks), desc=what, unit="run") as bar:
+        def done(task, value):
+            flown[task] = value
+            bar.update()
+
+        def failed(task, reason):
+            print(f"not flown: {task}: {reason}", flush=True)
+            done(task, (None, None))
+
+        run_pool(_fly_path, tasks, jobs, done, failed, initializer=worker_init)
+    return flown
+
+
 def same_answers(models: dict, cases=ANSWER_CASES, members: int = 5, jobs: int = 2) -> dict:
     """Each model (``{name: "oracle" or file}``) on each case, ``members`` ensemble members, by both paths in ideal
     timing (the runs are reproducible, so the paths' differences are theirs): per path the median RMSE (m) and the
     crashes, and the partial path's median over the full one's (``ratio``) and their difference (m)."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
     tasks = [(m, c, i, p) for m in models.values() for c in cases for i in range(members) for p in PATHS]
-    with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as ex:
-        flown = dict(zip(tasks, ex.map(_fly_path, tasks)))
+    flown = _fly_all(tasks, jobs, "same answers")
     out = {}
     for name, m in models.items():
         for c in cases:
             row = {}
             for p in PATHS:
                 runs = [flown[(m, c, i, p)] for i in range(members)]
-                rmse = [r for r, crashed in runs if not crashed and r is not None]
+                rmse = [r for r, crashed in runs if crashed is False and r is not None]
                 row[p] = {"median_rmse_m": float(np.median(rmse)) if rmse else None,
-                          "rmse_m": [r for r, _ in runs], "crashes": sum(crashed for _, crashed in runs)}
+                          "rmse_m": [r for r, _ in runs], "crashes": sum(crashed is True for _, crashed in runs)}
             f, q = row["full"]["median_rmse_m"], row["partial"]["median_rmse_m"]
             row["ratio"] = None if not (f and q) else q / f
             row["difference_m"] = None if f is None or q is None else q - f
@@ -586,14 +605,11 @@ def same_answers(models: dict, cases=ANSWER_CASES, members: int = 5, jobs: int =
 
 
 def zoo_crashes(models_dir, jobs: int = 2) -> dict:
-    """Every zoo model on ``figure8-fast`` (ensemble member 0) by both paths: ``{model: {path: crashed}}``."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
+    """Every zoo model on ``figure8-fast`` (ensemble member 0) by both paths: ``{model: {path: crashed}}`` (None:
+    not flown)."""
     files = model_files(models_dir)
     tasks = [(str(f), "figure8-fast", 0, p) for f in files for p in PATHS]
-    with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as ex:
-        flown = dict(zip(tasks, ex.map(_fly_path, tasks)))
+    flown = _fly_all(tasks, jobs, "zoo")
     return {f.stem: {p: flown[(str(f), "figure8-fast", 0, p)][1] for p in PATHS} for f in files}
 
 
@@ -617,8 +633,9 @@ def _main_answers(args) -> int:
     if zoo.is_dir():
         out["zoo"] = crashes = zoo_crashes(zoo, jobs=args.jobs)
         changed = {k: v for k, v in crashes.items() if v["full"] != v["partial"]}
-        print(f"Zoo on figure8-fast (member 0): {sum(v['full'] for v in crashes.values())} crashes by the full path, "
-              f"{sum(v['partial'] for v in crashes.values())} by the partial one, of {len(crashes)} models; changed: "
+        print(f"Zoo on figure8-fast (member 0): {sum(v['full'] is True for v in crashes.values())} crashes by the "
+              f"full path, {sum(v['partial'] is True for v in crashes.values())} by the partial one, of "
+              f"{len(crashes)} models; changed: "
               + (", ".join(f"{k} ({'crashes' if v['partial'] else 'flies'} now)" for k, v in changed.items())
                  or "none"))
     return _write(args.json or Path("bench_answers.json"), out)

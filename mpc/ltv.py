@@ -32,7 +32,7 @@ import scipy.sparse as sp
 from sim.params import NU
 from sim.rotors import load_matrix, realize
 
-from .base import MPCBase
+from .base import MPCBase, shift_stages
 from .controller import ControlInfo, Reference, Timer, check_common_settings, check_measured
 from .errors import ConfigurationError
 from .models import PredictionModel
@@ -170,8 +170,7 @@ class LTVMPC(MPCBase):
 
         For the next call only (a real-time loop sets it every period). When
         the period's first derivatives and QP would not fit before it (from
-        their median times over
-        :data:`mpc.timing.RECENT_PERIODS` periods), or OSQP
+        their median times over :data:`mpc.timing.RECENT_PERIODS` periods), or OSQP
         stops at the time left, the call returns at once with the fallback of
         a failed solve (the shifted plan, or the LQR) and the status
         :data:`DEADLINE_STATUS`. A cold start (no plan to fall back on) ignores
@@ -248,8 +247,7 @@ class LTVMPC(MPCBase):
         N = self.N
         if self._plan_x is None:
             return np.tile(x, (N + 1, 1)), u_ref.copy()
-        xs = np.vstack([self._plan_x[1:], self._plan_x[N:N + 1]])
-        us = np.vstack([self._plan_u[1:], self._plan_u[-1:]])
+        xs, us = shift_stages(self._plan_x), shift_stages(self._plan_u)
         xs[0] = x
         return xs, us
 
@@ -357,8 +355,7 @@ class LTVMPC(MPCBase):
                 u = self.lqr.input(x, ref[0], u_ref[0])
                 self._plan_x = self._plan_u = self._z = None
             else:
-                self._plan_x = np.vstack([self._plan_x[1:], self._plan_x[-1:]])
-                self._plan_u = np.vstack([self._plan_u[1:], self._plan_u[-1:]])
+                self._plan_x, self._plan_u = shift_stages(self._plan_x), shift_stages(self._plan_u)
                 u = self._plan_u[0]
             info_status = status
         u = self._rotor_feasible(u)
@@ -425,4 +422,4 @@ class LTVMPC(MPCBase):
         N = self.N
         xs = z[:self.nx_var].reshape(N + 1, self.nx)
         us = z[self.nx_var:].reshape(N, NU)
-        return np.concatenate([np.vstack([xs[1:], xs[-1:]]).ravel(), np.vstack([us[1:], us[-1:]]).ravel()])
+        return np.concatenate([shift_stages(xs).ravel(), shift_stages(us).ravel()])

@@ -37,7 +37,7 @@ import numpy as np
 from sim.params import NU
 from sim.rotors import load_matrix, realize
 
-from .base import MPCBase
+from .base import MPCBase, shift_stages
 from .controller import ControlInfo, Reference, Timer, check_common_settings, check_measured, check_state
 from .errors import ConfigurationError
 from .models import AnalyticModel, PredictionModel
@@ -254,8 +254,7 @@ class NMPC(MPCBase):
         if self._w is None:
             return self._pack(np.tile(x, (N + 1, 1)), u_ref)
         X, U = self._unpack(self._w)
-        X = np.vstack([X[1:], X[-1:]])
-        U = np.vstack([U[1:], U[-1:]])
+        X, U = shift_stages(X), shift_stages(U)
         X[0] = x
         return self._pack(X, U)
 
@@ -316,7 +315,7 @@ class NMPC(MPCBase):
                     self._w = None
                 else:
                     X, U = self._unpack(self._w)
-                    self._w = self._pack(np.vstack([X[1:], X[-1:]]), np.vstack([U[1:], U[-1:]]))
+                    self._w = self._pack(shift_stages(X), shift_stages(U))
                     u = U[1]
             u = realize(u, self.spec).wrench
         predicted = None if self._w is None else self._unpack(self._w)[0].copy()

@@ -61,6 +61,7 @@ import numpy as np
 from sim.params import NU
 from sim.rotors import realize
 
+from .base import shift_stages
 from .controller import ControlInfo, Timer, check_state
 from .errors import ConfigurationError
 from .ltv import DEADLINE_STATUS, NON_FINITE_STATUS, SPLIT, LTVMPC, LTVSettings, csc_in_entry_order
@@ -387,17 +388,19 @@ class SQPMPC(LTVMPC):
         # Under a deadline, a full refresh that would not leave time for the QP is cut to a partial one.
         if s.jacobian_refresh == "full" or self._jac_points is None or s.hessian == "exact" or \
                 (len(stale) > s.full_refresh_above and clock.fits(clock.expect["full_derivatives"])):
-            # The partial path's expected first derivatives are a partial refresh's (a full one is checked against
-            # the deadline on its own), and a cold start's say nothing of a warm period's.
-            record = first and (s.jacobian_refresh == "full" or not self._cold_period)
+            # The full path records its first derivatives as before. The partial path's expected first derivatives
+            # are a partial refresh's (a full one is checked against the deadline on its own), and a cold start's
+            # say nothing of a warm period's.
+            full_path = s.jacobian_refresh == "full"
+            record = first and (full_path or not self._cold_period)
             t0 = clock.now()
-            fx, A, B = super()._derivatives(X, U, clock, split, record and s.jacobian_refresh == "full")
+            fx, A, B = super()._derivatives(X, U, clock, split, first=record and full_path)
             if record:
                 clock.record("full_derivatives", clock.now() - t0)
             self.counts["full_refreshes"] += 1
             self._full_refreshes += 1
             self._refreshed += N
-            if s.jacobian_refresh == "partial":
+            if not full_path:
                 self._jac_points, self._jac_A, self._jac_B = Z, A.copy(), B.copy()
             return fx, A, B
         t0 = clock.now()
@@ -445,7 +448,7 @@ class SQPMPC(LTVMPC):
     def _shift_kept(self) -> None:
         """The kept Jacobians and steps follow the plan's shift by one stage (the last stage keeps its own)."""
         def shift(a):
-            return None if a is None else np.concatenate([a[1:], a[-1:]])
+            return None if a is None else shift_stages(a)
         self._jac_points, self._jac_A, self._jac_B = (shift(a) for a in (self._jac_points, self._jac_A, self._jac_B))
         self._f_points, self._f_values = shift(self._f_points), shift(self._f_values)
 
@@ -616,10 +619,8 @@ class SQPMPC(LTVMPC):
             return Xq, Uq, 1.0, True, phi0, phi, self._defect(ft, Xq), ft
         if np.all(np.isfinite(ft)):
             res = resolve(ft - Xq[1:])
-            if res is not None and res.x is not None and np.all(np.isfinite(res.x)) and res.info.status_val in (
-                    self._status.OSQP_SOLVED, self._status.OSQP_SOLVED_INACCURATE):
-                Xc = res.x[:self.nx_var].reshape(N + 1, self.nx)
-                Uc = res.x[self.nx_var:].reshape(N, -1)
+            if res is not None and self._solved(res):
+                Xc, Uc = self._unpack(res.x)
                 fc, phi, ok = trial(Xc, Uc, -1.0)
                 if ok:
                     self.counts["second_order_corrections"] += 1

@@ -75,8 +75,7 @@ class PeriodClock:
         None for none. Returns the clock."""
         self.start, self.budget, self.deadline = start, budget, deadline
         #: Expected seconds: the median of the recent first derivatives and assemblies, the longest line search.
-        self.expect = {k: _median(v) for k, v in self._recent.items()}
-        self.expect["line_search"] = max(self._recent["line_search"], default=0.0)
+        self.expect = {k: max(v, default=0.0) if k == "line_search" else _median(v) for k, v in self._recent.items()}
         self.qp_left: float | None = None     # what OSQP may take before the deadline, s (set by qp_window)
         self.longest = 0.0                    # the longest iteration so far, s
         return self
@@ -92,8 +91,7 @@ class PeriodClock:
     # ----------------------------------------------------------- deadline
     def no_time_to_start(self) -> bool:
         """The period's first derivatives and QP, at their expected times, would end past the deadline."""
-        return self.deadline is not None and \
-            self.now() + self.expect["derivatives"] + self.expect["assembly"] + MIN_QP_TIME_S > self.deadline
+        return not self.fits(self.expect["derivatives"])
 
     def fits(self, seconds: float) -> bool:
         """Work of ``seconds`` started now, then the QP's assembly and the least QP time, ends before the deadline

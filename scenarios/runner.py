@@ -290,6 +290,8 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
     if kind == "nmpc":
         return NMPC(model, reference, NMPCSettings(horizon=horizon), spec=spec)
     if kind == "sqp":
+        import dataclasses
+
         from mpc.sqp import SQPMPC, SQPSettings
         other = dict(sqp or {})
         if timing == "ideal":
@@ -297,8 +299,8 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
                                                         **other), spec=spec)
         st = SQPSettings(horizon=horizon, **other)
         if estimator != "none":
-            st = SQPSettings(horizon=horizon, time_budget_s=st.time_budget_s - ESTIMATOR_RESERVE_S,
-                             cold_start_budget_s=st.cold_start_budget_s - ESTIMATOR_RESERVE_S, **other)
+            st = dataclasses.replace(st, time_budget_s=st.time_budget_s - ESTIMATOR_RESERVE_S,
+                                     cold_start_budget_s=st.cold_start_budget_s - ESTIMATOR_RESERVE_S)
         return SQPMPC(model, reference, st, spec=spec)
     if kind == "ltv":
         return LTVMPC(model, reference, LTVSettings(horizon=horizon), spec=spec)
