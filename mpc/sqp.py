@@ -348,6 +348,8 @@ class SQPMPC(LTVMPC):
 
                 Xn, Un, alpha, accepted, phi0, phi, defect, f_next = self._line_search(X, U, Xq, Uq, fx, ref,
                                                                                        u_ref, mu, resolve)
+                if f_next is not None and s.jacobian_refresh == "partial":
+                    self._keep_steps(Xn, Un, f_next)   # the next iteration steps nothing it has just stepped
                 merits.append((phi0, phi, accepted))
                 ls_failures += not accepted
                 split["line_search"] += clock.now() - t_ls - (split["assembly"] + split["osqp"] - qp_before)

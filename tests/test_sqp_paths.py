@@ -79,6 +79,35 @@ def test_with_a_zero_tolerance_the_partial_path_is_the_full_one_bit_for_bit():
     assert c.counts["full_refreshes"] == 1
 
 
+def _count_steps(model):
+    """Record the points of every batched step ``model`` is asked for (in the returned list)."""
+    stepped, step = [], model.step
+
+    def counted(x, u):
+        stepped.append(np.hstack([np.atleast_2d(x), np.atleast_2d(u)]))
+        return step(x, u)
+
+    model.step = counted
+    return stepped
+
+
+def test_an_iteration_after_a_line_search_steps_nothing_the_line_search_stepped():
+    """With several iterations per period, the iterate the line search took was stepped by it: the next iteration's
+    model step reuses those values instead of asking the model again for the same points."""
+    model = OnnxModel(ROOT / "models" / "proposed.onnx")
+    stepped = _count_steps(model)
+    c, _, infos = fly(model, SQPSettings(jacobian_refresh="partial", max_sqp_iter=4, **IDEAL), seconds=0.3)
+    assert sum(i.iterations for i in infos) > len(infos)          # some periods took more than one iteration
+    seen, again = set(), 0
+    for rows in stepped:
+        if len(rows) < c.N:        # the tracker's, the feed-forward's and the shifted plan's few new stages
+            continue
+        key = rows.tobytes()
+        again += key in seen
+        seen.add(key)
+    assert again == 0
+
+
 def test_with_a_huge_tolerance_nothing_is_refreshed_after_the_first_plan():
     lax = SQPSettings(jacobian_refresh="partial", refresh_tol=1e9, **IDEAL)
     c, rmse, infos = fly(AnalyticModel(), lax, seconds=0.2)
