@@ -181,10 +181,14 @@ def register(sub) -> None:
     p.add_argument("--models", type=Path, default=Path("models"),
                    help="models folder, for the plant's best open-loop model (default models)")
     p.add_argument("--iterations", type=int, default=3, help="models trained on flown data (default 3)")
-    p.add_argument("--per-level", type=int, default=3,
-                   help="training references per family and speed level in each iteration (default 3: 18 flights)")
-    p.add_argument("--members", type=int, default=10, help="ensemble members on figure8-fast (default 10)")
-    p.add_argument("--ladder-members", type=int, default=5, help="members per other rung of the ladder (default 5)")
+    p.add_argument("--per-level", type=int, default=2,
+                   help="training references per family and speed level in each iteration (default 2: 12 flights)")
+    p.add_argument("--members", type=int, default=10,
+                   help="ensemble members on figure8-fast for the nominal equations, the final model and the "
+                        "controls (default 10)")
+    p.add_argument("--curve-members", type=int, default=5,
+                   help="ensemble members on figure8-fast for the learning curve's other iterations (default 5)")
+    p.add_argument("--ladder-members", type=int, default=3, help="members per other rung of the ladder (default 3)")
     p.add_argument("--profile", choices=("scaled", "full", "quick", "smoke"), default="scaled",
                    help="training budget (default scaled: 60 passes over the flights; full: the shipped models' "
                         "fixed budget; smoke: seconds, for tests of the loop)")
@@ -425,8 +429,8 @@ def cmd_learn(args: argparse.Namespace) -> int:
         if not rotorpy_available():
             raise ValueError(f"plant {args.plant} needs RotorPy: python -m pip install -e '.[rotorpy]'")
     settings = LearnSettings(plant=args.plant, iterations=args.iterations, per_level=args.per_level, seed=args.seed,
-                             profile=args.profile, members=args.members, ladder_members=args.ladder_members,
-                             controls=not args.no_controls)
+                             profile=args.profile, members=args.members, curve_members=args.curve_members,
+                             ladder_members=args.ladder_members, controls=not args.no_controls)
     check_writable(args.out, "--out", folder=True)
     out = run_learn(settings, args.out, args.models, jobs)
     print(format_learn(out))

@@ -10,8 +10,8 @@
 * **iteration i >= 1** trains physics plus network with the rotor speeds as states (``hybrid_lag``) on every flight
   so far, and flies that model on the next iteration's references (the last iteration's model flies only its
   evaluation);
-* each iteration's model flies the held-out ``figure8-fast`` (``members`` ensemble members): one row of the
-  learning curve (RMSE against iteration and against the minutes of flight it learned from);
+* each iteration's model flies the held-out ``figure8-fast`` (``members`` ensemble members for the nominal
+  equations and the final model, ``curve_members`` for the models between): one row of the learning curve (RMSE against iteration and against the minutes of flight it learned from);
 * two **controls** are trained the same way: the same minutes of open-loop excitation (``pinnmpc data``'s
   random references flown by the hover LQR with dither), and an **upper bound** from the final model's flights
   plus an iteration's worth of flights of the evaluation reference itself (never a result: it has seen the test);
@@ -115,19 +115,20 @@ class LearnSettings:
 
     plant: str = "highfi"
     iterations: int = 3          # models trained on flown data (>= 1)
-    per_level: int = 3           # training references per family and speed level, per iteration
+    per_level: int = 2           # training references per family and speed level, per iteration
     seed: int = 0
     dither: float = 1.0          # scale of scenarios.dither.dither_std
     perturb_m: float = 0.1       # reference perturbation, m (scenarios.training_refs.Perturbed)
     profile: str = "scaled"      # training budget (LEARN_PROFILES)
-    members: int = 10            # ensemble members of each curve row and of the evaluation on figure8-fast
-    ladder_members: int = 5      # members per rung of the speed ladder in the evaluation
+    members: int = 10            # ensemble members on figure8-fast: the evaluation, and the curve's first and last rows
+    curve_members: int = 5       # ensemble members of the curve's other rows (the models between first and final)
+    ladder_members: int = 3      # members per rung of the speed ladder in the evaluation
     controls: bool = True        # train and fly the two controls
 
     def __post_init__(self):
         if self.plant not in LEARN_PLANTS:
             raise ScenarioError(f"plant must be one of {', '.join(LEARN_PLANTS)}; found {self.plant!r}")
-        for name in ("iterations", "per_level", "members", "ladder_members"):
+        for name in ("iterations", "per_level", "members", "curve_members", "ladder_members"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ScenarioError(f"{name} must be an integer >= 1; found {v!r}")
@@ -413,13 +414,18 @@ def _dataset_file(path: Path, flights: list[dict], vehicle) -> Path:
 
 def _curve_row(settings: LearnSettings, out: Path, iteration: int, model: str, flights: list[dict], jobs: int,
                progress) -> dict:
-    """Fly ``model`` on the held-out ``figure8-fast`` (``settings.members`` members): one row of the learning curve."""
+    """Fly ``model`` on the held-out ``figure8-fast``: one row of the learning curve.
+
+    The first row (the nominal equations) and the last (the final model) fly ``settings.members`` members, the
+    evaluation's own runs, which it then finds flown; the rows between fly the first ``settings.curve_members`` (at most ``members``).
+    """
     from .stats import summarize
     from .sweep import sweep
     from .versus import versus_specs
 
-    # the evaluation's own ensemble runs on figure8-fast, so that the evaluation finds them flown
-    specs = versus_specs(settings.spec.versus, [model], settings.members, ladder_members=1)["ensemble"][model]
+    members = settings.members if iteration in (0, settings.iterations) else min(settings.curve_members,
+                                                                                settings.members)
+    specs = versus_specs(settings.spec.versus, [model], members, ladder_members=1)["ensemble"][model]
     results = sweep(specs, out / "evaluation", jobs=jobs, progress=False)
     _no_errors(results)
     s = summarize(results)

@@ -65,7 +65,7 @@ def test_no_training_reference_of_the_default_study_is_an_evaluation_reference()
         for k in range(len(learn.training_refs_of(s, i))):
             name, traj, dur = FlightJob(s, "train", i, k, "nominal").reference()
             refs[name] = reference_positions(traj, dur)
-    assert len(refs) == s.iterations * 18
+    assert len(refs) == s.iterations * 6 * s.per_level
     check_held_out(refs)            # raises if any window is shared
 
 
@@ -171,7 +171,8 @@ def test_the_crazyflie_study_flies_and_learns_its_own_vehicle():
 
 def test_bad_settings_name_the_setting():
     for kw, word in (({"plant": "moon"}, "plant"), ({"iterations": 0}, "iterations"), ({"per_level": 1.5}, "per_level"),
-                     ({"dither": -1.0}, "dither"), ({"profile": "long"}, "profile"), ({"seed": -2}, "seed")):
+                     ({"dither": -1.0}, "dither"), ({"profile": "long"}, "profile"), ({"seed": -2}, "seed"),
+                     ({"curve_members": 0}, "curve_members")):
         with pytest.raises(ScenarioError, match=word):
             LearnSettings(**kw)
 
@@ -250,6 +251,28 @@ def test_a_study_killed_in_iteration_2_resumes_to_the_same_results(tmp_path, mon
     for i in (1, 2, 3):
         assert (tmp_path / "whole" / "highfi" / f"it{i}" / "data.npz").read_bytes() == \
             (tmp_path / "resumed" / "highfi" / f"it{i}" / "data.npz").read_bytes()
+
+
+def test_the_curve_flies_all_members_for_the_nominal_and_final_models_and_fewer_between(tmp_path, monkeypatch):
+    """The first and last rows are the evaluation's own runs (``members``); the rows between fly the first
+    ``curve_members`` of those members, so that every row's runs are a prefix of the same ensemble."""
+    import scenarios.sweep
+
+    flown = {}
+
+    def fake_sweep(specs, out, jobs=1, progress=False):
+        flown[len(flown)] = [sp.member for sp in specs]
+        return [{"run_id": str(k), "rmse_position_m": 0.01 * (k + 1), "crashed": False, "error": None,
+                 "solve_ms": {"median": 1.0}} for k in range(len(specs))]
+
+    monkeypatch.setattr(scenarios.sweep, "sweep", fake_sweep)
+    s = LearnSettings(iterations=3, members=6, curve_members=4)
+    rows = [learn._curve_row(s, tmp_path, i, "nominal", [], 1, None) for i in range(4)]
+    assert [flown[i] for i in range(4)] == [list(range(6)), list(range(4)), list(range(4)), list(range(6))]
+    assert [r["ensemble"]["runs"] for r in rows] == [6, 4, 4, 6]
+    # curve_members above members flies members
+    learn._curve_row(LearnSettings(iterations=3, members=3, curve_members=5), tmp_path, 1, "nominal", [], 1, None)
+    assert flown[4] == [0, 1, 2]
 
 
 def test_a_rerun_with_other_settings_is_refused(tmp_path, monkeypatch):
