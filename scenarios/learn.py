@@ -48,7 +48,8 @@ LEARN_ARCH = "hybrid_lag"
 #: Seconds of each open-loop excitation flight of the same-data control (``pinnmpc data``'s default).
 OPEN_LOOP_FLIGHT_S = 10.0
 #: Splits of the flown flights, by their order: of every SPLIT_EVERY flights, the fifth is for validation and the sixth
-#: for test (two of each of each iteration's 18 at the default settings; one of each of 6).
+#: for test (counted among the flights long enough to give a piece; at the default settings about one of each per
+#: iteration's 12).
 SPLIT_EVERY = 9
 #: Periods per piece of a flown flight in its dataset (4 s; see :func:`flights_dataset`).
 PIECE_STEPS = 400
@@ -284,15 +285,17 @@ def flights_dataset(flights: list[dict], vehicle=None):
 
     vehicle = load_vehicle(vehicle)
     L = PIECE_STEPS
-    # A flight cut by a crash before the logs' least length (MIN_SAMPLES, far less than a piece) gives no piece and
-    # is no log: it is left out here, and the others keep their splits.
+    # A flight cut by a crash before one piece's length gives no piece (and one shorter than the logs' least length,
+    # MIN_SAMPLES, is no log): it is left out here. Splits go by position among the flights kept, so that a crash
+    # never leaves the validation or test split empty, and a flight added later never moves a kept one.
     fl, splits = [], {}
-    for i, f in enumerate(flights):
-        if finite_samples(f["x"], f["rotor_speed"]) < MIN_SAMPLES:
+    for f in flights:
+        if finite_samples(f["x"], f["rotor_speed"]) < max(L + 1, MIN_SAMPLES):    # its one-step pairs: samples - 1
             continue
+        j = len(fl)
         fl.append(flown_flight(f["name"], f["t"], f["x"], f["rotor_speed"], vehicle, command=f["command"],
                                reference=f["reference"]))
-        splits[f["name"]] = "val" if i % SPLIT_EVERY == 4 else "test" if i % SPLIT_EVERY == 5 else "train"
+        splits[f["name"]] = "val" if j % SPLIT_EVERY == 4 else "test" if j % SPLIT_EVERY == 5 else "train"
     if not fl:
         raise ScenarioError(f"no flown flight is {L * DT:g} s long: nothing to learn from")
     ds = flights_to_dataset(fl, vehicle, splits)
@@ -381,6 +384,10 @@ def train_model(settings: LearnSettings, data_path, folder, name: str, threads: 
 
     torch.set_num_threads(threads)
     ds = load_dataset(data_path)
+    for k, what in enumerate(("training", "validation", "test")):
+        if not np.any(ds.split == k):
+            raise ScenarioError(f"training {name}: its data have no {what} flight; six or more flights of at least "
+                                f"{PIECE_STEPS * DT:g} s are needed (fly more references: --per-level)")
     base, changed = LEARN_PROFILES[settings.profile]
     if settings.profile == "scaled":
         cfg = make_config(LEARN_ARCH, base, settings.seed, threads=threads, **changed)

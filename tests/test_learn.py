@@ -113,38 +113,51 @@ def test_flights_round_trip_and_become_pieces_of_equal_length(tmp_path):
         for k in learn.FLIGHT_ARRAYS:
             np.testing.assert_array_equal(a[k], b[k])
     ds = flights_dataset(back)
-    # pieces per flight: m // L, plus one ending at the flight's end where L does not divide m
-    expect = []
-    for i, n in enumerate(lengths):
-        m = n - 1
-        if m >= L:
-            starts = list(range(0, m - L + 1, L))
-            expect += [(i, k) for k in starts + ([m - L] if starts[-1] != m - L else [])]
+    # pieces per flight: m // L, plus one ending at the flight's end where L does not divide m; the flight too short
+    # for a piece is left out, and the splits go by position among the flights kept
+    expect, kept = [], [i for i, n in enumerate(lengths) if n - 1 >= L]
+    for j, i in enumerate(kept):
+        m = lengths[i] - 1
+        starts = list(range(0, m - L + 1, L))
+        expect += [(i, j, k) for k in starts + ([m - L] if starts[-1] != m - L else [])]
     assert ds.x.shape == (len(expect), L, 12) and ds.valid is None
-    for j, (i, k) in enumerate(expect):
+    for row, (i, j, k) in enumerate(expect):
         f = flights[i]
-        assert np.max(np.abs(ds.x[j] - f["x"][k:k + L])) <= TOL["pieces_exact"]
-        assert np.max(np.abs(ds.x_next[j] - f["x"][k + 1:k + L + 1])) <= TOL["pieces_exact"]
-        assert np.max(np.abs(ds.u[j] - f["command"][k:k + L])) <= TOL["pieces_exact"]
+        assert np.max(np.abs(ds.x[row] - f["x"][k:k + L])) <= TOL["pieces_exact"]
+        assert np.max(np.abs(ds.x_next[row] - f["x"][k + 1:k + L + 1])) <= TOL["pieces_exact"]
+        assert np.max(np.abs(ds.u[row] - f["command"][k:k + L])) <= TOL["pieces_exact"]
         # the rotor speeds at the end of each period (the simulator's datasets' telemetry)
-        assert np.max(np.abs(ds.rotor_speed[j] - f["rotor_speed"][k + 1:k + L + 1])) <= TOL["pieces_exact"]
-        # split of the whole flight: the fifth of every SPLIT_EVERY to validation, the sixth to test
-        assert ds.split[j] == {4: 1, 5: 2}.get(i % learn.SPLIT_EVERY, 0)
-    assert ds.meta["pieces"] == {"steps": L, "count": len(expect), "flights": len(lengths)}
+        assert np.max(np.abs(ds.rotor_speed[row] - f["rotor_speed"][k + 1:k + L + 1])) <= TOL["pieces_exact"]
+        # split of the whole flight: the fifth of every SPLIT_EVERY kept to validation, the sixth to test
+        assert ds.split[row] == {4: 1, 5: 2}.get(j % learn.SPLIT_EVERY, 0)
+    assert ds.meta["pieces"] == {"steps": L, "count": len(expect), "flights": len(kept)}
 
 
-def test_a_flight_crashed_within_its_first_second_is_left_out_and_the_others_keep_their_splits():
+def test_a_crashed_flight_is_left_out_and_never_empties_the_validation_or_test_split():
+    """A crash cuts a flight short of one piece: it is left out, and the splits go by position among the flights
+    kept, so validation and test still get theirs; flights added later never move an earlier flight's split."""
     L = learn.PIECE_STEPS
-    flights = [_hover_flight(f"f{i}", L + 1, i) for i in range(6)]
-    crashed = _hover_flight("crashed", L + 1, 9)
-    crashed["x"][60:] = np.nan                      # 0.6 s of finite samples: too few for a log
+    flights = [_hover_flight(f"f{i}", L + 1, i) for i in range(7)]
+    early = _hover_flight("early", L + 1, 9)
+    early["x"][60:] = np.nan                        # 0.6 s of finite samples: too few for a log
+    late = _hover_flight("late", L + 1, 10)
+    late["x"][L // 2:] = np.nan                     # a log, but shorter than a piece
     ds_all = flights_dataset(flights)
-    ds = flights_dataset(flights[:2] + [crashed] + flights[3:])
-    assert ds.x.shape[0] == ds_all.x.shape[0] - 1
-    keep = [0, 1, 3, 4, 5]
-    np.testing.assert_array_equal(ds.split, ds_all.split[keep])
-    np.testing.assert_array_equal(ds.x, ds_all.x[keep])
-    assert list(ds.split[-2:]) == [1, 2]            # flights 4 and 5: validation and test, as without the crash
+    ds = flights_dataset(flights[:2] + [early] + flights[2:4] + [late] + flights[4:])
+    np.testing.assert_array_equal(ds.x, ds_all.x)
+    np.testing.assert_array_equal(ds.split, ds_all.split)
+    assert list(ds.split) == [0, 0, 0, 0, 1, 2, 0]
+    # more flights after: the first seven keep their splits
+    more = flights_dataset(flights + [_hover_flight(f"g{i}", L + 1, 20 + i) for i in range(3)])
+    np.testing.assert_array_equal(more.split[:7], ds_all.split)
+
+
+def test_training_data_without_a_validation_or_test_flight_is_refused_by_name(tmp_path):
+    flights = [_hover_flight(f"f{i}", learn.PIECE_STEPS + 1, i) for i in range(5)]    # no sixth: no test flight
+    path = tmp_path / "data.npz"
+    flights_dataset(flights).save(path)
+    with pytest.raises(ScenarioError, match="no test flight"):
+        learn.train_model(LearnSettings(profile="smoke"), path, tmp_path, "m", 1, {})
 
 
 def test_the_crazyflie_study_flies_and_learns_its_own_vehicle():
