@@ -44,6 +44,15 @@ def verdict_sentence(study: dict) -> str:
             f"; {ladder}.")
 
 
+def _members(settings: dict) -> str:
+    """How many ensemble members a study flew: the evaluation's, the curve's middle rows' and the ladder's."""
+    m = settings["members"]
+    between = min(settings.get("curve_members", m), m)
+    text = f"{m} members" + (f" ({between} for the models between)" if between < m and settings.get("iterations", 1) > 1
+                             else "")
+    return text + (f", {settings['ladder_members']} per ladder rung" if "ladder_members" in settings else "")
+
+
 def learning_figure(studies: dict, run_dir: Path) -> FigureOut | None:
     """Median RMSE on figure8-fast against iteration and against minutes of flight, one line per plant."""
     import matplotlib.pyplot as plt
@@ -97,7 +106,7 @@ def learn_section(studies: dict | None, run_dir: Path, figure_md) -> str:
         parts.append(figure_md(f))
     for plant, st in sorted(studies.items()):
         ev = st["evaluation"]
-        parts.append(f"**{ev['label']}** (`{ev['scenario']}`; {st['settings']['members']} members, "
+        parts.append(f"**{ev['label']}** (`{ev['scenario']}`; {_members(st['settings'])}, "
                      f"{fmt(st.get('study_seconds', st['wall_time_s']) / 60, '.0f')} min on two cores, "
                      f"{st.get('date', 'undated')})")
         rows = [[r["iteration"], f"`{r['model']}`", r["flights"], fmt(r["flight_minutes"], ".1f"),

@@ -367,6 +367,12 @@ def test_the_report_section_states_the_goal_with_its_numbers(tmp_path):
     missed = learn_section({"highfi": _study(24.0, True)}, tmp_path, _figure_md)
     assert "24.0 mm against 40.0 mm, 40 % better" in missed and "is missed" in missed
     assert "| 1 | `learn_highfi_it1` | 18 | 3.2 | 24.0 (23.0–25.0) | 0/10 |" in missed
+    assert "(`figure8-fast+highfi`; 10 members, 30 min on two cores" in missed
+    # a study whose middle rows flew fewer members says so, with its ladder's members
+    st = _study(24.0, True)
+    st["settings"] = {"members": 10, "curve_members": 5, "ladder_members": 3, "iterations": 3}
+    text = learn_section({"highfi": st}, tmp_path, _figure_md)
+    assert "(`figure8-fast+highfi`; 10 members (5 for the models between), 3 per ladder rung, 30 min" in text
 
 
 # ------------------------------------------------------------------ the shipped study
