@@ -348,8 +348,8 @@ class SQPMPC(LTVMPC):
 
                 Xn, Un, alpha, accepted, phi0, phi, defect, f_next = self._line_search(X, U, Xq, Uq, fx, ref,
                                                                                        u_ref, mu, resolve)
-                if f_next is not None and s.jacobian_refresh == "partial":
-                    self._keep_steps(Xn, Un, f_next)   # the next iteration steps nothing it has just stepped
+                if f_next is not None:      # the next iteration steps nothing it has just stepped
+                    self._keep_steps(Xn, Un, f_next)
                 merits.append((phi0, phi, accepted))
                 ls_failures += not accepted
                 split["line_search"] += clock.now() - t_ls - (split["assembly"] + split["osqp"] - qp_before)
@@ -435,7 +435,8 @@ class SQPMPC(LTVMPC):
         return fx
 
     def _keep_steps(self, X, U, f) -> None:
-        """Keep the model's steps ``f`` (N, nx) along the plan ``(X, U)`` for the next period (None: none)."""
+        """Keep the model's steps ``f`` (N, nx) along the plan ``(X, U)`` for the next iteration or period (None:
+        none)."""
         if f is None or self.s.jacobian_refresh != "partial":
             self._f_points = self._f_values = None
             return

@@ -11,7 +11,8 @@
   so far, and flies that model on the next iteration's references (the last iteration's model flies only its
   evaluation);
 * each iteration's model flies the held-out ``figure8-fast`` (``members`` ensemble members for the nominal
-  equations and the final model, ``curve_members`` for the models between): one row of the learning curve (RMSE against iteration and against the minutes of flight it learned from);
+  equations and the final model, ``curve_members`` for the models between): one row of the learning curve (RMSE
+  against iteration and against the minutes of flight it learned from);
 * two **controls** are trained the same way: the same minutes of open-loop excitation (``pinnmpc data``'s
   random references flown by the hover LQR with dither), and an **upper bound** from the final model's flights
   plus an iteration's worth of flights of the evaluation reference itself (never a result: it has seen the test);
@@ -301,15 +302,11 @@ def flights_dataset(flights: list[dict], vehicle=None):
     ds = flights_to_dataset(fl, vehicle, splits)
     rows = []
     for i, f in enumerate(fl):
-        m = len(f.t) - 1                        # one-step pairs of flight i, all measured
-        if m < L:
-            continue
+        m = len(f.t) - 1                        # one-step pairs of flight i, all measured: at least L (kept above)
         starts = list(range(0, m - L + 1, L))
         if starts[-1] != m - L:
             starts.append(m - L)
         rows += [(i, k) for k in starts]
-    if not rows:
-        raise ScenarioError(f"no flown flight is {L * DT:g} s long: nothing to learn from")
     take = {name: np.stack([getattr(ds, name)[i, k:k + L] for i, k in rows])
             for name in ("x", "u", "rotor_speed", "x_next", "wrench", "saturated")}
     split = np.array([ds.split[i] for i, _ in rows])
@@ -424,7 +421,8 @@ def _curve_row(settings: LearnSettings, out: Path, iteration: int, model: str, f
     """Fly ``model`` on the held-out ``figure8-fast``: one row of the learning curve.
 
     The first row (the nominal equations) and the last (the final model) fly ``settings.members`` members, the
-    evaluation's own runs, which it then finds flown; the rows between fly the first ``settings.curve_members`` (at most ``members``).
+    evaluation's own runs, which it then finds flown; the rows between fly the first ``settings.curve_members``
+    (at most ``members``).
     """
     from .stats import summarize
     from .sweep import sweep
