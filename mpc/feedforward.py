@@ -32,6 +32,8 @@ by one period fits one new input per period.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from sim.params import DT, NU, NX
@@ -120,6 +122,19 @@ def _fit(model, x0, x1, u_guess, w, u_scale, iterations=FIT_ITERATIONS):
     return u, e
 
 
+@dataclass(frozen=True)
+class Prepared:
+    """What :meth:`FeedForward.prepare` computed up to ``t_end`` (s): reference states and feed-forward inputs by
+    time (ns keys), the reference's extra states by period and the input Jacobians at the feed-forward (or None).
+    Its arrays are never written to."""
+
+    t_end: float
+    states: dict
+    inputs: dict
+    extras: list
+    nominal_B: tuple | None
+
+
 def _lookup(store, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Where ``keys`` (K,) sit in a store whose first element is its ascending keys: ``(found (K,) bool, index (K,))``
     (the index is meaningful where found)."""
@@ -163,6 +178,7 @@ class FeedForward:
         self._disturbed_inputs: tuple | None = None
         # Input Jacobians at the feed-forward (from prepare): (times (ns, ascending), B (K, 12, 4)) or None.
         self._nominal_B: tuple | None = None
+        self._prepared_to: float | None = None    # the t_end of the last prepare (or of a Prepared adopted)
         self.trim_extra = np.zeros(0)
         #: The model gives its own reference states (full width) along flat trajectories.
         self.model_reference = self.is_flat and model.reference_states(reference, np.zeros(1)) is not None
@@ -401,6 +417,8 @@ class FeedForward:
         """
         if not (np.isfinite(t_end) and t_end >= 0):
             raise ConfigurationError(f"t_end must be a finite time >= 0 s; found {t_end}")
+        if self._prepared_to is not None and t_end == self._prepared_to:
+            return                                # done already, or adopted: the very same values
         n = int(np.floor(t_end / self.dt + 1e-9)) + 1
         times = self.dt * np.arange(n)
         keys, jac = [], []
@@ -419,6 +437,27 @@ class FeedForward:
             self._nominal_B = (np.concatenate(keys), np.concatenate(jac))
         if self.model.n_extra and not self.model_reference:    # a model's own reference carries its extra states
             self._extend_extras(n - 1)
+        self._prepared_to = float(t_end)
+
+    def prepared(self) -> "Prepared":
+        """What :meth:`prepare` computed, for another FeedForward of the same model, reference and weights to
+        :meth:`adopt` (call it right after :meth:`prepare`, before anything is flown)."""
+        if self._prepared_to is None:
+            raise ConfigurationError("prepared() needs a prepare() first")
+        return Prepared(self._prepared_to, dict(self._states), dict(self._inputs), list(self._extras),
+                        self._nominal_B)
+
+    def adopt(self, prepared: "Prepared") -> None:
+        """Take what another FeedForward's :meth:`prepare` computed, instead of computing it again.
+
+        Only for a FeedForward built like that one (same model, reference, spec, weights and input scales): the
+        values are then the very ones its own :meth:`prepare` would compute. Call before :meth:`prepare`.
+        """
+        if self._prepared_to is not None or self._states or self._inputs or self._extras:
+            raise ConfigurationError("adopt() is for a FeedForward that has computed nothing yet")
+        self._states, self._inputs = dict(prepared.states), dict(prepared.inputs)
+        self._extras, self._nominal_B = list(prepared.extras), prepared.nominal_B
+        self._prepared_to = prepared.t_end
 
     def linearization_point(self) -> tuple[np.ndarray, np.ndarray]:
         """Hover state (nx,) at 1 m, with the model's extra states at rest, and the model's trim (4,)."""

@@ -377,6 +377,24 @@ def start_state(sc, spec, x_ref0: np.ndarray | None = None) -> np.ndarray:
     return x0 + x_ref0 - reference_states(ref, t0, START_MAP)[0]
 
 
+#: The feed-forward a run prepared, for the next run of this process with the same key (:func:`_feedforward_key`).
+_PREPARED: dict = {}
+
+
+def _feedforward_key(spec: "RunSpec", sc, inputs: dict, K: int, sqp) -> str | None:
+    """What a run's feed-forward depends on, as one string: the spec but its member and seed, the scenario but its
+    start and seed, the files read (by content), the steps flown and the SQP settings; None if that cannot be
+    written as JSON."""
+    import dataclasses
+
+    ident = {"spec": asdict(dataclasses.replace(spec, member=None, seed=None)), "inputs": inputs, "steps": K,
+             "sqp": sqp, "scenario": {k: v for k, v in sc.to_dict().items() if k not in ("x0", "seed")}}
+    try:
+        return json.dumps(ident, sort_keys=True, default=repr)
+    except (TypeError, ValueError):
+        return None
+
+
 def make_run_plant(spec: "RunSpec", sc):
     """The plant of a run: ``spec.plant`` flying ``spec``'s vehicle with the scenario's disturbances."""
     from sim.plants import make_plant
@@ -408,6 +426,7 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
     else:
         sc = get_scenario(spec.scenario, spec.seed)
     inputs = input_hashes(spec)           # what is flown: taken as the run starts, stored in its result
+    own = scenario is None and model is None      # all that is flown comes from the spec (and its files)
     if model is None:
         model = load_run_model(spec)      # contract errors raise here, before anything flies
     vehicle = spec.vehicle_data
@@ -432,9 +451,16 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
     try:
         ctrl = make_controller(spec.controller, model, ref, spec.horizon, spec.timing, vehicle, spec.estimator,
                                sqp=sqp)
-        # The reference is known before take-off: its feed-forward is fitted now, and a controller that plans
-        # ahead (the SQP) makes its first plan from the state the vehicle stands in.
+        # The reference is known before take-off: its feed-forward is fitted now (or taken from this process's
+        # last run of the same model and reference: an ensemble's members differ only in their start and seed),
+        # and a controller that plans ahead (the SQP) makes its first plan from the state the vehicle stands in.
+        ff_key = _feedforward_key(spec, sc, inputs, K, sqp) if own else None
+        if ff_key is not None and ff_key in _PREPARED:
+            ctrl.ff.adopt(_PREPARED[ff_key])
         ctrl.prepare(K * DT, x0=x0.copy())
+        if ff_key is not None and ff_key not in _PREPARED:
+            _PREPARED.clear()                  # one entry: runs of a sweep come model by model
+            _PREPARED[ff_key] = ctrl.ff.prepared()
     except ValueError as e:  # e.g. no LQR gain for this model's hover linearization
         error = f"{type(e).__name__}: {e}"
         ctrl = None
