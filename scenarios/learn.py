@@ -17,9 +17,7 @@
   random references flown by the hover LQR with dither), and an **upper bound** from the final model's flights
   plus an iteration's worth of flights of the evaluation reference itself (never a result: it has seen the test);
 * the **evaluation** flies the nominal equations, the plant's best open-loop model shipped in ``models/``, the
-  final model and the controls on ``figure8-fast`` and the figure-8 speed ladder (a resumable sweep). Its runs
-  that depend on nothing the study computes (the best open-loop model's, the nominal equations' ladder, then the
-  final model's ladder) are flown ahead on cores the study leaves idle (:mod:`scenarios.ahead`).
+  final model and the controls on ``figure8-fast`` and the figure-8 speed ladder (a resumable sweep).
 
 Every stage writes its files as it ends (``it<i>/flights.npz``, ``it<i>/<model>.onnx``, ``it<i>/curve.json``,
 ``controls/...``), and a rerun reuses what is there: killed anywhere, the study resumes and ends with the same
@@ -41,7 +39,6 @@ import numpy as np
 from sim.files import write_json
 from sim.params import DT
 
-from .ahead import FlyAhead
 from .errors import ScenarioError
 from .lock import locks_out_dir
 
@@ -541,21 +538,6 @@ def run_learn(settings: LearnSettings, out_dir="results/learn", models_dir="mode
     write_json(recorded, mine)
     t_start = time.perf_counter()
     timer = _StageTimes(out)
-    # The evaluation's runs that depend on nothing the study computes fly ahead on idle cores (one idle-priority
-    # process; not when the caller asked for one process); the final model's ladder once that model exists.
-    ahead = [FlyAhead(_independent_runs(s, models_dir) if jobs > 1 else [], out / "evaluation").start()]
-    try:
-        return _run_learn(s, out, mine, models_dir, jobs, progress, t_start, timer, ahead)
-    finally:
-        for a in ahead:
-            a.stop()
-
-
-def _run_learn(s: LearnSettings, out: Path, mine: dict, models_dir, jobs: int, progress, t_start, timer,
-               ahead: list) -> dict:
-    """:func:`run_learn` past its checks: the iterations, the controls and the evaluation; ``ahead`` holds the
-    :class:`FlyAhead` processes (a new one is added for the final model's ladder)."""
-    p = s.spec
     flights: list[dict] = []
     curve: list[dict] = []
     trainings: list[dict] = []
@@ -575,8 +557,6 @@ def _run_learn(s: LearnSettings, out: Path, mine: dict, models_dir, jobs: int, p
             trainings.append(rec)
             model = str(it / f"{name}.onnx")
             timer.stop()
-            if i == s.iterations and jobs > 1:
-                ahead.append(FlyAhead(_final_ladder_runs(s, model), out / "evaluation").start())
         timer.start(f"curve {i}", it / "curve.json")
         curve.append(_stage(it / "curve.json", lambda: _curve_row(s, out, i, model, flights, jobs, progress)))
         timer.stop()
@@ -594,8 +574,6 @@ def _run_learn(s: LearnSettings, out: Path, mine: dict, models_dir, jobs: int, p
         timer.start("controls", out / "controls" / f"learn_{p.key}_upper.json")
         controls = _controls(s, out, flights, final, jobs, progress)
         timer.stop()
-    for a in ahead:             # what they flew is saved; the sweep flies the rest on every core
-        a.stop()
     timer.start("evaluation", None)
     evaluation = _evaluate(s, out, models_dir, final, controls, jobs, progress)
     timer.stop()
@@ -680,56 +658,30 @@ def _control_item(item):
     return _train_item(item[1])
 
 
-def _best_open_loop(s: LearnSettings, models_dir) -> Path | None:
-    """The plant's best open-loop model under ``models_dir``, or None (none named, or not there)."""
-    best = None if s.spec.best_open_loop is None else Path(models_dir) / s.spec.best_open_loop
-    return best if best is not None and best.is_file() else None
-
-
-def _evaluation_runs(s: LearnSettings, ensemble: list[str], ladder: list[str]) -> tuple[list, list]:
-    """The evaluation's runs ``(specs, tags)``: every model of ``ensemble`` on figure8-fast, and the other rungs of
-    the ladder for the models of ``ladder``; a tag is ``(model, rung)``, the rung None on figure8-fast."""
-    from .versus import VERSUS_SCENARIO, versus_specs
-
-    specs, tags = [], []
-    for m, runs in versus_specs(s.spec.versus, ensemble, s.members, s.ladder_members)["ensemble"].items():
-        specs += runs
-        tags += [(m, None)] * len(runs)
-    for m, rungs in versus_specs(s.spec.versus, ladder, s.members, s.ladder_members)["ladder"].items():
-        for rung, runs in rungs.items():
-            if rung != VERSUS_SCENARIO:
-                specs += runs
-                tags += [(m, rung)] * len(runs)
-    return specs, tags
-
-
-def _independent_runs(s: LearnSettings, models_dir) -> list:
-    """The evaluation's runs known before the study starts: the best open-loop model on figure8-fast and the
-    nominal equations' other ladder rungs (their figure8-fast runs are the learning curve's first row)."""
-    best = _best_open_loop(s, models_dir)
-    return (_evaluation_runs(s, [str(best)], [])[0] if best is not None else []) + _evaluation_runs(s, [],
-                                                                                                   ["nominal"])[0]
-
-
-def _final_ladder_runs(s: LearnSettings, final: str) -> list:
-    """The final model's other ladder rungs (its figure8-fast runs are the learning curve's last row)."""
-    return _evaluation_runs(s, [], [final])[0]
-
-
 def _evaluate(s: LearnSettings, out: Path, models_dir, final: str, controls: dict, jobs: int, progress) -> dict:
     """Nominal, the best open-loop model, the final model and the controls on figure8-fast and the ladder."""
     from .library import ladder_speeds
     from .sweep import sweep
-    from .versus import VERSUS_SCENARIO, WIN_FRACTION, summarize_plant
+    from .versus import VERSUS_SCENARIO, WIN_FRACTION, summarize_plant, versus_specs
 
     models = ["nominal"]
-    best = _best_open_loop(s, models_dir)
-    if best is not None:
+    best = None if s.spec.best_open_loop is None else Path(models_dir) / s.spec.best_open_loop
+    if best is not None and best.is_file():
         models.append(str(best))
     models.append(final)
     models += [c["model"] for c in controls.values()]
     # Every model on figure8-fast; the ladder for the nominal equations and the final model (the goal's rung test).
-    specs, tags = _evaluation_runs(s, models, ["nominal", final])
+    ens = versus_specs(s.spec.versus, models, s.members, s.ladder_members)["ensemble"]
+    lad = versus_specs(s.spec.versus, ["nominal", final], s.members, s.ladder_members)["ladder"]
+    specs, tags = [], []
+    for m, runs in ens.items():
+        specs += runs
+        tags += [(m, None)] * len(runs)
+    for m, rungs in lad.items():
+        for rung, runs in rungs.items():
+            if rung != VERSUS_SCENARIO:
+                specs += runs
+                tags += [(m, rung)] * len(runs)
     _say(progress, f"evaluation: {len(specs)} runs ({len(models)} models on {VERSUS_SCENARIO} and the ladder)")
     results = sweep(specs, out / "evaluation", jobs=jobs, progress=progress is not None)
     _no_errors(results)
@@ -752,7 +704,7 @@ def _evaluate(s: LearnSettings, out: Path, models_dir, final: str, controls: dic
         "met": bool(v["fraction"] >= WIN_FRACTION and v["apart"] and ladder_ok)}
     summary["roles"] = {Path(m).stem if m != "nominal" else m: role for m, role in
                         [("nominal", "nominal equations")]
-                        + [(str(best), "best open-loop model")] * (best is not None)
+                        + [(str(best), "best open-loop model")] * (best is not None and best.is_file())
                         + [(final, "final learned model")]
                         + [(c["model"], CONTROL_ROLES[k]) for k, c in controls.items()]}
     return summary

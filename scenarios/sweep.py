@@ -80,7 +80,9 @@ def _sweep(specs, out_dir: Path, jobs, progress, engine, address, resume, on_res
             bar.set_postfix_str(f"{len(results)} from the cache")
 
     def done(spec, result, trace):
-        results[spec.run_id] = save_swept(spec, result, trace, out_dir, keys[spec.run_id])
+        # Keyed by the files the run read when it started flying (a file replaced during the sweep shows there).
+        key = cache_key(spec, result["inputs_sha256"]) if "inputs_sha256" in result else keys[spec.run_id]
+        results[spec.run_id] = save_run({**result, "cache_key": key}, trace, out_dir)
         if bar:
             bar.update()
         if on_result is not None:
@@ -95,17 +97,6 @@ def _sweep(specs, out_dir: Path, jobs, progress, engine, address, resume, on_res
         if bar:
             bar.close()
     return [results[i] for i in ids]
-
-
-def save_swept(spec: RunSpec, result: dict, trace: dict, out_dir: Path, key: str) -> dict:
-    """Save a run a sweep flew under ``out_dir``, stamped with its cache key; the result as saved.
-
-    The key is that of the files the run read when it started flying (a file replaced during the sweep shows
-    there); ``key``, the spec's key before it flew, stands in for a result that recorded none.
-    """
-    if "inputs_sha256" in result:
-        key = cache_key(spec, result["inputs_sha256"])
-    return save_run({**result, "cache_key": key}, trace, out_dir)
 
 
 def sweep_batches(specs: list[RunSpec], jobs: int) -> list[tuple[int, list[RunSpec]]]:
