@@ -1,0 +1,147 @@
+"""The condensed QP (DAQP) against the sparse one (OSQP, tight tolerances) and against its own KKT conditions."""
+
+import numpy as np
+import osqp
+import pytest
+import scipy.sparse as sp
+
+pytest.importorskip("daqp")
+
+from mpc.dense_qp import LTVQP, condense, kkt_residuals, solve_ltv_qp  # noqa: E402
+from mpc.errors import ConfigurationError  # noqa: E402
+
+#: Tolerances: KKT residuals of the dense solution (it is exact up to rounding); agreement with OSQP solved to
+#: 1e-10 and polished, in states and inputs, and in the multipliers (which OSQP gets less accurately).
+TOL = {"kkt": 1e-8, "primal": 1e-6, "dual": 1e-5, "controller_inputs": 1e-5}
+
+
+def random_qp(seed: int, N: int = 30, nx: int = 12, nu: int = 4, tight: bool = True) -> LTVQP:
+    rng = np.random.default_rng(seed)
+    A = np.eye(nx) + 0.02 * rng.standard_normal((N, nx, nx))
+    B = 0.1 * rng.standard_normal((N, nx, nu))
+    c = 0.01 * rng.standard_normal((N, nx))
+    Q = np.diag(rng.uniform(0.5, 2.0, nx))
+    L = np.abs(rng.standard_normal((nu, nu))) + np.eye(nu)
+    S = np.zeros((2, nx))
+    S[0, 3] = S[1, 4] = 1.0
+    lim = 0.2 if tight else 10.0
+    return LTVQP(A=A, B=B, c=c, x0=0.05 * rng.standard_normal(nx), Q=Q, P=5.0 * Q,
+                 R=np.diag(rng.uniform(0.1, 1.0, nu)), ref=rng.standard_normal((N + 1, nx)),
+                 u_ref=rng.standard_normal((N, nu)), L=L, lo_u=np.full(nu, -0.5 if tight else -50.0),
+                 hi_u=np.full(nu, 0.5 if tight else 50.0), S=S, lo_s=np.full(2, -lim), hi_s=np.full(2, lim))
+
+
+def osqp_solution(qp: LTVQP):
+    """The sparse QP (states and inputs) by OSQP to 1e-10: ``(x (N+1, nx), u (N, nu), y)``, y in row order
+    initial, dynamics, input constraints, state constraints."""
+    N, nx, nu = qp.B.shape
+    nX = (N + 1) * nx
+    H = sp.block_diag([sp.csc_matrix(qp.Q)] * N + [sp.csc_matrix(qp.P)] + [sp.csc_matrix(qp.R)] * N, format="csc")
+    q = np.concatenate([-(qp.ref[:N] @ qp.Q).ravel(), -(qp.P @ qp.ref[N]), -(qp.u_ref @ qp.R).ravel()])
+    rows = [sp.hstack([sp.eye(nx), sp.csc_matrix((nx, nX - nx + N * nu))])]
+    for k in range(N):
+        r = sp.lil_matrix((nx, nX + N * nu))
+        r[:, k * nx:(k + 1) * nx] = qp.A[k]
+        r[:, (k + 1) * nx:(k + 2) * nx] = -np.eye(nx)
+        r[:, nX + k * nu:nX + (k + 1) * nu] = qp.B[k]
+        rows.append(r)
+    rows.append(sp.hstack([sp.csc_matrix((N * qp.L.shape[0], nX)), sp.kron(sp.eye(N), qp.L)]))
+    rows.append(sp.hstack([sp.csc_matrix((N * qp.S.shape[0], nx)), sp.kron(sp.eye(N), qp.S),
+                           sp.csc_matrix((N * qp.S.shape[0], N * nu))]))
+    Aq = sp.vstack(rows, format="csc")
+    lo = np.concatenate([qp.x0, -qp.c.ravel(), np.tile(qp.lo_u, N), np.tile(qp.lo_s, N)])
+    hi = np.concatenate([qp.x0, -qp.c.ravel(), np.tile(qp.hi_u, N), np.tile(qp.hi_s, N)])
+    s = osqp.OSQP()
+    s.setup(sp.triu(H, format="csc"), q, Aq, lo, hi, verbose=False, eps_abs=1e-10, eps_rel=1e-10, max_iter=200000,
+            polishing=True)
+    res = s.solve(raise_error=False)
+    return res.x[:nX].reshape(N + 1, nx), res.x[nX:].reshape(N, nu), res.y
+
+
+@pytest.mark.parametrize("seed,tight", [(0, True), (1, True), (2, False)])
+def test_the_dense_solution_is_the_sparse_qps_and_meets_its_kkt_conditions(seed, tight):
+    qp = random_qp(seed, tight=tight)
+    sol = solve_ltv_qp(qp)
+    assert sol.solved
+    res = kkt_residuals(qp, sol)
+    assert max(res.values()) <= TOL["kkt"], res
+    assert sol.is_optimal(qp, TOL["kkt"])
+    x, u, y = osqp_solution(qp)
+    N, nx, nu = qp.B.shape
+    np.testing.assert_allclose(sol.u, u, atol=TOL["primal"])
+    np.testing.assert_allclose(sol.x, x, atol=TOL["primal"])
+    m = qp.L.shape[0]
+    y_init, y_dyn = y[:nx], y[nx:nx + N * nx].reshape(N, nx)
+    y_u = y[nx + N * nx:nx + N * nx + N * m].reshape(N, m)
+    y_s = y[nx + N * nx + N * m:].reshape(N, -1)
+    # OSQP writes the dynamics row as A_k x_k - x_{k+1} + B_k u_k = -c_k, as the dense solution does
+    for mine, its in ((sol.y_dyn, y_dyn), (sol.y_init, y_init), (sol.y_u, y_u), (sol.y_s, y_s)):
+        np.testing.assert_allclose(mine, its, atol=TOL["dual"])
+    if tight:                                   # the test means something: constraints bind
+        assert np.sum(np.abs(sol.y_u) > 1e-6) + np.sum(np.abs(sol.y_s) > 1e-6) >= 5
+
+
+def test_condensed_states_follow_the_dynamics():
+    qp = random_qp(3)
+    H, f, C, lo, hi, G, w = condense(qp)
+    u = np.random.default_rng(4).standard_normal(H.shape[0])
+    x = (G.reshape(G.shape[0] * G.shape[1], -1) @ u).reshape(G.shape[:2]) + w
+    U = u.reshape(qp.u_ref.shape)
+    step = np.einsum("kij,kj->ki", qp.A, x[:-1]) + np.einsum("kij,kj->ki", qp.B, U) + qp.c
+    np.testing.assert_allclose(x[1:], step, atol=1e-12)
+    np.testing.assert_allclose(H, H.T, atol=0.0)
+    assert np.min(np.linalg.eigvalsh(H)) > 0.0
+
+
+def test_an_infeasible_qp_is_reported_not_raised():
+    qp = random_qp(5)
+    N, nx, nu = qp.B.shape
+    # inputs pinned to 0 and the attitude held in a band the free motion leaves at once
+    bad = LTVQP(**{**qp.__dict__, "L": np.eye(nu), "lo_u": np.zeros(nu), "hi_u": np.zeros(nu),
+                   "x0": np.full(nx, 1.0), "lo_s": np.full(2, -1e-3), "hi_s": np.full(2, 1e-3)})
+    sol = solve_ltv_qp(bad)
+    assert not sol.solved
+    assert not sol.is_optimal(bad)
+
+
+def test_a_shape_mismatch_names_the_array():
+    qp = random_qp(6)
+    with pytest.raises(ConfigurationError, match=r"u_ref must have shape \(30, 4\)"):
+        LTVQP(**{**qp.__dict__, "u_ref": qp.u_ref[:-1]})
+
+
+def test_the_sqps_own_qp_solved_densely_gives_osqps_inputs(monkeypatch):
+    """One QP of the SQP flying figure8-fast with Baseline, captured in flight, against the SQP's own OSQP answer."""
+    from pathlib import Path
+
+    import mpc.ltv as ltv
+    from scenarios.runner import RunSpec, fly
+
+    captured = []
+    real = ltv.LTVMPC._solve_qp
+
+    def capture(self, x, ref, u_ref, xb, ub, fx, A, B, warm=None, split=None, hess=None, same_matrices=False):
+        res = real(self, x, ref, u_ref, xb, ub, fx, A, B, warm=warm, split=split, hess=hess,
+                   same_matrices=same_matrices)
+        if len(captured) < 3 and hess is None and res.x is not None:
+            c = fx - np.einsum("kij,kj->ki", A, xb) - np.einsum("kij,kj->ki", B, ub)
+            nx = self.nx
+            S = np.zeros((2, nx))
+            S[0, 3] = S[1, 4] = 1.0
+            lim = self.s.attitude_limit_rad
+            qp = LTVQP(A=A.copy(), B=B.copy(), c=c, x0=np.array(x, dtype=float), Q=self.Q, P=self.P, R=self.R,
+                       ref=ref.copy(), u_ref=u_ref.copy(), L=self._load, lo_u=np.zeros(4), hi_u=np.ones(4),
+                       S=S, lo_s=np.full(2, -lim), hi_s=np.full(2, lim))
+            captured.append((qp, self._unpack(res.x)[1].copy(), self.s.constraints))
+        return res
+
+    monkeypatch.setattr(ltv.LTVMPC, "_solve_qp", capture)
+    root = Path(__file__).resolve().parents[1]
+    spec = RunSpec("figure8-fast", "sqp", str(root / "models" / "baseline.onnx"))
+    monkeypatch.setattr("scenarios.library.Scenario.steps", property(lambda self: 5), raising=False)
+    fly(spec)
+    assert captured and all(constrained for _, _, constrained in captured)
+    for qp, u_osqp, _ in captured:
+        sol = solve_ltv_qp(qp)
+        assert sol.is_optimal(qp, 1e-7)
+        np.testing.assert_allclose(sol.u, u_osqp, atol=TOL["controller_inputs"])
