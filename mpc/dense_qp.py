@@ -149,18 +149,24 @@ def condense(qp: LTVQP):
     return 0.5 * (H + H.T), f, C, lo, hi, G, w
 
 
+def require_daqp() -> None:
+    """Raise a :class:`ConfigurationError` that says how to install DAQP if it is missing."""
+    import importlib.util
+
+    if importlib.util.find_spec("daqp") is None:
+        raise ConfigurationError('the dense QP path needs DAQP, an optional extra: python -m pip install -e ".[dense]"')
+
+
 def solve_ltv_qp(qp: LTVQP, time_limit_s: float | None = None) -> DenseSolution:
     """Solve ``qp`` condensed, by DAQP; states, inputs and every multiplier (:class:`DenseSolution`).
 
     A failure of DAQP (infeasible, iteration or time limit) is data: the solution says so in ``flag`` and
     ``solved``. ``time_limit_s``: DAQP's time limit (None: none).
     """
-    try:
-        import daqp
-    except ImportError as e:
-        raise ConfigurationError('the dense QP path needs DAQP, an optional extra: '
-                                 'python -m pip install -e ".[dense]"') from e
+    require_daqp()
     from ctypes import c_int
+
+    import daqp
 
     t0 = time.perf_counter()
     H, f, C, lo, hi, G, w = condense(qp)

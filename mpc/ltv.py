@@ -61,6 +61,10 @@ def csc_in_entry_order(rows, cols, vals, shape):
     return sp.csc_matrix((vals[perm], ids.indices, ids.indptr), shape=shape), perm
 
 
+#: QP solvers of the LTV-MPC and the SQP (:attr:`LTVSettings.qp`).
+QP_SOLVERS = ("osqp", "daqp")
+
+
 @dataclass(frozen=True)
 class LTVSettings:
     """Settings of :class:`LTVMPC` (units in comments)."""
@@ -82,9 +86,14 @@ class LTVSettings:
     # defects, stay exact). A QP needs no more than 7 significant digits of them, and the float32 derivative graph
     # is the larger part of a period's time: measured (5x128 PINNs, 30 stages, one run) 1.2-2.0 ms against 2.1-2.7.
     jacobians: str = "float32"
+    # The QP solver: "osqp" (sparse, states and inputs) or "daqp" (the QP condensed onto the inputs, a dense
+    # active-set solver: mpc.dense_qp, the optional extra `dense`). A QP with the SQP's own Hessian stays on OSQP.
+    qp: str = "osqp"
 
     def __post_init__(self):
         check_common_settings(self.horizon, self.attitude_limit_rad, self.max_iter)
+        if self.qp not in QP_SOLVERS:
+            raise ConfigurationError(f"qp must be one of {', '.join(QP_SOLVERS)}; found {self.qp!r}")
         if self.time_limit_s < 0:
             raise ConfigurationError(f"time_limit_s must be >= 0; found {self.time_limit_s}")
         if self.jacobians not in ("float32", "float64"):
@@ -141,6 +150,11 @@ class LTVMPC(MPCBase):
         if self.s.time_limit_s > 0:
             settings_["time_limit"] = self.s.time_limit_s
         self._solver.setup(self._H, np.zeros(self._H.shape[0]), self._A0, self._l0, self._u0, **settings_)
+        self._dense_limit: float | None = None     # the time limit of the next dense QP, s (None: none)
+        if self.s.qp == "daqp":
+            from .dense_qp import require_daqp
+
+            require_daqp()
         self._plan_x: np.ndarray | None = None
         self._plan_u: np.ndarray | None = None
         self._z: np.ndarray | None = None
@@ -318,7 +332,7 @@ class LTVMPC(MPCBase):
         """
         limit = clock.qp_time_limit(first)
         if limit is not None:
-            self._solver.update_settings(time_limit=limit)
+            self.update_settings(time_limit=limit)
         assembly_before = split["assembly"]
         res = self._solve_qp(x, ref, u_ref, xb, ub, fx, A, B, warm=warm, split=split, hess=hess,
                              same_matrices=same_matrices)
@@ -381,6 +395,8 @@ class LTVMPC(MPCBase):
         """
         t0 = time.perf_counter()
         c = fx - (A @ xb[:, :, None])[:, :, 0] - (B @ ub[:, :, None])[:, :, 0]
+        if self.s.qp == "daqp" and hess is None:
+            return self._solve_dense(x, ref, u_ref, c, A, B, split, t0)
         mats = {} if same_matrices else {"Ax": self._constraint_values(A, B)}
         lo, hi = self._l0.copy(), self._u0.copy()
         lo[:self.nx] = hi[:self.nx] = x
@@ -400,6 +416,27 @@ class LTVMPC(MPCBase):
             split["osqp"] += time.perf_counter() - t1
         return res
 
+    def _solve_dense(self, x, ref, u_ref, c, A, B, split, t0):
+        """The QP condensed and solved by DAQP (:mod:`mpc.dense_qp`), as a result OSQP's callers read."""
+        from .dense_qp import LTVQP, solve_ltv_qp
+
+        nx = self.nx
+        if self.s.constraints:
+            S = np.zeros((2, nx))
+            S[0, 3] = S[1, 4] = 1.0
+            lim = self.s.attitude_limit_rad
+            L, lo_u, hi_u, lo_s, hi_s = self._load, np.zeros(NU), np.ones(NU), np.full(2, -lim), np.full(2, lim)
+        else:
+            S, L, lo_u, hi_u, lo_s, hi_s = np.zeros((0, nx)), np.zeros((0, NU)), *(np.zeros(0),) * 4
+        qp = LTVQP(A=A, B=B, c=c, x0=np.asarray(x, dtype=float), Q=self.Q, P=self.P, R=self.R, ref=ref,
+                   u_ref=u_ref, L=L, lo_u=lo_u, hi_u=hi_u, S=S, lo_s=lo_s, hi_s=hi_s)
+        sol = solve_ltv_qp(qp, self._dense_limit)
+        res = _DenseResult(sol, self._status)
+        if split is not None:
+            split["assembly"] += sol.condense_s + (time.perf_counter() - t0 - sol.solve_s)
+            split["osqp"] += sol.solve_s - sol.condense_s
+        return res
+
     def _constraint_values(self, A, B):
         """Values of the QP's constraint matrix (CSC order of ``_A0``) with the dynamics ``A`` (N, nx, nx) and ``B``
         (N, nx, 4)."""
@@ -415,7 +452,10 @@ class LTVMPC(MPCBase):
         return np.concatenate([-(ref[:N] @ self.Q).ravel(), -(self.P @ ref[N]), -(u_ref @ self.R).ravel()])
 
     def update_settings(self, **settings) -> None:
-        """Change OSQP settings between periods (for example ``max_iter`` or ``time_limit``)."""
+        """Change OSQP settings between periods (for example ``max_iter`` or ``time_limit``; a time limit applies to
+        the dense QP too)."""
+        if "time_limit" in settings:
+            self._dense_limit = settings["time_limit"] or None
         self._solver.update_settings(**settings)
 
     def _shifted(self, z: np.ndarray) -> np.ndarray:
@@ -423,3 +463,20 @@ class LTVMPC(MPCBase):
         xs = z[:self.nx_var].reshape(N + 1, self.nx)
         us = z[self.nx_var:].reshape(N, NU)
         return np.concatenate([shift_stages(xs).ravel(), shift_stages(us).ravel()])
+
+
+class _DenseInfo:
+    def __init__(self, status: str, status_val: int, iterations: int):
+        self.status, self.status_val, self.iter = status, status_val, iterations
+
+
+class _DenseResult:
+    """A :class:`mpc.dense_qp.DenseSolution` as OSQP's result reads: ``x`` (states then inputs), ``y`` (the
+    multipliers in the rows of the sparse QP: initial state, dynamics, rotor loads, attitude) and ``info``."""
+
+    def __init__(self, sol, osqp_status):
+        self.x = np.concatenate([sol.x.ravel(), sol.u.ravel()]) if sol.solved else None
+        self.y = np.concatenate([sol.y_init, sol.y_dyn.ravel(), sol.y_u.ravel(), sol.y_s.ravel()])
+        status, val = (("solved", osqp_status.OSQP_SOLVED) if sol.solved else
+                       (f"DAQP exit flag {sol.flag}", osqp_status.OSQP_MAX_ITER_REACHED))
+        self.info = _DenseInfo(status, val, sol.iterations)

@@ -341,7 +341,7 @@ class SQPMPC(LTVMPC):
                         return None     # no time for the correction's QP: the caller backtracks instead
                     limit = clock.correction_limit()
                     if limit is not None:
-                        self._solver.update_settings(time_limit=limit)
+                        self.update_settings(time_limit=limit)
                     # The same matrices (A_k, B_k, Hessian): only the bounds change, OSQP keeps its factorization.
                     return self._solve_qp(x, ref, u_ref, Xl, Ul, fx + shift, A, B, split=split, hess=hess,
                                           same_matrices=True)
