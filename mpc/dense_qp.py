@@ -138,12 +138,15 @@ def condense(qp: LTVQP):
     W[:N] = qp.Q
     W[N] = qp.P
     WG = np.matmul(W, G).reshape(-1, n)
-    H = G.reshape(-1, n).T @ WG + np.kron(np.eye(N), qp.R)
+    H = G.reshape(-1, n).T @ WG
+    d = np.arange(N)
+    H.reshape(N, nu, N, nu)[d, :, d, :] += qp.R          # the input weight on the diagonal blocks
     f = WG.T @ (w - qp.ref).ravel() - (qp.u_ref @ qp.R).ravel()
-    p = qp.S.shape[0]
-    Cs = np.matmul(qp.S, G[1:]).reshape(N * p, n)
+    m, p = qp.L.shape[0], qp.S.shape[0]
+    C = np.zeros((N * (m + p), n))
+    C[:N * m].reshape(N, m, N, nu)[d, :, d, :] = qp.L   # the input constraints, stage by stage
+    C[N * m:] = np.matmul(qp.S, G[1:]).reshape(N * p, n)
     Sw = (w[1:] @ qp.S.T).ravel()
-    C = np.vstack([np.kron(np.eye(N), qp.L), Cs])
     lo = np.concatenate([np.tile(qp.lo_u, N), np.tile(qp.lo_s, N) - Sw])
     hi = np.concatenate([np.tile(qp.hi_u, N), np.tile(qp.hi_s, N) - Sw])
     return 0.5 * (H + H.T), f, C, lo, hi, G, w
