@@ -220,6 +220,6 @@ def kkt_residuals(qp: LTVQP, sol: DenseSolution) -> dict:
                              + np.minimum(np.maximum(-y, 0.0), np.abs(v - lo))), initial=0.0)
 
     return {"dynamics": float(np.max(np.abs(dyn))), "initial": float(np.max(np.abs(x[0] - qp.x0))),
-            "inputs": float(np.max(np.abs(stat_u))), "bounds": float(max(bounds, 0.0)),
+            "inputs": float(np.max(np.abs(stat_u))), "bounds": float(bounds),
             "signs": float(max(complementarity(sol.y_u, Lu, qp.lo_u, qp.hi_u),
                                complementarity(sol.y_s, Sx, qp.lo_s, qp.hi_s)))}

@@ -155,6 +155,15 @@ class LTVMPC(MPCBase):
             from .dense_qp import require_daqp
 
             require_daqp()
+            # The dense QP's constraints (L, lo_u, hi_u, S, lo_s, hi_s): the sparse QP's rotor loads and attitude
+            # bounds, or none.
+            if self.s.constraints:
+                lim = self.s.attitude_limit_rad
+                self._dense_constraints = (self._load, np.zeros(NU), np.ones(NU), self._attitude_rows(),
+                                           np.full(2, -lim), np.full(2, lim))
+            else:
+                self._dense_constraints = (np.zeros((0, NU)), np.zeros(0), np.zeros(0), np.zeros((0, self.nx)),
+                                           np.zeros(0), np.zeros(0))
         self._plan_x: np.ndarray | None = None
         self._plan_u: np.ndarray | None = None
         self._z: np.ndarray | None = None
@@ -233,8 +242,7 @@ class LTVMPC(MPCBase):
                 r += NU
             lo.append(np.zeros(N * NU))
             hi.append(np.ones(N * NU))
-            sel = np.zeros((2, nx))
-            sel[0, 3] = sel[1, 4] = 1.0
+            sel = self._attitude_rows()
             for k in range(1, N + 1):
                 add(r, self._xi(k), sel)
                 r += 2
@@ -247,6 +255,12 @@ class LTVMPC(MPCBase):
         self._vals = np.asarray(vals, dtype=float)
         self._A0, self._perm = csc_in_entry_order(rows, cols, self._vals, (r, self.nx_var + N * NU))
         self._l0, self._u0 = np.concatenate(lo), np.concatenate(hi)
+
+    def _attitude_rows(self) -> np.ndarray:
+        """The rows (2, nx) that pick roll and pitch out of a state: the attitude bounds' constraint rows."""
+        sel = np.zeros((2, self.nx))
+        sel[0, 3] = sel[1, 4] = 1.0
+        return sel
 
     def _build_hessian(self):
         """The QP's cost Hessian (upper triangle, CSC): ``Q`` per stage, ``P`` at the end, ``R`` per input."""
@@ -420,14 +434,7 @@ class LTVMPC(MPCBase):
         """The QP condensed and solved by DAQP (:mod:`mpc.dense_qp`), as a result OSQP's callers read."""
         from .dense_qp import LTVQP, solve_ltv_qp
 
-        nx = self.nx
-        if self.s.constraints:
-            S = np.zeros((2, nx))
-            S[0, 3] = S[1, 4] = 1.0
-            lim = self.s.attitude_limit_rad
-            L, lo_u, hi_u, lo_s, hi_s = self._load, np.zeros(NU), np.ones(NU), np.full(2, -lim), np.full(2, lim)
-        else:
-            S, L, lo_u, hi_u, lo_s, hi_s = np.zeros((0, nx)), np.zeros((0, NU)), *(np.zeros(0),) * 4
+        L, lo_u, hi_u, S, lo_s, hi_s = self._dense_constraints
         qp = LTVQP(A=A, B=B, c=c, x0=np.asarray(x, dtype=float), Q=self.Q, P=self.P, R=self.R, ref=ref,
                    u_ref=u_ref, L=L, lo_u=lo_u, hi_u=hi_u, S=S, lo_s=lo_s, hi_s=hi_s)
         sol = solve_ltv_qp(qp, self._dense_limit)

@@ -125,9 +125,7 @@ def test_the_sqps_own_qp_solved_densely_gives_osqps_inputs(monkeypatch):
                    same_matrices=same_matrices)
         if len(captured) < 3 and hess is None and res.x is not None:
             c = fx - np.einsum("kij,kj->ki", A, xb) - np.einsum("kij,kj->ki", B, ub)
-            nx = self.nx
-            S = np.zeros((2, nx))
-            S[0, 3] = S[1, 4] = 1.0
+            S = self._attitude_rows()
             lim = self.s.attitude_limit_rad
             qp = LTVQP(A=A.copy(), B=B.copy(), c=c, x0=np.array(x, dtype=float), Q=self.Q, P=self.P, R=self.R,
                        ref=ref.copy(), u_ref=u_ref.copy(), L=self._load, lo_u=np.zeros(4), hi_u=np.ones(4),
