@@ -366,7 +366,9 @@ class SlowedModel(PredictionModel):
     """A prediction model whose every call takes ``factor`` times as long: a machine that slow, for the model.
 
     Each call of ``step``, ``linearize``, ``linearize_single`` and ``jacobians`` is timed and followed by a busy
-    wait of ``factor - 1`` times its duration (a sleep would hand the core away and come back late). Everything
+    wait of ``factor - 1`` times its duration (a sleep would hand the core away and come back late). The duration
+    is the process's CPU time in the call, not its wall time: a moment the machine took the core away (a stall of
+    the host, not of the model) is not multiplied. Everything
     else is the wrapped model's. The controllers' own Python, the QP solver and the simulator keep this machine's speed:
     the model and its derivative graph are most of a period's time (:func:`run`'s time split).
     """
@@ -377,6 +379,7 @@ class SlowedModel(PredictionModel):
         self.base, self.factor = base, float(factor)
         self.name, self.theta, self.extra_names, self.extra_scale = (base.name, base.theta, base.extra_names,
                                                                      base.extra_scale)
+        self.wall, self.cpu = time.perf_counter, time.process_time     # the clocks (a test gives fake ones)
 
     def __getattr__(self, name):      # what the wrapped model has beyond the interface (its file, its dtype)
         return getattr(self.base, name)
@@ -385,10 +388,10 @@ class SlowedModel(PredictionModel):
         return self.base.reference_states(trajectory, times)
 
     def _slowed(self, fn, *args):
-        t0 = time.perf_counter()
+        c0 = self.cpu()
         out = fn(*args)
-        end = t0 + self.factor * (time.perf_counter() - t0)
-        while time.perf_counter() < end:
+        end = self.wall() + (self.factor - 1.0) * (self.cpu() - c0)
+        while self.wall() < end:
             pass
         return out
 

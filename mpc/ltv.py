@@ -341,19 +341,21 @@ class LTVMPC(MPCBase):
         """Solve the QP linearized along ``(xb, ub)`` within the clock's limits; ``(OSQP result, ok, status)``.
 
         ``ok``: OSQP solved it (also inaccurately) with a finite solution. A
-        period's ``first`` QP records its assembly time, and a failure of it
+        period's ``first`` QP records its assembly and (when solved) solve times, and a failure of it
         that ran into the deadline has the status :data:`DEADLINE_STATUS`.
         """
         limit = clock.qp_time_limit(first)
         if limit is not None:
             self.update_settings(time_limit=limit)
-        assembly_before = split["assembly"]
+        assembly_before, qp_before = split["assembly"], split["osqp"]
         res = self._solve_qp(x, ref, u_ref, xb, ub, fx, A, B, warm=warm, split=split, hess=hess,
                              same_matrices=same_matrices)
         ok = self._solved(res)
         status = res.info.status
         if first:
             clock.record("assembly", split["assembly"] - assembly_before)
+            if ok:      # a QP stopped by its time limit says nothing of what a solve takes
+                clock.record("qp", split["osqp"] - qp_before)
             if not ok and clock.missed():
                 status = DEADLINE_STATUS    # OSQP stopped at the deadline's time limit
         return res, ok, status

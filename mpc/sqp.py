@@ -337,7 +337,7 @@ class SQPMPC(LTVMPC):
                 iteration_s = clock.now() - t_it     # derivatives + QP: more than the correction's QP needs
 
                 def resolve(shift, Xl=X[:N], Ul=U, fx=fx, A=A, B=B, hess=hess):
-                    if not clock.room_for_correction(iteration_s):
+                    if not clock.room(iteration_s):
                         return None     # no time for the correction's QP: the caller backtracks instead
                     limit = clock.correction_limit()
                     if limit is not None:
@@ -347,7 +347,7 @@ class SQPMPC(LTVMPC):
                                           same_matrices=True)
 
                 Xn, Un, alpha, accepted, phi0, phi, defect, f_next = self._line_search(X, U, Xq, Uq, fx, ref,
-                                                                                       u_ref, mu, resolve)
+                                                                                       u_ref, mu, resolve, clock)
                 if f_next is not None:      # the next iteration steps nothing it has just stepped
                     self._keep_steps(Xn, Un, f_next)
                 merits.append((phi0, phi, accepted))
@@ -391,14 +391,12 @@ class SQPMPC(LTVMPC):
         if s.jacobian_refresh == "full" or self._jac_points is None or s.hessian == "exact" or \
                 (len(stale) > s.full_refresh_above and clock.fits(clock.expect["full_derivatives"])):
             # The full path records its first derivatives as before. The partial path's expected first derivatives
-            # are a partial refresh's (a full one is checked against the deadline on its own), and a cold start's
-            # say nothing of a warm period's.
+            # are a partial refresh's (a full one is checked against the deadline on its own, against every full
+            # refresh's time, the pre-flight plan's included: the first warm period may need one).
             full_path = s.jacobian_refresh == "full"
-            record = first and (full_path or not self._cold_period)
             t0 = clock.now()
-            fx, A, B = super()._derivatives(X, U, clock, split, first=record and full_path)
-            if record:
-                clock.record("full_derivatives", clock.now() - t0)
+            fx, A, B = super()._derivatives(X, U, clock, split, first=first and full_path)
+            clock.record("full_derivatives", clock.now() - t0)
             self.counts["full_refreshes"] += 1
             self._full_refreshes += 1
             self._refreshed += N
@@ -585,7 +583,7 @@ class SQPMPC(LTVMPC):
     def _merit(self, X, U, fx, ref, u_ref, mu) -> float:
         return 0.5 * self.cost(X, U, ref, u_ref) + mu * float(np.sum(np.abs(fx - X[1:])))
 
-    def _line_search(self, X, U, Xq, Uq, fx, ref, u_ref, mu, resolve):
+    def _line_search(self, X, U, Xq, Uq, fx, ref, u_ref, mu, resolve, clock=None):
         """The next iterate: the full step, a second-order correction, or a shortened step.
 
         Returns ``(X, U, alpha, accepted, phi(0), phi(new), defect(new), f(new))``; ``alpha`` is 1 for
@@ -596,9 +594,11 @@ class SQPMPC(LTVMPC):
         full step added to its dynamics constraints (one more QP, no new
         derivatives), which removes the second-order error of the
         linearization that makes full steps fail near a solution. If that
-        fails too the step is halved up to :data:`MAX_BACKTRACKS` times;
-        without sufficient decrease the point with the lowest merit tried is
-        taken (and counted as a failure).
+        fails too the step is halved up to :data:`MAX_BACKTRACKS` times, each
+        time only if the ``clock`` (a :class:`mpc.timing.PeriodClock`, None for
+        no limit) has another trial's time left of its budget (the first
+        trial's: one model step and its merit); without sufficient decrease the
+        point with the lowest merit tried is taken (and counted as a failure).
         """
         N = self.N
         phi0 = self._merit(X, U, fx, ref, u_ref, mu)
@@ -617,7 +617,9 @@ class SQPMPC(LTVMPC):
                 best = (phi, Xt, Ut, alpha, ft)
             return ft, phi, phi <= phi0 + ARMIJO * abs(alpha) * slope
 
+        t0 = None if clock is None else clock.now()
         ft, phi, ok = trial(Xq, Uq, 1.0)
+        trial_s = None if clock is None else clock.now() - t0
         if ok:
             return Xq, Uq, 1.0, True, phi0, phi, self._defect(ft, Xq), ft
         if np.all(np.isfinite(ft)):
@@ -630,6 +632,8 @@ class SQPMPC(LTVMPC):
                     return Xc, Uc, -1.0, True, phi0, phi, self._defect(fc, Xc), fc
         alpha = BACKTRACK
         for _ in range(MAX_BACKTRACKS):
+            if clock is not None and not clock.room(trial_s):
+                break       # another trial would end past the budget: the best one tried so far
             Xt, Ut = X + alpha * dX, U + alpha * dU
             ft, phi, ok = trial(Xt, Ut, alpha)
             if ok:

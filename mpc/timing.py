@@ -14,8 +14,10 @@ Two limits, both optional:
   it;
 * the **deadline** (an absolute clock time): when the input must be out. A
   period that cannot make its first plan before it (from the median times of
-  the first derivatives and QP assembly over :data:`RECENT_PERIODS` periods)
-  gives up at once, so that its fallback goes out in time.
+  the first derivatives, QP assembly and QP solve over :data:`RECENT_PERIODS`
+  periods) gives up at once, so that its fallback goes out in time; model
+  work that is optional (a full refresh of the Jacobians) is done only when
+  it leaves the QP its expected time.
 """
 
 from __future__ import annotations
@@ -31,12 +33,15 @@ NO_TIME_LIMIT = 1e10
 MIN_QP_TIME_S = 3e-4
 #: Least time limit handed to OSQP, s (a limit of zero would mean none).
 MIN_TIME_LIMIT_S = 1e-4
-#: The expected time of a period's first derivatives and QP assembly is the median of this many recent periods
-#: (one slow period does not make the next ones give up); a line search's, the longest of them.
+#: The expected time of a period's first derivatives, QP assembly and QP solve is the median of this many recent
+#: periods (one slow period does not make the next ones give up); that of work a period may leave out (a line
+#: search, a full refresh of the Jacobians), the longest of them.
 RECENT_PERIODS = 20
-#: What the clock keeps recent times of: a period's first derivatives and QP assembly, line searches, and the
-#: derivatives of every stage (a full refresh of the SQP's partial path).
-RECORDED = ("derivatives", "assembly", "line_search", "full_derivatives")
+#: Work a period may leave out: its expected time is the longest recent one.
+OPTIONAL = ("line_search", "full_derivatives")
+#: What the clock keeps recent times of: a period's first derivatives, QP assembly and QP solve, line searches, and
+#: the derivatives of every stage (a full refresh of the SQP's partial path).
+RECORDED = ("derivatives", "assembly", "qp", "line_search", "full_derivatives")
 
 
 def _median(values) -> float:
@@ -74,14 +79,16 @@ class PeriodClock:
         """Start a period at clock time ``start`` (s) with a ``budget`` (s) and a ``deadline`` (clock time), each
         None for none. Returns the clock."""
         self.start, self.budget, self.deadline = start, budget, deadline
-        #: Expected seconds: the median of the recent first derivatives and assemblies, the longest line search.
-        self.expect = {k: max(v, default=0.0) if k == "line_search" else _median(v) for k, v in self._recent.items()}
+        #: Expected seconds: the median of the recent first derivatives, assemblies and solves, the longest of the
+        #: recent optional work (:data:`OPTIONAL`).
+        self.expect = {k: max(v, default=0.0) if k in OPTIONAL else _median(v) for k, v in self._recent.items()}
         self.qp_left: float | None = None     # what OSQP may take before the deadline, s (set by qp_window)
         self.longest = 0.0                    # the longest iteration so far, s
         return self
 
     def record(self, kind: str, seconds: float) -> None:
-        """Keep the time (s) of a period's first derivatives, first QP assembly, a line search or a full refresh."""
+        """Keep the time (s) of a period's first derivatives, first QP assembly, first QP solve, a line search or a
+        full refresh."""
         self._recent[kind].append(seconds)
 
     def elapsed(self) -> float:
@@ -94,10 +101,10 @@ class PeriodClock:
         return not self.fits(self.expect["derivatives"])
 
     def fits(self, seconds: float) -> bool:
-        """Work of ``seconds`` started now, then the QP's assembly and the least QP time, ends before the deadline
-        (or there is none)."""
+        """Work of ``seconds`` started now, then the QP's assembly and its solve at their expected times (the solve
+        at least :data:`MIN_QP_TIME_S`), ends before the deadline (or there is none)."""
         return self.deadline is None or \
-            self.now() + seconds + self.expect["assembly"] + MIN_QP_TIME_S <= self.deadline
+            self.now() + seconds + self.expect["assembly"] + max(self.expect["qp"], MIN_QP_TIME_S) <= self.deadline
 
     def qp_window(self, first: bool) -> bool:
         """After the derivatives: set what OSQP may take before the deadline once its problem is assembled; False
@@ -136,10 +143,11 @@ class PeriodClock:
         elapsed = self.elapsed()
         return elapsed > self.budget or (line_search and elapsed + self.expect["line_search"] > self.budget)
 
-    def room_for_correction(self, iteration_s: float) -> bool:
-        """At least ``iteration_s`` (an iteration's derivatives and QP: more than a second-order correction's QP
-        needs) is left of the budget, or there is no budget."""
-        return self.budget is None or self.budget - self.elapsed() >= iteration_s
+    def room(self, seconds: float) -> bool:
+        """At least ``seconds`` are left of the budget, or there is no budget. Asked before a second-order
+        correction's QP (with an iteration's derivatives and QP: more than it needs) and before each shortened step
+        of a line search (with the time of its first trial step)."""
+        return self.budget is None or self.budget - self.elapsed() >= seconds
 
     def correction_limit(self) -> float | None:
         """OSQP's time limit for a correction's QP: what is left of the budget, s; None (leave OSQP's setting, the

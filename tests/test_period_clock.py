@@ -7,10 +7,12 @@ moves only when told, so each rule is checked at known times on either side of i
 import numpy as np
 import pytest
 
-from mpc.timing import MIN_QP_TIME_S, MIN_TIME_LIMIT_S, NO_TIME_LIMIT, RECENT_PERIODS, PeriodClock
+from mpc.timing import (MIN_QP_TIME_S, MIN_TIME_LIMIT_S, NO_TIME_LIMIT, OPTIONAL, RECENT_PERIODS, RECORDED,
+                        PeriodClock)
 
 #: Tolerance of the times compared here (s): the fake clock adds exactly, so only float rounding.
-TOL = {"seconds": 1e-12}
+TOL = {"seconds": 1e-12,
+       "busy_wait_s": 2e-6}      # a busy wait ends within one read of the fake wall clock (which moves 1e-6 a read)
 
 
 class FakeClock:
@@ -40,7 +42,7 @@ def test_without_budget_or_deadline_every_rule_lets_the_period_run():
     c.begin(fake())
     fake.advance(60.0)
     assert not c.no_time_to_start() and c.qp_window(first=True) and c.qp_time_limit(first=False) is None
-    assert not c.late(line_search=True) and c.room_for_correction(1e6) and c.correction_limit() is None
+    assert not c.late(line_search=True) and c.room(1e6) and c.correction_limit() is None
     assert c.another_iteration(1e6) and not c.missed()
 
 
@@ -64,6 +66,35 @@ def test_a_period_starts_only_if_its_first_derivatives_and_qp_fit_before_the_dea
     assert not c.no_time_to_start()
     c.begin(fake(), deadline=fake() + need - 1e-6)
     assert c.no_time_to_start()
+
+
+def test_the_expected_qp_solve_counts_against_the_deadline_too():
+    d, a, q = 2e-3, 5e-4, 9e-4
+    c, fake = clock_with([("derivatives", d), ("assembly", a), ("qp", q)])
+    need = d + a + q                                    # the solve's median, not the least QP time
+    c.begin(fake(), deadline=fake() + need + 1e-6)
+    assert not c.no_time_to_start()
+    c.begin(fake(), deadline=fake() + need - 1e-6)
+    assert c.no_time_to_start()
+    # A solve faster than the least QP time still counts as that.
+    c, fake = clock_with([("derivatives", d), ("assembly", a), ("qp", MIN_QP_TIME_S / 10)])
+    c.begin(fake(), deadline=fake() + d + a + MIN_QP_TIME_S - 1e-6)
+    assert c.no_time_to_start()
+
+
+def test_optional_work_is_expected_to_take_its_longest_recent_time_and_the_rest_their_median():
+    times = (1e-3, 7e-3, 2e-3)
+    c, fake = clock_with([(k, s) for k in RECORDED for s in times])
+    c.begin(fake())
+    for k in RECORDED:
+        want = 7e-3 if k in OPTIONAL else 2e-3
+        assert c.expect[k] == pytest.approx(want, abs=TOL["seconds"]), k
+    assert set(OPTIONAL) == {"line_search", "full_derivatives"}
+    # A full refresh is judged by its longest recent time: 7 ms of it, then the assembly and the solve.
+    c.begin(fake(), deadline=fake() + 7e-3 + 2e-3 + 2e-3 + 1e-6)
+    assert c.fits(c.expect["full_derivatives"])
+    c.begin(fake(), deadline=fake() + 7e-3 + 2e-3 + 2e-3 - 1e-6)
+    assert not c.fits(c.expect["full_derivatives"])
 
 
 def test_the_qp_window_is_what_is_left_before_the_deadline_after_the_assembly():
@@ -106,11 +137,11 @@ def test_a_qp_ending_near_the_budget_is_late_when_the_longest_line_search_would_
     assert c.late(line_search=False)
 
 
-def test_a_correction_runs_only_with_an_iteration_s_worth_of_budget_left():
+def test_a_correction_or_a_shortened_step_runs_only_with_its_time_left_of_the_budget():
     c, fake = clock_with()
     c.begin(fake(), budget=8e-3)
     fake.advance(5e-3)
-    assert c.room_for_correction(3e-3 - 1e-6) and not c.room_for_correction(3e-3 + 1e-6)
+    assert c.room(3e-3 - 1e-6) and not c.room(3e-3 + 1e-6)
     assert c.correction_limit() == pytest.approx(3e-3, abs=TOL["seconds"])
 
 
@@ -173,3 +204,31 @@ def test_the_expected_time_is_numpys_median_to_the_last_bit():
         v = list(rng.random(n) * 1e-2)
         assert _median(v) == float(np.median(v)), n
     assert _median([]) == 0.0
+
+
+def test_a_slowed_model_multiplies_its_cpu_time_not_the_hosts_stalls():
+    """The benchmark's slow machine (mpc.bench.SlowedModel) on fake clocks: a call of 1 ms of CPU time held up 2 ms
+    more by the host takes 3 + 4 * 1 = 7 ms with factor 5, not 5 * 3 = 15 ms; its answer is the model's own."""
+    from mpc.bench import SlowedModel
+    from mpc.models import AnalyticModel
+
+    fake = {"wall": 0.0, "cpu": 0.0}
+
+    def wall():
+        fake["wall"] += 1e-6           # every read of the wall clock moves it a microsecond
+        return fake["wall"]
+
+    class Stalled(AnalyticModel):
+        def step(self, x, u):
+            fake["cpu"] += 1e-3         # 1 ms of work ...
+            fake["wall"] += 3e-3        # ... that the host spread over 3 ms
+            return super().step(x, u)
+
+    base = Stalled()
+    slow = SlowedModel(base, 5.0)
+    slow.wall, slow.cpu = wall, lambda: fake["cpu"]
+    x, u = np.zeros((2, 12)), np.tile([0.3, 0.0, 0.0, 0.0], (2, 1))
+    t0 = fake["wall"]
+    out = slow.step(x, u)
+    assert fake["wall"] - t0 == pytest.approx(3e-3 + 4 * 1e-3, abs=TOL["busy_wait_s"])
+    assert np.array_equal(out, base.step(x, u))

@@ -443,6 +443,43 @@ def test_a_period_past_its_budget_takes_the_qps_full_step_without_a_line_search(
         assert len(info3.extra["merit"]) == 1 and info3.extra["late_full_steps"] == 0
 
 
+def test_a_line_search_shortens_its_step_only_while_another_trial_fits_the_budget():
+    """A full step that raises the merit, no correction: without a clock the step is halved up to four times (five
+    model steps); on a fake clock whose budget is spent it stops after the first trial and takes the best one tried;
+    with a budget for three and a half trials of the fake clock's length it makes three."""
+    from mpc.sqp import MAX_BACKTRACKS
+    from mpc.timing import PeriodClock
+
+    class Counted(AnalyticModel):
+        calls = 0
+        tick = 0.0
+
+        def step(self, x, u):
+            Counted.calls += 1
+            fake["t"] += Counted.tick          # each model step takes `tick` s of the fake clock
+            return super().step(x, u)
+
+    fake = {"t": 0.0}
+    sqp = SQPMPC(Counted(), FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))
+    x = FIG8_FAST(np.array([0.0]))[0]
+    X, U = sqp._horizon_reference(0.0)
+    X = X.copy()
+    X[0] = x
+    fx = sqp.model.step(X[:sqp.N], U)
+    Xq, Uq = X + 0.5, U + 0.5 * np.abs(U).max()          # far off: the merit rises at every step length tried
+    ref, u_ref = sqp._horizon_reference(0.0)
+    args = (X, U, Xq, Uq, fx, ref, u_ref, 1.0, lambda shift: None)
+    for budget, tick, trials in ((None, 0.0, 1 + MAX_BACKTRACKS), (-1.0, 0.0, 1), (3.5e-3, 1e-3, 3)):
+        clock = None if budget is None else PeriodClock(lambda: fake["t"]).begin(fake["t"], budget)
+        Counted.calls, Counted.tick = 0, tick
+        Xn, Un, alpha, accepted, phi0, phi, _, _ = sqp._line_search(*args, clock=clock)
+        assert Counted.calls == trials and not accepted, (budget, Counted.calls)
+        assert phi > phi0 and alpha in (1.0, 0.5, 0.25, 0.125, 0.0625)
+        # The best trial is taken: its merit is the lowest of those tried.
+        assert phi == pytest.approx(sqp._merit(Xn, Un, sqp.model.step(Xn[:sqp.N], Un), ref, u_ref, 1.0),
+                                    rel=TOL["merit_rel"])
+
+
 def test_a_period_that_cannot_plan_before_its_deadline_sends_the_shifted_plan_at_once(nan_jacobians_after):
     model = nan_jacobians_after(AnalyticModel(), 10 ** 9)     # the oracle, its linearizations counted
     sqp = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))

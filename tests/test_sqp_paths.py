@@ -135,6 +135,16 @@ def test_a_plan_that_moved_everywhere_gets_a_full_refresh_unless_the_deadline_fo
     _, info = c(x, 0.02)
     assert info.is_optimal() and info.extra["full_refreshes"] == 0
     assert info.extra["refreshed_stages"] == c.s.max_refresh_stages
+    # A full refresh that fits with the least QP time but not with the QP's expected solve is cut too; with a
+    # faster solve it is made.
+    for qp_s, full in ((0.2, 0), (0.05, 1)):
+        c.clock = PeriodClock(lambda: fake["t"])
+        c.clock.record("full_derivatives", 0.4)
+        c.clock.record("qp", qp_s)
+        c._jac_points = c._jac_points + 10.0
+        c.set_deadline(0.5)
+        _, info = c(x, 0.03)
+        assert info.is_optimal() and info.extra["full_refreshes"] == full, qp_s
 
 
 def test_the_partial_path_flies_as_the_full_one():
