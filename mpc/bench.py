@@ -11,8 +11,8 @@ twice as slow for the models (:func:`slow_machine`: every model call takes twice
 each vehicle flown in its own rotor unit and in normalized units (``n_max`` = 1): the same QP, so the same time
 (:func:`unit_cost`).
 
-``python -m mpc.bench --answers [--members 5] [--jobs 2]`` compares the answers of the SQP's two derivative paths
-(:data:`PATHS`) in ideal timing: median RMSE over ensemble members on figure8-fast, figure8-slow and hover with the
+``python -m mpc.bench --answers [--members 5] [--jobs 2] [--compare BASE,NEW]`` compares the answers of two of
+the SQP's paths (:data:`ALL_PATHS`; by default the full and the partial derivative path) in ideal timing: median RMSE over ensemble members on figure8-fast, figure8-slow and hover with the
 oracle and every shipped model, and the crashes of every zoo model on figure8-fast (:func:`same_answers`,
 :func:`zoo_crashes`).
 
@@ -28,10 +28,11 @@ cold-start periods) with the deadline misses (> 10 ms), solver failures and
 fallbacks and the position RMSE of the run; for the SQP also the SQP
 iterations per period and the split of its time: derivative graph, QP
 assembly (including OSQP's matrix update), OSQP's solve, line search, and
-the rest (Python). The SQP flies each case by both of its derivative paths
-(:data:`PATHS`: today's full refresh and the partial one), with the share of
-periods that refreshed every stage's Jacobians, and the partial path's median
-and p95 over the full one's are printed per model. It also prints the floor: one batched model + Jacobian
+the rest (Python). The SQP flies each case by each of its paths
+(:func:`speed_paths`: today's full refresh, the partial one and, with DAQP,
+the partial one on the dense QP), with the share of periods that refreshed
+every stage's Jacobians, and each path's median and p95 over the full one's
+are printed per model. It also prints the floor: one batched model + Jacobian
 evaluation over the whole horizon, with float64 Jacobians (as IPOPT uses
 them) and with float32 ones (as the QP controllers do). Nothing is asserted; the
 figures are written as JSON.
@@ -66,6 +67,20 @@ SPLIT = ("derivatives", "assembly", "osqp", "line_search")
 #: The SQP's two ways to its derivatives, flown side by side: today's (every Jacobian in every iteration that
 #: evaluates them) and the partial refresh (:class:`mpc.sqp.SQPSettings`).
 PATHS = {"full": {"jacobian_refresh": "full"}, "partial": {"jacobian_refresh": "partial"}}
+#: The speed benchmark also flies the partial path with the condensed QP solved by DAQP (:mod:`mpc.dense_qp`), when
+#: DAQP is installed.
+DENSE_PATH = {"dense": {"jacobian_refresh": "partial", "qp": "daqp"}}
+
+
+#: Every path a benchmark can fly by name.
+ALL_PATHS = {**PATHS, **DENSE_PATH}
+
+
+def speed_paths() -> dict:
+    """The SQP's paths the speed benchmark flies: :data:`PATHS`, and :data:`DENSE_PATH` when DAQP is installed."""
+    import importlib.util
+
+    return {**PATHS, **(DENSE_PATH if importlib.util.find_spec("daqp") is not None else {})}
 #: The cases of the same-answers comparison.
 ANSWER_CASES = ("figure8-fast", "figure8-slow", "hover")
 
@@ -74,7 +89,7 @@ def _controller(kind: str, model, reference, path: str = "full"):
     if kind == "nmpc":
         return NMPC(model, reference, NMPCSettings(horizon=HORIZON))
     if kind == "sqp":
-        return SQPMPC(model, reference, SQPSettings(horizon=HORIZON, **PATHS[path]))
+        return SQPMPC(model, reference, SQPSettings(horizon=HORIZON, **ALL_PATHS[path]))
     if kind == "ltv":
         return LTVMPC(model, reference, LTVSettings(horizon=HORIZON))
     return LQRController(reference, model)
@@ -84,7 +99,7 @@ def run(kind: str, model, reference, x0: np.ndarray, seconds: float, fidelity=No
     """Fly one case; solve-time statistics, counts, position RMSE and (SQP) iterations and time split.
 
     ``fidelity``: the simulator's (nominal when None); with a motor lag its rotor speeds carry over. ``path``: the
-    SQP's way to its derivatives (:data:`PATHS`).
+    SQP's way to its derivatives (:data:`ALL_PATHS`).
     """
     from sim.params import NOMINAL
 
@@ -230,10 +245,19 @@ def main(argv=None) -> int:
                          "figure8-fast, figure8-slow and hover, --members ensemble members, and the zoo's crashes")
     ap.add_argument("--members", type=int, default=5, help="with --answers: ensemble members per case (default 5)")
     ap.add_argument("--jobs", type=int, default=2, help="with --answers: processes (default 2)")
+    ap.add_argument("--compare", default="full,partial", metavar="BASE,NEW",
+                    help=f"with --answers and --slowdown: the two SQP paths flown, of {', '.join(ALL_PATHS)} "
+                         "(default full,partial; dense needs DAQP)")
     ap.add_argument("--slowdown", type=float, default=None, metavar="FACTOR",
                     help="only the SQP on figure8-fast in real time with every model call FACTOR times as long (a "
                          "machine that much slower); with --estimator, the state estimator flies too")
     args = ap.parse_args(argv)
+    args.compare = tuple(p for p in args.compare.split(",") if p)
+    if len(args.compare) != 2 or len(set(args.compare)) != 2 or not set(args.compare) <= set(ALL_PATHS):
+        raise SystemExit(f"--compare: two different paths of {', '.join(ALL_PATHS)} expected; found "
+                         f"{','.join(args.compare) or 'none'}")
+    if "dense" in args.compare and (args.answers or args.slowdown is not None) and "dense" not in speed_paths():
+        raise SystemExit('--compare: the dense path needs DAQP: python -m pip install -e ".[dense]"')
     if args.slowdown is not None:
         if not args.slowdown >= 1.0:
             raise SystemExit(f"--slowdown: a factor >= 1 expected; found {args.slowdown:g}")
@@ -282,7 +306,7 @@ def main(argv=None) -> int:
                 continue  # about 0.4 s per IPOPT solve with the 16-state high-fidelity equations
             for case in cases:
                 ref, x0, secs = all_cases[case]
-                for path in (PATHS if kind == "sqp" else ("full",)):
+                for path in (speed_paths() if kind == "sqp" else ("full",)):
                     r = run(kind, model, ref, x0, secs, fidelity=getattr(model, "fidelity", None), path=path)
                     label = f"sqp/{path}" if kind == "sqp" else kind
                     out["cases"].append({"controller": kind, "path": path if kind == "sqp" else None, "model": name,
@@ -303,16 +327,16 @@ def main(argv=None) -> int:
             print(f"{name:<22}{case:<14}{path:<9}{r['iterations']['mean']:>10.2f}  {str(r['iterations']['counts']):<18}"
                   + "".join(f"{sp[k]:>12.2f}" for k in (*SPLIT, "python")) + f"{r['full_refresh_share']:>11.2f}")
         by = {(n, c, p): r for n, c, p, r in sqp_rows}
-        print("\nThe partial path against today's (full), same run: median and p95 ratios (partial / full)")
+        print("\nThe other paths against today's (full), same run: median and p95 ratios (path / full)")
         out["ratios"] = []
         for (n, c, p), r in by.items():
-            if p != "partial" or (n, c, "full") not in by:
+            if p == "full" or (n, c, "full") not in by:
                 continue
             f = by[(n, c, "full")]["solve_ms"]
-            ratio = {"model": n, "case": c, "median": r["solve_ms"]["median"] / f["median"],
+            ratio = {"model": n, "case": c, "path": p, "median": r["solve_ms"]["median"] / f["median"],
                      "p95": r["solve_ms"]["p95"] / f["p95"]}
             out["ratios"].append(ratio)
-            print(f"{n:<22}{c:<14}{ratio['median']:>8.2f}{ratio['p95']:>8.2f}")
+            print(f"{n:<22}{c:<14}{p:<9}{ratio['median']:>8.2f}{ratio['p95']:>8.2f}")
     write_json(args.json, out)
     print(f"wrote {args.json}")
     return 0
@@ -412,7 +436,7 @@ def slow_machine(model: str, factor: float = 2.0, scenario: str = "figure8-fast"
                  path: str = "full") -> dict:
     """The SQP on ``scenario`` in real-time timing with ``model`` ('oracle' or a file) made ``factor`` times slower
     (:class:`SlowedModel`; the state estimator's model calls too, with ``estimator="ekf"``), the SQP by its
-    derivative ``path`` (:data:`PATHS`).
+    derivative ``path`` (:data:`ALL_PATHS`).
 
     Returns the time charged per period, ms (median / p95 / max), the periods charged more than the 10 ms period
     (the deadline misses), the periods that sent the shifted plan because no plan could be made in time, and the
@@ -421,7 +445,7 @@ def slow_machine(model: str, factor: float = 2.0, scenario: str = "figure8-fast"
     from scenarios.runner import RunSpec, fly, load_run_model
 
     spec = RunSpec(scenario, "sqp", model, timing="realtime", estimator=estimator)
-    r, tr = fly(spec, model=SlowedModel(load_run_model(spec), factor), sqp=PATHS[path])
+    r, tr = fly(spec, model=SlowedModel(load_run_model(spec), factor), sqp=ALL_PATHS[path])
     called = np.asarray(tr["called"], dtype=bool)
     charged = np.asarray(tr["solve_s"], dtype=float)[called]
     if tr.get("estimator_s") is not None and len(tr["estimator_s"]):
@@ -447,7 +471,7 @@ def _main_slowdown(args) -> int:
     print(f"{'model':<22}{'path':<9}{'median':>8}{'p95':>8}{'max':>8}{'>10 ms':>8}{'late':>6}{'RMSE m':>9}")
     for m in models:
         name = Path(m).stem if m != "oracle" else m
-        for path in PATHS:
+        for path in args.compare:
             r = slow_machine(m, args.slowdown, estimator=est, path=path)
             out["models"][f"{name}/{path}"] = r
             c = r["charged_ms"]
@@ -558,7 +582,7 @@ def _fly_path(task):
     from scenarios.runner import RunSpec, fly
 
     model, scenario, member, path = task
-    r, _ = fly(RunSpec(scenario, "sqp", model, member=member), sqp=PATHS[path])
+    r, _ = fly(RunSpec(scenario, "sqp", model, member=member), sqp=ALL_PATHS[path])
     return r["rmse_position_m"], bool(r["crashed"])
 
 
@@ -585,61 +609,65 @@ def _fly_all(tasks, jobs: int, what: str) -> dict:
     return flown
 
 
-def same_answers(models: dict, cases=ANSWER_CASES, members: int = 5, jobs: int = 2) -> dict:
-    """Each model (``{name: "oracle" or file}``) on each case, ``members`` ensemble members, by both paths in ideal
-    timing (the runs are reproducible, so the paths' differences are theirs): per path the median RMSE (m) and the
-    crashes, and the partial path's median over the full one's (``ratio``) and their difference (m)."""
-    tasks = [(m, c, i, p) for m in models.values() for c in cases for i in range(members) for p in PATHS]
+def same_answers(models: dict, cases=ANSWER_CASES, members: int = 5, jobs: int = 2,
+                 paths=("full", "partial")) -> dict:
+    """Each model (``{name: "oracle" or file}``) on each case, ``members`` ensemble members, by two ``paths``
+    (:data:`ALL_PATHS`: the base, then the new one) in ideal timing (the runs are reproducible, so the paths'
+    differences are theirs): per path the median RMSE (m) and the crashes, and the new path's median over the
+    base's (``ratio``) and their difference (m)."""
+    base, new = paths
+    tasks = [(m, c, i, p) for m in models.values() for c in cases for i in range(members) for p in paths]
     flown = _fly_all(tasks, jobs, "same answers")
     out = {}
     for name, m in models.items():
         for c in cases:
             row = {}
-            for p in PATHS:
+            for p in paths:
                 runs = [flown[(m, c, i, p)] for i in range(members)]
                 rmse = [r for r, crashed in runs if crashed is False and r is not None]
                 row[p] = {"median_rmse_m": float(np.median(rmse)) if rmse else None,
                           "rmse_m": [r for r, _ in runs], "crashes": sum(crashed is True for _, crashed in runs)}
-            f, q = row["full"]["median_rmse_m"], row["partial"]["median_rmse_m"]
+            f, q = row[base]["median_rmse_m"], row[new]["median_rmse_m"]
             row["ratio"] = None if not (f and q) else q / f
             row["difference_m"] = None if f is None or q is None else q - f
             out[f"{name}/{c}"] = row
     return out
 
 
-def zoo_crashes(models_dir, jobs: int = 2) -> dict:
-    """Every zoo model on ``figure8-fast`` (ensemble member 0) by both paths: ``{model: {path: crashed}}`` (None:
-    not flown)."""
+def zoo_crashes(models_dir, jobs: int = 2, paths=("full", "partial")) -> dict:
+    """Every zoo model on ``figure8-fast`` (ensemble member 0) by both ``paths``: ``{model: {path: crashed}}``
+    (None: not flown)."""
     files = model_files(models_dir)
-    tasks = [(str(f), "figure8-fast", 0, p) for f in files for p in PATHS]
+    tasks = [(str(f), "figure8-fast", 0, p) for f in files for p in paths]
     flown = _fly_all(tasks, jobs, "zoo")
-    return {f.stem: {p: flown[(str(f), "figure8-fast", 0, p)][1] for p in PATHS} for f in files}
+    return {f.stem: {p: flown[(str(f), "figure8-fast", 0, p)][1] for p in paths} for f in files}
 
 
 def _main_answers(args) -> int:
     if not args.models.is_dir():
         raise SystemExit(f"--models: {str(args.models)!r} is not a folder")
     models = {"oracle": "oracle", **{f.stem: str(f) for f in model_files(args.models)}}
+    base, new = args.compare
     out = {"python": platform.python_version(), "cpus": os.cpu_count(), "members": args.members,
-           "timing": "ideal", "controller": "sqp", "paths": PATHS}
-    print(f"The SQP by both paths, ideal timing, {args.members} ensemble members: median position RMSE (mm), "
-          f"crashes, partial / full")
-    out["cases"] = rows = same_answers(models, members=args.members, jobs=args.jobs)
-    print(f"{'model / case':<40}{'full':>10}{'partial':>10}{'crashes':>9}{'ratio':>8}{'diff mm':>9}")
+           "timing": "ideal", "controller": "sqp", "paths": {p: ALL_PATHS[p] for p in args.compare}}
+    print(f"The SQP by two paths, ideal timing, {args.members} ensemble members: median position RMSE (mm), "
+          f"crashes, {new} / {base}")
+    out["cases"] = rows = same_answers(models, members=args.members, jobs=args.jobs, paths=args.compare)
+    print(f"{'model / case':<40}{base:>10}{new:>10}{'crashes':>9}{'ratio':>8}{'diff mm':>9}")
     for key, r in rows.items():
         def mm(v):
             return "–" if v is None else f"{1e3 * v:.2f}"
         ratio = "–" if r["ratio"] is None else f"{r['ratio']:.3f}"
-        print(f"{key:<40}{mm(r['full']['median_rmse_m']):>10}{mm(r['partial']['median_rmse_m']):>10}"
-              f"{r['full']['crashes']:>4} /{r['partial']['crashes']:>2}{ratio:>8}{mm(r['difference_m']):>9}")
+        print(f"{key:<40}{mm(r[base]['median_rmse_m']):>10}{mm(r[new]['median_rmse_m']):>10}"
+              f"{r[base]['crashes']:>4} /{r[new]['crashes']:>2}{ratio:>8}{mm(r['difference_m']):>9}")
     zoo = args.models / "zoo"
     if zoo.is_dir():
-        out["zoo"] = crashes = zoo_crashes(zoo, jobs=args.jobs)
-        changed = {k: v for k, v in crashes.items() if v["full"] != v["partial"]}
-        print(f"Zoo on figure8-fast (member 0): {sum(v['full'] is True for v in crashes.values())} crashes by the "
-              f"full path, {sum(v['partial'] is True for v in crashes.values())} by the partial one, of "
+        out["zoo"] = crashes = zoo_crashes(zoo, jobs=args.jobs, paths=args.compare)
+        changed = {k: v for k, v in crashes.items() if v[base] != v[new]}
+        print(f"Zoo on figure8-fast (member 0): {sum(v[base] is True for v in crashes.values())} crashes by the "
+              f"{base} path, {sum(v[new] is True for v in crashes.values())} by the {new} one, of "
               f"{len(crashes)} models; changed: "
-              + (", ".join(f"{k} ({'crashes' if v['partial'] else 'flies'} now)" for k, v in changed.items())
+              + (", ".join(f"{k} ({'crashes' if v[new] else 'flies'} now)" for k, v in changed.items())
                  or "none"))
     return _write(args.json or Path("bench_answers.json"), out)
 

@@ -24,7 +24,7 @@ that reads OSQP's duals reads the same thing. DAQP is an optional dependency
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -88,13 +88,30 @@ class LTVQP:
 
 
 @dataclass(frozen=True)
+class Condensed:
+    """The part of a condensed QP that depends only on its matrices (``A``, ``B``, the weights and the constraint
+    rows), not on ``c``, ``x0``, the references or the bounds: what QPs with the same matrices share (a
+    second-order correction's QP, an SQP iteration that keeps its Jacobians).
+
+    ``G`` (N + 1, nx, n): ``x_k = G_k u + w_k``; ``WG`` (N + 1, nx, n): ``W_k G_k`` with ``W_k`` the stage
+    weight (``P`` at ``k = N``); ``H`` (n, n), the dense Hessian; ``C`` (r, n), the constraint rows.
+    """
+
+    G: np.ndarray
+    WG: np.ndarray
+    H: np.ndarray
+    C: np.ndarray
+
+
+@dataclass(frozen=True)
 class DenseSolution:
     """The solution of an :class:`LTVQP` by :func:`solve_ltv_qp`.
 
     ``x`` (N + 1, nx) and ``u`` (N, nu); the multipliers ``y_init`` (nx,) of ``x_0 = x``, ``y_dyn`` (N, nx) of
     the dynamics rows written ``-x_{k+1} + A_k x_k + B_k u_k = -c_k``, ``y_u`` (N, m) and ``y_s`` (N, p) of the
     constraints (positive where an upper bound holds, negative at a lower one); ``flag``, DAQP's exit flag;
-    ``iterations``; ``solve_s`` (condensing included) and ``condense_s``.
+    ``iterations``; ``solve_s`` (condensing included) and ``condense_s``; ``matrices``, the :class:`Condensed`
+    part, for a next QP with the same matrices.
     """
 
     x: np.ndarray
@@ -107,6 +124,7 @@ class DenseSolution:
     iterations: int
     solve_s: float
     condense_s: float
+    matrices: Condensed = field(repr=False, default=None)
 
     @property
     def solved(self) -> bool:
@@ -118,38 +136,61 @@ class DenseSolution:
         return self.solved and max(kkt_residuals(qp, self).values()) <= eps
 
 
-def condense(qp: LTVQP):
-    """The dense QP in the inputs: ``(H (n, n), f (n,), C (r, n), lo (r,), hi (r,), G, w)`` with ``n = N nu``.
+def condense_matrices(qp: LTVQP) -> Condensed:
+    """The matrix part of :func:`condense`.
 
-    ``G`` (N + 1, nx, n) and ``w`` (N + 1, nx) give the states ``x_k = G_k u + w_k``; the rows of ``C`` are the
-    input constraints of every stage, then the state constraints of stages 1..N.
+    ``G`` by a forward recursion through the dynamics; ``H = G' W G + R`` by a
+    backward one, which never multiplies the zero blocks of ``G`` (``x_k``
+    depends only on the inputs before stage ``k``): with ``Z_N = W_N G_N`` and
+    ``Z_k = W_k G_k + A_k' Z_{k+1}``, the rows of input ``j`` are
+    ``B_j' Z_{j+1}``.
     """
     N, nx, nu = qp.B.shape
     n = N * nu
     G = np.zeros((N + 1, nx, n))
-    w = np.empty((N + 1, nx))
-    w[0] = qp.x0
     for k in range(N):
         m = k * nu
         np.matmul(qp.A[k], G[k, :, :m], out=G[k + 1, :, :m])     # only the inputs before stage k move x_k
         G[k + 1, :, m:m + nu] = qp.B[k]
-        w[k + 1] = qp.A[k] @ w[k] + qp.c[k]
     W = np.empty((N + 1, nx, nx))
     W[:N] = qp.Q
     W[N] = qp.P
-    WG = np.matmul(W, G).reshape(-1, n)
-    H = G.reshape(-1, n).T @ WG
+    WG = np.matmul(W, G)
+    Z = np.empty((N + 1, nx, n))
+    Z[N] = WG[N]
+    At = qp.A.transpose(0, 2, 1)
+    for k in range(N - 1, 0, -1):
+        np.matmul(At[k], Z[k + 1], out=Z[k])
+        Z[k] += WG[k]
+    H = np.matmul(qp.B.transpose(0, 2, 1), Z[1:]).reshape(n, n)
     d = np.arange(N)
     H.reshape(N, nu, N, nu)[d, :, d, :] += qp.R          # the input weight on the diagonal blocks
-    f = WG.T @ (w - qp.ref).ravel() - (qp.u_ref @ qp.R).ravel()
     m, p = qp.L.shape[0], qp.S.shape[0]
     C = np.zeros((N * (m + p), n))
     C[:N * m].reshape(N, m, N, nu)[d, :, d, :] = qp.L   # the input constraints, stage by stage
     C[N * m:] = np.matmul(qp.S, G[1:]).reshape(N * p, n)
+    return Condensed(G=G, WG=WG, H=0.5 * (H + H.T), C=C)
+
+
+def condense(qp: LTVQP, matrices: Condensed | None = None):
+    """The dense QP in the inputs: ``(H (n, n), f (n,), C (r, n), lo (r,), hi (r,), G, w)`` with ``n = N nu``.
+
+    ``G`` (N + 1, nx, n) and ``w`` (N + 1, nx) give the states ``x_k = G_k u + w_k``; the rows of ``C`` are the
+    input constraints of every stage, then the state constraints of stages 1..N. ``matrices``: the
+    :class:`Condensed` part of a QP with the same matrices (:func:`condense_matrices` of it), reused as it is.
+    """
+    if matrices is None:
+        matrices = condense_matrices(qp)
+    N, nx, nu = qp.B.shape
+    w = np.empty((N + 1, nx))
+    w[0] = qp.x0
+    for k in range(N):
+        w[k + 1] = qp.A[k] @ w[k] + qp.c[k]
+    f = matrices.WG.reshape(-1, N * nu).T @ (w - qp.ref).ravel() - (qp.u_ref @ qp.R).ravel()
     Sw = (w[1:] @ qp.S.T).ravel()
     lo = np.concatenate([np.tile(qp.lo_u, N), np.tile(qp.lo_s, N) - Sw])
     hi = np.concatenate([np.tile(qp.hi_u, N), np.tile(qp.hi_s, N) - Sw])
-    return 0.5 * (H + H.T), f, C, lo, hi, G, w
+    return matrices.H, f, matrices.C, lo, hi, matrices.G, w
 
 
 def require_daqp() -> None:
@@ -160,11 +201,12 @@ def require_daqp() -> None:
         raise ConfigurationError('the dense QP path needs DAQP, an optional extra: python -m pip install -e ".[dense]"')
 
 
-def solve_ltv_qp(qp: LTVQP, time_limit_s: float | None = None) -> DenseSolution:
+def solve_ltv_qp(qp: LTVQP, time_limit_s: float | None = None, matrices: Condensed | None = None) -> DenseSolution:
     """Solve ``qp`` condensed, by DAQP; states, inputs and every multiplier (:class:`DenseSolution`).
 
     A failure of DAQP (infeasible, iteration or time limit) is data: the solution says so in ``flag`` and
-    ``solved``. ``time_limit_s``: DAQP's time limit (None: none).
+    ``solved``. ``time_limit_s``: DAQP's time limit (None: none). ``matrices``: the condensed matrices of a QP
+    with the same matrices as ``qp`` (the solution's ``matrices`` of it), reused instead of condensed again.
     """
     require_daqp()
     from ctypes import c_int
@@ -172,7 +214,9 @@ def solve_ltv_qp(qp: LTVQP, time_limit_s: float | None = None) -> DenseSolution:
     import daqp
 
     t0 = time.perf_counter()
-    H, f, C, lo, hi, G, w = condense(qp)
+    if matrices is None:
+        matrices = condense_matrices(qp)
+    H, f, C, lo, hi, G, w = condense(qp, matrices)
     t1 = time.perf_counter()
     opts = {} if time_limit_s is None else {"time_limit": float(time_limit_s)}
     try:
@@ -189,18 +233,21 @@ def solve_ltv_qp(qp: LTVQP, time_limit_s: float | None = None) -> DenseSolution:
     y_init, y_dyn = _dynamics_multipliers(qp, x, y_s)
     return DenseSolution(x=x, u=U, y_init=y_init, y_dyn=y_dyn, y_u=y_u, y_s=y_s, flag=int(flag),
                          iterations=int(info.get("iterations", 0)), solve_s=time.perf_counter() - t0,
-                         condense_s=t1 - t0)
+                         condense_s=t1 - t0, matrices=matrices)
 
 
 def _dynamics_multipliers(qp: LTVQP, x: np.ndarray, y_s: np.ndarray):
     """Multipliers of ``x_0 = x`` (nx,) and of the dynamics rows (N, nx), from stationarity in the states:
     ``y_{k-1} = W_k (x_k - r_k) + A_k' y_k + S' y_s,k`` backwards from ``y_{N-1} = P (x_N - r_N) + S' y_s,N``."""
     N, nx, _ = qp.B.shape
+    g = (x - qp.ref) @ qp.Q            # g_k = W_k (x_k - r_k) + S' y_s,k, every stage at once (W, Q symmetric)
+    g[N] = qp.P @ (x[N] - qp.ref[N])
+    g[1:] += y_s @ qp.S
     y = np.empty((N, nx))
-    y[N - 1] = qp.P @ (x[N] - qp.ref[N]) + qp.S.T @ y_s[N - 1]
+    y[N - 1] = g[N]
     for k in range(N - 1, 0, -1):
-        y[k - 1] = qp.Q @ (x[k] - qp.ref[k]) + qp.A[k].T @ y[k] + qp.S.T @ y_s[k - 1]
-    y_init = -(qp.Q @ (x[0] - qp.ref[0]) + qp.A[0].T @ y[0])
+        y[k - 1] = g[k] + y[k] @ qp.A[k]
+    y_init = -(g[0] + y[0] @ qp.A[0])
     return y_init, y
 
 

@@ -151,6 +151,7 @@ class LTVMPC(MPCBase):
             settings_["time_limit"] = self.s.time_limit_s
         self._solver.setup(self._H, np.zeros(self._H.shape[0]), self._A0, self._l0, self._u0, **settings_)
         self._dense_limit: float | None = None     # the time limit of the next dense QP, s (None: none)
+        self._condensed = None      # the last dense QP's condensed matrices (mpc.dense_qp.Condensed), or None
         if self.s.qp == "daqp":
             from .dense_qp import require_daqp
 
@@ -412,7 +413,8 @@ class LTVMPC(MPCBase):
         t0 = time.perf_counter()
         c = fx - (A @ xb[:, :, None])[:, :, 0] - (B @ ub[:, :, None])[:, :, 0]
         if self.s.qp == "daqp" and hess is None:
-            return self._solve_dense(x, ref, u_ref, c, A, B, split, t0)
+            return self._solve_dense(x, ref, u_ref, c, A, B, split, t0, same_matrices)
+        self._condensed = None      # the dense path's matrices may differ from OSQP's from here on
         mats = {} if same_matrices else {"Ax": self._constraint_values(A, B)}
         lo, hi = self._l0.copy(), self._u0.copy()
         lo[:self.nx] = hi[:self.nx] = x
@@ -432,14 +434,17 @@ class LTVMPC(MPCBase):
             split["osqp"] += time.perf_counter() - t1
         return res
 
-    def _solve_dense(self, x, ref, u_ref, c, A, B, split, t0):
-        """The QP condensed and solved by DAQP (:mod:`mpc.dense_qp`), as a result OSQP's callers read."""
+    def _solve_dense(self, x, ref, u_ref, c, A, B, split, t0, same_matrices=False):
+        """The QP condensed and solved by DAQP (:mod:`mpc.dense_qp`), as a result OSQP's callers read. With
+        ``same_matrices`` the last dense QP's condensed matrices are reused (only its vectors are condensed)."""
         from .dense_qp import LTVQP, solve_ltv_qp
 
         L, lo_u, hi_u, S, lo_s, hi_s = self._dense_constraints
         qp = LTVQP(A=A, B=B, c=c, x0=np.asarray(x, dtype=float), Q=self.Q, P=self.P, R=self.R, ref=ref,
                    u_ref=u_ref, L=L, lo_u=lo_u, hi_u=hi_u, S=S, lo_s=lo_s, hi_s=hi_s)
-        sol = solve_ltv_qp(qp, self._dense_limit)
+        reuse, self._condensed = self._condensed if same_matrices else None, None
+        sol = solve_ltv_qp(qp, self._dense_limit, reuse)
+        self._condensed = sol.matrices
         res = _DenseResult(sol, self._status)
         if split is not None:
             split["assembly"] += sol.condense_s + (time.perf_counter() - t0 - sol.solve_s)

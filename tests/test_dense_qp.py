@@ -7,12 +7,13 @@ import scipy.sparse as sp
 
 pytest.importorskip("daqp")
 
-from mpc.dense_qp import LTVQP, condense, kkt_residuals, solve_ltv_qp  # noqa: E402
+from mpc.dense_qp import LTVQP, condense, condense_matrices, kkt_residuals, solve_ltv_qp  # noqa: E402
 from mpc.errors import ConfigurationError  # noqa: E402
 
 #: Tolerances: KKT residuals of the dense solution (it is exact up to rounding); agreement with OSQP solved to
 #: 1e-10 and polished, in states and inputs, and in the multipliers (which OSQP gets less accurately).
-TOL = {"kkt": 1e-8, "primal": 1e-6, "dual": 1e-5, "controller_inputs": 1e-5}
+TOL = {"kkt": 1e-8, "primal": 1e-6, "dual": 1e-5, "controller_inputs": 1e-5,
+       "hessian_rel": 1e-12}     # the backward recursion's H against G' W G + R formed in full (rounding)
 
 
 def random_qp(seed: int, N: int = 30, nx: int = 12, nu: int = 4, tight: bool = True) -> LTVQP:
@@ -104,6 +105,33 @@ def test_an_infeasible_qp_is_reported_not_raised():
     assert not sol.is_optimal(bad)
 
 
+def test_the_hessian_by_backward_recursion_is_g_w_g_plus_r():
+    qp = random_qp(11)
+    N, nx, nu = qp.B.shape
+    m = condense_matrices(qp)
+    Gf = m.G.reshape(-1, N * nu)
+    W = np.kron(np.eye(N + 1), np.eye(nx))
+    W[:N * nx, :N * nx] = np.kron(np.eye(N), qp.Q)
+    W[N * nx:, N * nx:] = qp.P
+    H = Gf.T @ W @ Gf + np.kron(np.eye(N), qp.R)
+    assert np.max(np.abs(m.H - H)) <= TOL["hessian_rel"] * np.max(np.abs(H))
+
+
+def test_a_qp_with_the_same_matrices_reuses_them_bit_for_bit():
+    """Another c, x0, reference and bounds (a correction's QP, an iteration that keeps its Jacobians): solved with the
+    first QP's condensed matrices it gives exactly what condensing it anew gives, and it condenses nothing again."""
+    qp = random_qp(12)
+    rng = np.random.default_rng(3)
+    first = solve_ltv_qp(qp)
+    other = LTVQP(**{**qp.__dict__, "c": qp.c + 0.01 * rng.standard_normal(qp.c.shape),
+                     "x0": qp.x0 + 0.01, "ref": qp.ref + 0.1, "lo_s": qp.lo_s - 0.01})
+    again, fresh = solve_ltv_qp(other, matrices=first.matrices), solve_ltv_qp(other)
+    assert again.matrices is first.matrices
+    for name in ("x", "u", "y_init", "y_dyn", "y_u", "y_s"):
+        assert np.array_equal(getattr(again, name), getattr(fresh, name)), name
+    assert again.is_optimal(other, TOL["kkt"])
+
+
 def test_a_shape_mismatch_names_the_array():
     qp = random_qp(6)
     with pytest.raises(ConfigurationError, match=r"u_ref must have shape \(30, 4\)"):
@@ -188,6 +216,38 @@ def test_a_flight_on_the_dense_qp_path_gives_the_osqp_paths_answer(controller, m
         assert abs(a["rmse_position_m"] - b["rmse_position_m"]) <= ANSWERS["oracle_m"]
     else:
         assert abs(b["rmse_position_m"] / a["rmse_position_m"] - 1.0) <= ANSWERS["pinn_relative"]
+
+
+def test_a_dense_flight_reusing_condensed_matrices_equals_one_that_condenses_every_qp(monkeypatch):
+    """The SQP with Proposed (second iterations and corrections: QPs with the same matrices) flies 40 periods of
+    figure8-fast the same, bit for bit, whether those QPs reuse the condensed matrices or condense them anew."""
+    from pathlib import Path
+
+    from mpc.ltv import LTVMPC
+    from scenarios.runner import RunSpec, fly
+
+    root = Path(__file__).resolve().parents[1]
+    spec = RunSpec("figure8-fast", "sqp", str(root / "models" / "proposed.onnx"))
+    monkeypatch.setattr("scenarios.library.Scenario.steps", property(lambda self: 40), raising=False)
+    real = LTVMPC._solve_dense
+    reused = []
+
+    def count(self, x, ref, u_ref, c, A, B, split, t0, same_matrices=False):
+        reused.append(same_matrices)
+        return real(self, x, ref, u_ref, c, A, B, split, t0, same_matrices)
+
+    monkeypatch.setattr(LTVMPC, "_solve_dense", count)
+    a, ta = fly(spec, sqp={"qp": "daqp"})
+    assert any(reused)
+
+    def never(self, x, ref, u_ref, c, A, B, split, t0, same_matrices=False):
+        return real(self, x, ref, u_ref, c, A, B, split, t0, False)
+
+    monkeypatch.setattr(LTVMPC, "_solve_dense", never)
+    b, tb = fly(spec, sqp={"qp": "daqp"})
+    assert a["rmse_position_m"] == b["rmse_position_m"]
+    for key in ("x", "u"):
+        assert np.array_equal(ta[key], tb[key]), key
 
 
 def spec_steps(spec) -> int:
