@@ -197,9 +197,11 @@ class LTVMPC(MPCBase):
         their median times over :data:`mpc.timing.RECENT_PERIODS` periods), or OSQP
         stops at the time left, the call returns at once with the fallback of
         a failed solve (the shifted plan, or the LQR) and the status
-        :data:`DEADLINE_STATUS`. A cold start (no plan to fall back on) ignores
-        the deadline. Without a deadline the period runs to its budget and
-        iteration limit, whatever they take.
+        :data:`DEADLINE_STATUS`. The LTV-MPC's cold start (no plan to fall back
+        on) ignores the deadline; the SQP's cold start in flight keeps it, or
+        is put off while the LQR flies (:class:`mpc.sqp.SQPMPC`). Without a
+        deadline the period runs to its budget and iteration limit, whatever
+        they take.
         """
         self._deadline = None if at is None else float(at)
 

@@ -174,6 +174,12 @@ class SQPMPC(LTVMPC):
     failures and the split of the time (``time_split_s``: derivative graph,
     QP assembly, OSQP, line search; the rest is Python). A second-order
     correction's QP counts as assembly and OSQP, not as line search.
+
+    Under a deadline (:meth:`set_deadline`) a cold start in flight (after the
+    LQR took over) starts only when the longest recent cold start's time to
+    its first plan says it ends in time; otherwise it is put off (the LQR's
+    input goes out, status :data:`DEADLINE_STATUS`, counted in
+    ``counts["cold_starts_deferred"]``) and tried again next period.
     """
 
     #: Penalty of the merit function over the QP's largest dynamics multiplier. Measured on 50 states of the
@@ -187,6 +193,7 @@ class SQPMPC(LTVMPC):
             raise ConfigurationError(f"settings must be SQPSettings; found {type(settings).__name__}")
         super().__init__(model, reference, settings, spec, Q, R)
         self.counts["cold_starts"] = 0
+        self.counts["cold_starts_deferred"] = 0    # cold starts in flight put off: they would not end in time
         self.counts["line_search_failures"] = 0
         self.counts["second_order_corrections"] = 0
         self.counts["full_refreshes"] = 0         # iterations that evaluated the Jacobians of every stage
@@ -255,12 +262,27 @@ class SQPMPC(LTVMPC):
         """
         N, s = self.N, self.s
         max_it, budget = s.max_sqp_iter, s.time_budget_s
-        cold = shifted = False
+        cold = shifted = deferred = False
+        deadline = self._take_deadline()
         if guess is None:
             cold = self._plan_x is None
             shifted = self._shifts_plan()
-            X, U = self._initial_iterate(x, ref, u_ref)
-            if cold:
+            if cold and deadline is not None and not self._preflight:
+                # A cold start in flight (the LQR flies meanwhile) keeps the deadline when the longest recent cold
+                # start's first plan (the pre-flight plan's included) would end before it, and is put off to a
+                # later period when it would not; with none made yet it plans whatever it takes.
+                expected = self.clock.begin(tm.start).expect["cold_start"]
+                if expected <= 0.0:
+                    deadline = None
+                elif self.clock.now() + expected > deadline:
+                    deferred = True
+            if deferred:
+                X, U = self._nominal(x, u_ref)      # not planned from: the LQR's input goes out
+                max_it = 0
+                self.counts["cold_starts_deferred"] += 1
+            else:
+                X, U = self._initial_iterate(x, ref, u_ref)
+            if cold and not deferred:
                 self._drop_kept()      # a cold start evaluates every stage's derivatives
                 self.counts["cold_starts"] += 1
                 max_it = max(max_it, s.cold_start_max_iter)
@@ -275,9 +297,7 @@ class SQPMPC(LTVMPC):
             self._shift_kept()
         self._refreshed = self._full_refreshes = 0
         self._cold_period = cold or self._preflight
-        deadline = self._take_deadline()
-        # A cold start makes a plan whatever it takes: its fallback (the LQR) has none.
-        clock = self.clock.begin(tm.start, budget, None if cold else deadline)
+        clock = self.clock.begin(tm.start, budget, deadline)
         every = s.jacobian_every if s.hessian == "gauss-newton" else 1
         split = dict.fromkeys(SPLIT, 0.0)
         merits, alphas = [], []
@@ -321,6 +341,8 @@ class SQPMPC(LTVMPC):
             qp_iterations += int(res.info.iter)
             if not ok:
                 break
+            if first and cold:
+                clock.record("cold_start", clock.elapsed())   # a cold start's rollout and its first plan
             done += 1
             y_last = res.y[self.nx:self._n_eq].reshape(N, self.nx).copy()
             optimal = res.info.status_val == self._status.OSQP_SOLVED
@@ -371,7 +393,7 @@ class SQPMPC(LTVMPC):
         u, fields = self._finish(done > 0, X, U, status, optimal, x, ref, u_ref)
         self._keep_steps(X, U, f_next if done > 0 else None)
         fields["iterations"] = done
-        fields["extra"].update(qp_iterations=qp_iterations, converged=converged, cold_start=cold,
+        fields["extra"].update(qp_iterations=qp_iterations, converged=converged, cold_start=cold and not deferred,
                                line_search_failures=ls_failures, late_full_steps=late_steps, time_split_s=split,
                                merit=merits, step_lengths=alphas, refreshed_stages=self._refreshed,
                                full_refreshes=self._full_refreshes)

@@ -37,11 +37,13 @@ MIN_TIME_LIMIT_S = 1e-4
 #: periods (one slow period does not make the next ones give up); that of work a period may leave out (a line
 #: search, a full refresh of the Jacobians), the longest of them.
 RECENT_PERIODS = 20
-#: Work a period may leave out: its expected time is the longest recent one.
-OPTIONAL = ("line_search", "full_derivatives")
-#: What the clock keeps recent times of: a period's first derivatives, QP assembly and QP solve, line searches, and
-#: the derivatives of every stage (a full refresh of the SQP's partial path).
-RECORDED = ("derivatives", "assembly", "qp", "line_search", "full_derivatives")
+#: Work a period may leave out (a cold start in flight: the LQR flies meanwhile): its expected time is the longest
+#: recent one.
+OPTIONAL = ("line_search", "full_derivatives", "cold_start")
+#: What the clock keeps recent times of: a period's first derivatives, QP assembly and QP solve, line searches, the
+#: derivatives of every stage (a full refresh of the SQP's partial path), and a cold start's time to its first plan
+#: (from the period's start: the rollout, the derivatives and the first QP).
+RECORDED = ("derivatives", "assembly", "qp", "line_search", "full_derivatives", "cold_start")
 
 
 def _median(values) -> float:

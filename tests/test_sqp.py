@@ -501,11 +501,38 @@ def test_a_period_that_cannot_plan_before_its_deadline_sends_the_shifted_plan_at
     assert np.array_equal(u, plan[1])
     _, info = sqp(x, 0.04)                     # the deadline was for that call only
     assert info.is_optimal() and model.linearizations == 1
-    # A cold start has no plan to fall back on: it plans whatever the deadline.
+    # A cold start with no earlier one to judge it by plans whatever the deadline.
     cold = SQPMPC(AnalyticModel(), FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))
     cold.set_deadline(time.perf_counter() - 1e-3)
     _, info = cold(FIG8_FAST(np.array([0.0]))[0], 0.0)
     assert info.is_optimal() and info.extra["cold_start"]
+
+
+def test_a_cold_start_in_flight_that_would_end_past_the_deadline_is_put_off_and_the_lqr_flies(nan_jacobians_after):
+    """On a fake clock: the pre-flight plan took 1 s to its first plan (a very slow machine). A cold start in flight
+    (after the LQR took over) with 0.5 s to its deadline makes no model call and sends the LQR's input; with 2 s
+    it plans, and its deadline is kept."""
+    from mpc.timing import PeriodClock
+
+    model = nan_jacobians_after(AnalyticModel(), 10 ** 9)     # the oracle, its linearizations counted
+    fake = {"t": 0.0}
+    sqp = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))
+    sqp.clock = PeriodClock(lambda: fake["t"])
+    x = FIG8_FAST(np.array([0.0]))[0]
+    sqp.prepare(1.0, x0=x)
+    sqp.clock.record("cold_start", 1.0)
+    sqp._plan_x = sqp._plan_u = sqp._z = None       # what a hand-over to the LQR leaves
+    ref, u_ref = sqp._horizon_reference(0.01)
+    model.linearizations = 0
+    sqp.set_deadline(0.5)
+    u, info = sqp(x, 0.01)
+    assert info.status == "deadline" and info.fallback == "lqr" and model.linearizations == 0
+    assert np.array_equal(u, sqp._rotor_feasible(sqp.lqr.input(x, ref[0], u_ref[0])))
+    assert sqp.counts["cold_starts_deferred"] == 1 and not info.extra["cold_start"]
+    sqp.set_deadline(2.0)
+    _, info = sqp(x, 0.02)
+    assert info.is_optimal() and info.extra["cold_start"] and model.linearizations >= 1
+    assert sqp.counts["cold_starts_deferred"] == 1
 
 
 def test_two_ideal_runs_are_identical():
