@@ -176,9 +176,12 @@ class SQPMPC(LTVMPC):
     correction's QP counts as assembly and OSQP, not as line search.
 
     Under a deadline (:meth:`set_deadline`) a cold start in flight (after the
-    LQR took over) starts only when the longest recent cold start's time to
-    its first plan says it ends in time; otherwise it is put off (the LQR's
-    input goes out, status :data:`DEADLINE_STATUS`, counted in
+    LQR took over) starts from the model's rollout when the longest recent
+    cold start's time to its first plan says it ends in time; else from the
+    reference states and the feed-forward, without the rollout, when a full
+    refresh of the Jacobians and the QP would end in time (counted in
+    ``counts["cold_starts_from_reference"]``); otherwise it is put off (the
+    LQR's input goes out, status :data:`DEADLINE_STATUS`, counted in
     ``counts["cold_starts_deferred"]``) and tried again next period.
     """
 
@@ -194,6 +197,7 @@ class SQPMPC(LTVMPC):
         super().__init__(model, reference, settings, spec, Q, R)
         self.counts["cold_starts"] = 0
         self.counts["cold_starts_deferred"] = 0    # cold starts in flight put off: they would not end in time
+        self.counts["cold_starts_from_reference"] = 0   # cold starts in flight from the reference, without rollout
         self.counts["line_search_failures"] = 0
         self.counts["second_order_corrections"] = 0
         self.counts["full_refreshes"] = 0         # iterations that evaluated the Jacobians of every stage
@@ -262,24 +266,33 @@ class SQPMPC(LTVMPC):
         """
         N, s = self.N, self.s
         max_it, budget = s.max_sqp_iter, s.time_budget_s
-        cold = shifted = deferred = False
+        cold = shifted = deferred = quick = False
         deadline = self._take_deadline()
         if guess is None:
             cold = self._plan_x is None
             shifted = self._shifts_plan()
             if cold and deadline is not None and not self._preflight:
-                # A cold start in flight (the LQR flies meanwhile) keeps the deadline when the longest recent cold
-                # start's first plan (the pre-flight plan's included) would end before it, and is put off to a
-                # later period when it would not; with none made yet it plans whatever it takes.
-                expected = self.clock.begin(tm.start).expect["cold_start"]
+                # A cold start in flight (the LQR flies meanwhile) keeps the deadline. It starts from the model's
+                # rollout when the longest recent such start's first plan (the pre-flight plan's included) would
+                # end before the deadline; else from the reference (no rollout) when the longest recent full
+                # refresh, the QP's assembly and its solve would; else it is put off to a later period. With no
+                # cold start made yet it plans whatever it takes.
+                c0 = self.clock.begin(tm.start, None, deadline)
+                expected = c0.expect["cold_start"]
                 if expected <= 0.0:
                     deadline = None
-                elif self.clock.now() + expected > deadline:
-                    deferred = True
+                elif c0.now() + expected > deadline:
+                    full = c0.expect["full_derivatives"]
+                    quick = full > 0.0 and c0.fits(full)
+                    deferred = not quick
             if deferred:
                 X, U = self._nominal(x, u_ref)      # not planned from: the LQR's input goes out
                 max_it = 0
                 self.counts["cold_starts_deferred"] += 1
+            elif quick:
+                X, U = np.array(ref, dtype=float), u_ref.copy()
+                X[0] = x
+                self.counts["cold_starts_from_reference"] += 1
             else:
                 X, U = self._initial_iterate(x, ref, u_ref)
             if cold and not deferred:
@@ -341,7 +354,7 @@ class SQPMPC(LTVMPC):
             qp_iterations += int(res.info.iter)
             if not ok:
                 break
-            if first and cold:
+            if first and cold and not quick:
                 clock.record("cold_start", clock.elapsed())   # a cold start's rollout and its first plan
             done += 1
             y_last = res.y[self.nx:self._n_eq].reshape(N, self.nx).copy()

@@ -535,6 +535,37 @@ def test_a_cold_start_in_flight_that_would_end_past_the_deadline_is_put_off_and_
     assert sqp.counts["cold_starts_deferred"] == 1
 
 
+def test_a_cold_start_in_flight_with_no_time_for_its_rollout_starts_from_the_reference(nan_jacobians_after):
+    """On a fake clock: a cold start's rollout and first plan took 1 s lately, a full refresh 0.1 s. With 0.5 s to
+    the deadline the cold start in flight plans from the reference states (no single-state model step: no rollout);
+    with 0.05 s it is put off."""
+    from mpc.timing import PeriodClock
+
+    class Counted(type(nan_jacobians_after(AnalyticModel(), 0))):
+        singles = 0
+
+        def step(self, x, u):
+            Counted.singles += np.ndim(x) == 1 or len(x) == 1
+            return super().step(x, u)
+
+    model = Counted(AnalyticModel(), 10 ** 9)
+    fake = {"t": 0.0}
+    sqp = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))
+    sqp.clock = PeriodClock(lambda: fake["t"])
+    x = FIG8_FAST(np.array([0.0]))[0]
+    sqp.prepare(1.0, x0=x)
+    sqp.clock.record("cold_start", 1.0)
+    sqp.clock.record("full_derivatives", 0.1)
+    for deadline, planned in ((0.5, True), (0.05, False)):
+        sqp._plan_x = sqp._plan_u = sqp._z = None   # what a hand-over to the LQR leaves
+        Counted.singles = 0
+        sqp.set_deadline(deadline)
+        _, info = sqp(x, 0.01)
+        assert Counted.singles == 0 and info.extra["cold_start"] == planned, deadline
+        assert info.is_optimal() == planned and (planned or info.fallback == "lqr")
+    assert sqp.counts["cold_starts_from_reference"] == 1 and sqp.counts["cold_starts_deferred"] == 1
+
+
 def test_two_ideal_runs_are_identical():
     def run():
         sqp = SQPMPC(OnnxModel(PROPOSED), FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))
