@@ -43,7 +43,9 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import statistics
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -386,15 +388,20 @@ def clock_stalls(seconds: float = 10.0) -> dict:
             "over_4ms": int(np.sum(g > 4)), "longest_ms": float(g.max()) if g.size else 0.0}
 
 
+#: How many recent calls of a method at a batch size give a slowed model call its typical duration.
+SLOWED_RECENT = 25
+
+
 class SlowedModel(PredictionModel):
     """A prediction model whose every call takes ``factor`` times as long: a machine that slow, for the model.
 
     Each call of ``step``, ``linearize``, ``linearize_single`` and ``jacobians`` is timed and followed by a busy
-    wait of ``factor - 1`` times its duration (a sleep would hand the core away and come back late). The duration
-    is the process's CPU time in the call, not its wall time: a moment the machine took the core away (a stall of
-    the host, not of the model) is not multiplied. Everything
-    else is the wrapped model's. The controllers' own Python, the QP solver and the simulator keep this machine's speed:
-    the model and its derivative graph are most of a period's time (:func:`run`'s time split).
+    wait of ``factor - 1`` times its typical duration (a sleep would hand the core away and come back late). The
+    typical duration is the median of the process's CPU time over the last :data:`SLOWED_RECENT` calls of that
+    method at that batch size, this one included: a moment the host took the core away, or a call the host made
+    slower than usual, passes through once, as it would on the slow machine, instead of ``factor`` times.
+    Everything else is the wrapped model's. The controllers' own Python, the QP solver and the simulator keep this
+    machine's speed: the model and its derivative graph are most of a period's time (:func:`run`'s time split).
     """
 
     def __init__(self, base, factor: float = 2.0):
@@ -404,6 +411,7 @@ class SlowedModel(PredictionModel):
         self.name, self.theta, self.extra_names, self.extra_scale = (base.name, base.theta, base.extra_names,
                                                                      base.extra_scale)
         self.wall, self.cpu = time.perf_counter, time.process_time     # the clocks (a test gives fake ones)
+        self._recent: dict = {}          # (method, batch size) -> recent CPU times of its calls, s
 
     def __getattr__(self, name):      # what the wrapped model has beyond the interface (its file, its dtype)
         return getattr(self.base, name)
@@ -414,7 +422,9 @@ class SlowedModel(PredictionModel):
     def _slowed(self, fn, *args):
         c0 = self.cpu()
         out = fn(*args)
-        end = self.wall() + (self.factor - 1.0) * (self.cpu() - c0)
+        recent = self._recent.setdefault((fn.__name__, len(np.atleast_2d(args[0]))), deque(maxlen=SLOWED_RECENT))
+        recent.append(self.cpu() - c0)
+        end = self.wall() + (self.factor - 1.0) * statistics.median(recent)
         while self.wall() < end:
             pass
         return out

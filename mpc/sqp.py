@@ -178,8 +178,9 @@ class SQPMPC(LTVMPC):
     Under a deadline (:meth:`set_deadline`) a cold start in flight (after the
     LQR took over) starts from the model's rollout when the longest recent
     cold start's time to its first plan says it ends in time; else from the
-    reference states and the feed-forward, without the rollout, when a full
-    refresh of the Jacobians and the QP would end in time (counted in
+    reference states and the feed-forward, without the rollout, when its
+    derivatives (a partial refresh of the Jacobians kept from the last plan,
+    or a full one) and the QP would end in time (counted in
     ``counts["cold_starts_from_reference"]``); otherwise it is put off (the
     LQR's input goes out, status :data:`DEADLINE_STATUS`, counted in
     ``counts["cold_starts_deferred"]``) and tried again next period.
@@ -274,16 +275,18 @@ class SQPMPC(LTVMPC):
             if cold and deadline is not None and not self._preflight:
                 # A cold start in flight (the LQR flies meanwhile) keeps the deadline. It starts from the model's
                 # rollout when the longest recent such start's first plan (the pre-flight plan's included) would
-                # end before the deadline; else from the reference (no rollout) when the longest recent full
-                # refresh, the QP's assembly and its solve would; else it is put off to a later period. With no
-                # cold start made yet it plans whatever it takes.
+                # end before the deadline; else from the reference (no rollout) when its derivatives, the QP's
+                # assembly and its solve would: a partial refresh of the Jacobians kept from the last plan (their
+                # median time), or without any a full one (its longest recent time); else it is put off to a later
+                # period. With no cold start made yet it plans whatever it takes.
                 c0 = self.clock.begin(tm.start, None, deadline)
                 expected = c0.expect["cold_start"]
                 if expected <= 0.0:
                     deadline = None
                 elif c0.now() + expected > deadline:
-                    full = c0.expect["full_derivatives"]
-                    quick = full > 0.0 and c0.fits(full)
+                    need = c0.expect["derivatives"] if self._keeps_jacobians() else 0.0
+                    need = need if need > 0.0 else c0.expect["full_derivatives"]   # no partial refresh timed yet
+                    quick = need > 0.0 and c0.fits(need)
                     deferred = not quick
             if deferred:
                 X, U = self._nominal(x, u_ref)      # not planned from: the LQR's input goes out
@@ -295,7 +298,7 @@ class SQPMPC(LTVMPC):
                 self.counts["cold_starts_from_reference"] += 1
             else:
                 X, U = self._initial_iterate(x, ref, u_ref)
-            if cold and not deferred:
+            if cold and not deferred and not quick:
                 self._drop_kept()      # a cold start evaluates every stage's derivatives
                 self.counts["cold_starts"] += 1
                 max_it = max(max_it, s.cold_start_max_iter)
@@ -418,12 +421,12 @@ class SQPMPC(LTVMPC):
         already stepped at exactly their point (:class:`SQPSettings`)."""
         N, s = self.N, self.s
         Z = np.hstack([X[:N], U])
-        if s.jacobian_refresh == "partial" and self._jac_points is not None and s.hessian != "exact":
+        if self._keeps_jacobians():
             far = np.max(np.abs(Z - self._jac_points) / self._z_scale, axis=1)
             far = np.where(np.isfinite(far), far, np.inf)
             stale = np.flatnonzero(far > s.refresh_tol)
         # Under a deadline, a full refresh that would not leave time for the QP is cut to a partial one.
-        if s.jacobian_refresh == "full" or self._jac_points is None or s.hessian == "exact" or \
+        if not self._keeps_jacobians() or \
                 (len(stale) > s.full_refresh_above and clock.fits(clock.expect["full_derivatives"])):
             # The full path records its first derivatives as before. The partial path's expected first derivatives
             # are a partial refresh's (a full one is checked against the deadline on its own, against every full
@@ -453,6 +456,12 @@ class SQPMPC(LTVMPC):
         if first and not self._cold_period:
             clock.record("derivatives", seconds)
         return fx, self._jac_A.copy(), self._jac_B.copy()
+
+    def _keeps_jacobians(self) -> bool:
+        """The next Jacobian iteration may refresh only some stages: the partial path has Jacobians kept (and the
+        Hessian is the Gauss-Newton one)."""
+        s = self.s
+        return s.jacobian_refresh == "partial" and s.hessian != "exact" and self._jac_points is not None
 
     def _steps(self, X, U, Z):
         """The model's steps (N, nx) at the stages ``(X, U)`` (points ``Z``): kept ones where a stage is exactly a

@@ -206,9 +206,11 @@ def test_the_expected_time_is_numpys_median_to_the_last_bit():
     assert _median([]) == 0.0
 
 
-def test_a_slowed_model_multiplies_its_cpu_time_not_the_hosts_stalls():
+def test_a_slowed_model_multiplies_its_typical_cpu_time_not_the_hosts_stalls():
     """The benchmark's slow machine (mpc.bench.SlowedModel) on fake clocks: a call of 1 ms of CPU time held up 2 ms
-    more by the host takes 3 + 4 * 1 = 7 ms with factor 5, not 5 * 3 = 15 ms; its answer is the model's own."""
+    more by the host takes 3 + 4 * 1 = 7 ms with factor 5, not 5 * 3 = 15 ms; its answer is the model's own. After
+    ten calls of 1 ms, one that takes 3 ms of CPU time (the host made it slower; 5 ms of wall time) takes 5 + 4 * 1
+    ms: the median of the recent calls is multiplied, not the odd one."""
     from mpc.bench import SlowedModel
     from mpc.models import AnalyticModel
 
@@ -219,9 +221,11 @@ def test_a_slowed_model_multiplies_its_cpu_time_not_the_hosts_stalls():
         return fake["wall"]
 
     class Stalled(AnalyticModel):
+        extra_cpu = 0.0
+
         def step(self, x, u):
-            fake["cpu"] += 1e-3         # 1 ms of work ...
-            fake["wall"] += 3e-3        # ... that the host spread over 3 ms
+            fake["cpu"] += 1e-3 + Stalled.extra_cpu         # 1 ms of work (or more, made slower by the host) ...
+            fake["wall"] += 3e-3 + Stalled.extra_cpu        # ... that the host spread over 2 ms more
             return super().step(x, u)
 
     base = Stalled()
@@ -232,3 +236,9 @@ def test_a_slowed_model_multiplies_its_cpu_time_not_the_hosts_stalls():
     out = slow.step(x, u)
     assert fake["wall"] - t0 == pytest.approx(3e-3 + 4 * 1e-3, abs=TOL["busy_wait_s"])
     assert np.array_equal(out, base.step(x, u))
+    for _ in range(10):
+        slow.step(x, u)
+    Stalled.extra_cpu = 2e-3
+    t0 = fake["wall"]
+    slow.step(x, u)
+    assert fake["wall"] - t0 == pytest.approx(5e-3 + 4 * 1e-3, abs=TOL["busy_wait_s"])

@@ -564,6 +564,16 @@ def test_a_cold_start_in_flight_with_no_time_for_its_rollout_starts_from_the_ref
         assert Counted.singles == 0 and info.extra["cold_start"] == planned, deadline
         assert info.is_optimal() == planned and (planned or info.fallback == "lqr")
     assert sqp.counts["cold_starts_from_reference"] == 1 and sqp.counts["cold_starts_deferred"] == 1
+    # With a full refresh too slow for the deadline but the last plan's Jacobians kept, a partial refresh (its
+    # median time) plans from the reference.
+    sqp.clock.record("full_derivatives", 1.0)
+    sqp.clock.record("derivatives", 0.05)
+    sqp._plan_x = sqp._plan_u = sqp._z = None
+    sqp.set_deadline(0.5)
+    _, info = sqp(x, 0.02)
+    assert info.is_optimal() and info.extra["cold_start"] and info.extra["full_refreshes"] == 0
+    assert 0 < info.extra["refreshed_stages"] <= sqp.s.max_refresh_stages
+    assert sqp.counts["cold_starts_from_reference"] == 2
 
 
 def test_two_ideal_runs_are_identical():
