@@ -56,6 +56,7 @@ from sim.params import DT, NX
 
 from .contract import model_files
 from .controller import collector_paused, hover_reference
+from .dense_qp import daqp_installed
 from .lqr import LQRController
 from .ltv import LTVMPC, LTVSettings
 from .models import AnalyticModel, OnnxModel, PredictionModel
@@ -72,19 +73,15 @@ PATHS = {"full": {"jacobian_refresh": "full"}, "partial": {"jacobian_refresh": "
 #: The speed benchmark also flies the partial path with the condensed QP solved by DAQP (:mod:`mpc.dense_qp`), when
 #: DAQP is installed.
 DENSE_PATH = {"dense": {"jacobian_refresh": "partial", "qp": "daqp"}}
-
-
 #: Every path a benchmark can fly by name.
 ALL_PATHS = {**PATHS, **DENSE_PATH}
+#: The cases of the same-answers comparison.
+ANSWER_CASES = ("figure8-fast", "figure8-slow", "hover")
 
 
 def speed_paths() -> dict:
     """The SQP's paths the speed benchmark flies: :data:`PATHS`, and :data:`DENSE_PATH` when DAQP is installed."""
-    import importlib.util
-
-    return {**PATHS, **(DENSE_PATH if importlib.util.find_spec("daqp") is not None else {})}
-#: The cases of the same-answers comparison.
-ANSWER_CASES = ("figure8-fast", "figure8-slow", "hover")
+    return {**PATHS, **(DENSE_PATH if daqp_installed() else {})}
 
 
 def _controller(kind: str, model, reference, path: str = "full"):
@@ -258,7 +255,7 @@ def main(argv=None) -> int:
     if len(args.compare) != 2 or len(set(args.compare)) != 2 or not set(args.compare) <= set(ALL_PATHS):
         raise SystemExit(f"--compare: two different paths of {', '.join(ALL_PATHS)} expected; found "
                          f"{','.join(args.compare) or 'none'}")
-    if "dense" in args.compare and (args.answers or args.slowdown is not None) and "dense" not in speed_paths():
+    if "dense" in args.compare and (args.answers or args.slowdown is not None) and not daqp_installed():
         raise SystemExit('--compare: the dense path needs DAQP: python -m pip install -e ".[dense]"')
     if args.slowdown is not None:
         if not args.slowdown >= 1.0:

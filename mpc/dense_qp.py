@@ -193,11 +193,16 @@ def condense(qp: LTVQP, matrices: Condensed | None = None):
     return matrices.H, f, matrices.C, lo, hi, matrices.G, w
 
 
-def require_daqp() -> None:
-    """Raise a :class:`ConfigurationError` that says how to install DAQP if it is missing."""
+def daqp_installed() -> bool:
+    """DAQP (the optional extra ``dense``) can be imported."""
     import importlib.util
 
-    if importlib.util.find_spec("daqp") is None:
+    return importlib.util.find_spec("daqp") is not None
+
+
+def require_daqp() -> None:
+    """Raise a :class:`ConfigurationError` that says how to install DAQP if it is missing."""
+    if not daqp_installed():
         raise ConfigurationError('the dense QP path needs DAQP, an optional extra: python -m pip install -e ".[dense]"')
 
 

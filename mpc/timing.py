@@ -89,8 +89,8 @@ class PeriodClock:
         return self
 
     def record(self, kind: str, seconds: float) -> None:
-        """Keep the time (s) of a period's first derivatives, first QP assembly, first QP solve, a line search or a
-        full refresh."""
+        """Keep the time (s) of a period's first derivatives, first QP assembly, first QP solve, a line search, a
+        full refresh or a cold start's first plan (:data:`RECORDED`)."""
         self._recent[kind].append(seconds)
 
     def elapsed(self) -> float:

@@ -508,19 +508,25 @@ def test_a_period_that_cannot_plan_before_its_deadline_sends_the_shifted_plan_at
     assert info.is_optimal() and info.extra["cold_start"]
 
 
+def prepared_on_a_still_clock(model, cold_start_s: float):
+    """An ideal-timing SQP on ``model`` whose clock stands still at 0, prepared at the start of figure8-fast, with a
+    cold start's time to its first plan of ``cold_start_s`` recorded; ``(sqp, x0)``."""
+    from mpc.timing import PeriodClock
+
+    sqp = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))
+    sqp.clock = PeriodClock(lambda: 0.0)
+    x = FIG8_FAST(np.array([0.0]))[0]
+    sqp.prepare(1.0, x0=x)
+    sqp.clock.record("cold_start", cold_start_s)
+    return sqp, x
+
+
 def test_a_cold_start_in_flight_that_would_end_past_the_deadline_is_put_off_and_the_lqr_flies(nan_jacobians_after):
     """On a fake clock: the pre-flight plan took 1 s to its first plan (a very slow machine). A cold start in flight
     (after the LQR took over) with 0.5 s to its deadline makes no model call and sends the LQR's input; with 2 s
     it plans, and its deadline is kept."""
-    from mpc.timing import PeriodClock
-
     model = nan_jacobians_after(AnalyticModel(), 10 ** 9)     # the oracle, its linearizations counted
-    fake = {"t": 0.0}
-    sqp = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))
-    sqp.clock = PeriodClock(lambda: fake["t"])
-    x = FIG8_FAST(np.array([0.0]))[0]
-    sqp.prepare(1.0, x0=x)
-    sqp.clock.record("cold_start", 1.0)
+    sqp, x = prepared_on_a_still_clock(model, cold_start_s=1.0)
     sqp._plan_x = sqp._plan_u = sqp._z = None       # what a hand-over to the LQR leaves
     ref, u_ref = sqp._horizon_reference(0.01)
     model.linearizations = 0
@@ -539,22 +545,14 @@ def test_a_cold_start_in_flight_with_no_time_for_its_rollout_starts_from_the_ref
     """On a fake clock: a cold start's rollout and first plan took 1 s lately, a full refresh 0.1 s. With 0.5 s to
     the deadline the cold start in flight plans from the reference states (no single-state model step: no rollout);
     with 0.05 s it is put off."""
-    from mpc.timing import PeriodClock
-
-    class Counted(type(nan_jacobians_after(AnalyticModel(), 0))):
+    class Counted(nan_jacobians_after):
         singles = 0
 
         def step(self, x, u):
             Counted.singles += np.ndim(x) == 1 or len(x) == 1
             return super().step(x, u)
 
-    model = Counted(AnalyticModel(), 10 ** 9)
-    fake = {"t": 0.0}
-    sqp = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))
-    sqp.clock = PeriodClock(lambda: fake["t"])
-    x = FIG8_FAST(np.array([0.0]))[0]
-    sqp.prepare(1.0, x0=x)
-    sqp.clock.record("cold_start", 1.0)
+    sqp, x = prepared_on_a_still_clock(Counted(AnalyticModel(), 10 ** 9), cold_start_s=1.0)
     sqp.clock.record("full_derivatives", 0.1)
     for deadline, planned in ((0.5, True), (0.05, False)):
         sqp._plan_x = sqp._plan_u = sqp._z = None   # what a hand-over to the LQR leaves
