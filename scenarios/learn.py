@@ -483,29 +483,46 @@ def _flights_stage(settings: LearnSettings, path: Path, jobs_list: list[FlightJo
 class _StageTimes:
     """Seconds of each stage of a study, kept in ``OUT/PLANT/stage_seconds.json`` across resumed runs.
 
-    A stage that a rerun finds done (its file ``done`` exists) keeps the seconds of the run that did it, so that
-    a study's total (``study_seconds``) is the compute it took however often it was resumed; a stage a rerun
-    redoes, or part-redoes (the evaluation's sweep, which resumes run by run), counts that rerun's seconds. A study
-    summarized before this file existed keeps the stage times of its ``learn.json``.
+    A stage that a rerun finds done keeps the seconds of the run that did it, so that a study's total
+    (``study_seconds``) is the compute it took however often it was resumed, and rerunning a finished study changes
+    none of its stage times. A stage is found done by its file (``done`` of :meth:`start`), or, for the evaluation,
+    whose sweep resumes run by run and has no file of its own, by flying no run (:meth:`stop`'s ``found_done``). A
+    stage a rerun redoes, or part-redoes, counts that rerun's seconds. A study summarized before this file existed
+    keeps the stage times of its ``learn.json``.
+
+    Parameters
+    ----------
+    out : Path
+        The plant's study folder.
+    clock : callable, optional
+        Seconds, monotonic (default :func:`time.perf_counter`).
     """
 
-    def __init__(self, out: Path):
+    def __init__(self, out: Path, clock=time.perf_counter):
         self.path = out / STAGE_TIMES
         self.seconds: dict[str, float] = {}
         if self.path.is_file():
             self.seconds = json.loads(self.path.read_text())
         elif (out / "learn.json").is_file():
             self.seconds = dict(json.loads((out / "learn.json").read_text()).get("stage_seconds", {}))
-        self._name, self._t0, self._kept = None, 0.0, False
+        self._clock = clock
+        self._name, self._t0, self._done = None, 0.0, False
 
     def start(self, name: str, done: Path | None) -> None:
-        self._name, self._t0 = name, time.perf_counter()
-        self._kept = done is not None and done.is_file() and name in self.seconds
+        """Time stage ``name``; ``done`` is the file it writes as it ends (None: it has none)."""
+        self._name, self._t0 = name, self._clock()
+        self._done = done is not None and done.is_file()
 
-    def stop(self) -> None:
-        if not self._kept:
-            self.seconds[self._name] = round(time.perf_counter() - self._t0, 1)
-            write_json(self.path, self.seconds)
+    def stop(self, found_done: bool = False) -> None:
+        """End the stage started last: record its seconds, s, unless it was found done and has seconds recorded.
+
+        ``found_done``: the stage found all its work saved though it has no file of its own (the evaluation flew no
+        run).
+        """
+        if (self._done or found_done) and self._name in self.seconds:
+            return
+        self.seconds[self._name] = round(self._clock() - self._t0, 1)
+        write_json(self.path, self.seconds)
 
 
 @locks_out_dir
@@ -575,8 +592,9 @@ def run_learn(settings: LearnSettings, out_dir="results/learn", models_dir="mode
         controls = _controls(s, out, flights, final, jobs, progress)
         timer.stop()
     timer.start("evaluation", None)
-    evaluation = _evaluate(s, out, models_dir, final, controls, jobs, progress)
-    timer.stop()
+    flown: list[dict] = []
+    evaluation = _evaluate(s, out, models_dir, final, controls, jobs, progress, on_result=flown.append)
+    timer.stop(found_done=not flown)      # a rerun that flies none of its runs finds the evaluation done
     summary = {"plant": p.key, "label": evaluation["label"], "settings": mine, "curve": curve,
                "trainings": trainings, "controls": {k: v["record"] for k, v in controls.items()},
                "evaluation": evaluation, "final_model": Path(final).stem,
@@ -658,8 +676,12 @@ def _control_item(item):
     return _train_item(item[1])
 
 
-def _evaluate(s: LearnSettings, out: Path, models_dir, final: str, controls: dict, jobs: int, progress) -> dict:
-    """Nominal, the best open-loop model, the final model and the controls on figure8-fast and the ladder."""
+def _evaluate(s: LearnSettings, out: Path, models_dir, final: str, controls: dict, jobs: int, progress,
+              on_result=None) -> dict:
+    """Nominal, the best open-loop model, the final model and the controls on figure8-fast and the ladder.
+
+    ``on_result`` is called with each run the evaluation's sweep flies (not with those it finds flown).
+    """
     from .library import ladder_speeds
     from .sweep import sweep
     from .versus import VERSUS_SCENARIO, WIN_FRACTION, summarize_plant, versus_specs
@@ -683,7 +705,7 @@ def _evaluate(s: LearnSettings, out: Path, models_dir, final: str, controls: dic
                 specs += runs
                 tags += [(m, rung)] * len(runs)
     _say(progress, f"evaluation: {len(specs)} runs ({len(models)} models on {VERSUS_SCENARIO} and the ladder)")
-    results = sweep(specs, out / "evaluation", jobs=jobs, progress=progress is not None)
+    results = sweep(specs, out / "evaluation", jobs=jobs, progress=progress is not None, on_result=on_result)
     _no_errors(results)
     mine = {i: {**r, "_model": m, "_rung": rung} for i, ((m, rung), r) in enumerate(zip(tags, results))}
     summary = summarize_plant(s.spec.versus, models, mine, ladder_speeds())

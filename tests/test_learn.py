@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import functools
 import json
+import math
 import os
 import signal
 import subprocess
@@ -28,6 +30,7 @@ TOL = {
     "pieces_exact": 0.0,         # the dataset's pieces are the flights' samples, bit for bit
     "hover_thrust_rel": 1e-5,    # hover rotor speeds' thrust against m g (their noise: 1e-3 rad/s of about 1800)
     "mass_rel": 1e-12,           # a loaded model's mass against the vehicle file's
+    "stage_s": 0.05,             # a stage's seconds against the work on its clock (they are kept to 0.1 s)
 }
 #: Size budget of the shipped study on each plant (its summary, models and flown data), bytes.
 SHIPPED_BYTES_PER_PLANT = 17e6
@@ -35,6 +38,11 @@ SHIPPED_BYTES_PER_PLANT = 17e6
 TIMING_FIELDS = ("stage_seconds", "study_seconds", "wall_time_s", "date")
 #: Fields of a real study's learn.json that measure compute time (a training's seconds, the SQP's per period).
 MEASURED_TIMES = ("training_seconds", "solve_ms_median")
+#: Seconds of work each stand-in of the fast resume tests stands for, on their stage clock: a flight, a training, a
+#: curve row, an open-loop excitation flight, a run of the evaluation.
+FAKE_WORK_S = {"fly": 1.0, "train": 10.0, "curve": 3.0, "open_loop": 0.5, "evaluation_run": 2.0}
+#: Runs the stand-in evaluation flies.
+FAKE_EVALUATION_RUNS = 4
 
 
 def _hover_flight(name: str, n: int, seed: int, ref=None, vehicle=None) -> dict:
@@ -192,15 +200,26 @@ def test_bad_settings_name_the_setting():
 
 # ------------------------------------------------------------------ resume (the loop's stages, fast)
 class _Fakes:
-    """Flying, training, the curve and the evaluation replaced by deterministic stand-ins that count their calls."""
+    """Flying, training, the curve and the evaluation replaced by deterministic stand-ins that count their calls.
 
-    def __init__(self, kill_at_training: int | None = None, fly_s: float = 0.0):
+    With a ``clock`` (:class:`_WorkClock`), each stand-in moves it by its share of :data:`FAKE_WORK_S` for the work
+    it does: the evaluation flies its :data:`FAKE_EVALUATION_RUNS` runs once and finds them flown after that, as the
+    evaluation's sweep does.
+    """
+
+    def __init__(self, kill_at_training: int | None = None, fly_s: float = 0.0, clock=None):
         self.calls = {"fly": 0, "train": 0}
         self.kill = kill_at_training
         self.fly_s = fly_s
+        self.clock = clock
+
+    def _work(self, what: str, n: int = 1) -> None:
+        if self.clock is not None:
+            self.clock.t += n * FAKE_WORK_S[what]
 
     def fly(self, job):
         self.calls["fly"] += 1
+        self._work("fly")
         time.sleep(self.fly_s)
         rng = np.random.default_rng(job.seed)
         f = _hover_flight(job.reference()[0], 450 + int(rng.integers(0, 200)), job.seed)
@@ -209,25 +228,58 @@ class _Fakes:
 
     def train(self, settings, data_path, folder, name, threads, data):
         self.calls["train"] += 1
+        self._work("train")
         if self.kill is not None and name.endswith(f"_it{self.kill}"):
             raise KeyboardInterrupt        # the study is killed while it trains this iteration
         from sim.excitation import load_dataset
 
         ds = load_dataset(data_path)
-        return {"name": name, "data": data, "x_sum": float(np.sum(ds.x)), "pieces": int(ds.x.shape[0])}
+        rec = {"name": name, "data": data, "x_sum": float(np.sum(ds.x)), "pieces": int(ds.x.shape[0])}
+        (Path(folder) / f"{name}.json").write_text(json.dumps(rec))       # as train_model writes its record
+        return rec
 
     def curve(self, settings, out, i, model, flights, jobs, progress):
+        self._work("curve")
         return {"iteration": i, "model": Path(model).stem, "flights": len(flights),
                 "x_sum": float(sum(np.sum(f["x"]) for f in flights))}
 
-    def evaluate(self, s, out, models_dir, final, controls, jobs, progress):
+    def open_loop(self, regime, n, duration, seed, **kw):
+        """``sim.excitation.make_dataset``'s stand-in: ``n`` hover flights of ``duration`` s."""
+        self._work("open_loop", n)
+        return flights_dataset([_hover_flight(f"open-{k}", int(round(duration / DT)) + 1, seed + k)
+                                for k in range(n)])
+
+    def evaluate(self, s, out, models_dir, final, controls, jobs, progress, on_result=None):
+        flown = out / "evaluation" / "fake_runs.json"
+        if not flown.is_file():
+            for k in range(FAKE_EVALUATION_RUNS):
+                self._work("evaluation_run")
+                if on_result is not None:
+                    on_result({"run_id": f"fake-{k}"})
+            flown.parent.mkdir(parents=True, exist_ok=True)
+            flown.write_text(json.dumps(FAKE_EVALUATION_RUNS))
         return {"label": "fake", "final": Path(final).stem, "controls": sorted(controls)}
 
     def install(self, monkeypatch):
+        import sim.excitation
+
         monkeypatch.setattr(learn, "fly_flight", self.fly)
         monkeypatch.setattr(learn, "train_model", self.train)
         monkeypatch.setattr(learn, "_curve_row", self.curve)
         monkeypatch.setattr(learn, "_evaluate", self.evaluate)
+        monkeypatch.setattr(sim.excitation, "make_dataset", self.open_loop)
+        if self.clock is not None:
+            monkeypatch.setattr(learn, "_StageTimes", functools.partial(learn._StageTimes, clock=self.clock))
+
+
+class _WorkClock:
+    """A stage clock (seconds) that only the stand-ins of :class:`_Fakes` move, by the work they do."""
+
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
 
 
 def _without_timing(d: dict) -> dict:
@@ -264,6 +316,63 @@ def test_a_study_killed_in_iteration_2_resumes_to_the_same_results(tmp_path, mon
     for i in (1, 2, 3):
         assert (tmp_path / "whole" / "highfi" / f"it{i}" / "data.npz").read_bytes() == \
             (tmp_path / "resumed" / "highfi" / f"it{i}" / "data.npz").read_bytes()
+
+
+def test_a_rerun_of_a_finished_study_keeps_every_stage_s_seconds(tmp_path, monkeypatch):
+    """Each stage of the first run records the work it did; a rerun that finds it all done (the evaluation too, whose
+    runs it finds flown) keeps those seconds, in the summary and in the stage file."""
+    s = LearnSettings(iterations=2, per_level=1)
+    clock = _WorkClock()
+    first = _Fakes(clock=clock)
+    first.install(monkeypatch)
+    out = learn.run_learn(s, tmp_path, jobs=1, progress=None)
+    n_refs = len(learn.training_refs_of(s, 0))
+    n_open = math.ceil(sum(f["seconds"] for i in range(s.iterations)
+                           for f in load_flights(tmp_path / "highfi" / f"it{i}" / "flights.npz"))
+                       / learn.OPEN_LOOP_FLIGHT_S - 1e-9)
+    w = FAKE_WORK_S
+    expect = {"curve 0": w["curve"], "fly 0": n_refs * w["fly"], "train 1": w["train"], "curve 1": w["curve"],
+              "fly 1": n_refs * w["fly"], "train 2": w["train"], "curve 2": w["curve"],
+              "controls": n_open * w["open_loop"] + n_refs * w["fly"] + 2 * w["train"],
+              "evaluation": FAKE_EVALUATION_RUNS * w["evaluation_run"]}
+    assert out["stage_seconds"] == pytest.approx(expect, abs=TOL["stage_s"])
+    again = _Fakes(clock=clock)
+    again.install(monkeypatch)
+    rerun = learn.run_learn(s, tmp_path, jobs=1, progress=None)
+    assert again.calls == {"fly": 0, "train": 0}
+    assert rerun["stage_seconds"] == out["stage_seconds"]
+    assert json.loads((tmp_path / "highfi" / learn.STAGE_TIMES).read_text()) == out["stage_seconds"]
+    assert rerun["study_seconds"] == out["study_seconds"]
+
+
+def test_stage_times_keep_a_finished_stage_and_time_one_that_works(tmp_path):
+    """On a clock that moves only when work is done: a stage found done (by its file, or by finding all its work
+    saved) keeps the seconds recorded for it; a stage that works records its own seconds, even if its file exists."""
+    clock = _WorkClock()
+    done = tmp_path / "done.json"
+    done.write_text("{}")
+    t = learn._StageTimes(tmp_path, clock=clock)
+    for name, work in (("a", 5.0), ("b", 7.0), ("c", 11.0)):
+        t.start(name, None)
+        clock.t += work
+        t.stop()
+    first = dict(t.seconds)
+    assert first == pytest.approx({"a": 5.0, "b": 7.0, "c": 11.0}, abs=TOL["stage_s"])
+    t = learn._StageTimes(tmp_path, clock=clock)       # a rerun: "a" by its file, "b" finding its work saved
+    t.start("a", done)
+    clock.t += 0.3
+    t.stop()
+    t.start("b", None)
+    clock.t += 0.3
+    t.stop(found_done=True)
+    t.start("c", None)                                 # redone: this run's seconds
+    clock.t += 2.0
+    t.stop()
+    t.start("d", done)                                 # done, but never timed: this run's seconds
+    clock.t += 3.0
+    t.stop(found_done=True)
+    assert t.seconds == pytest.approx({"a": first["a"], "b": first["b"], "c": 2.0, "d": 3.0}, abs=TOL["stage_s"])
+    assert json.loads((tmp_path / learn.STAGE_TIMES).read_text()) == t.seconds
 
 
 def test_the_curve_flies_all_members_for_the_nominal_and_final_models_and_fewer_between(tmp_path, monkeypatch):
