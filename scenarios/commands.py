@@ -160,6 +160,10 @@ def register(sub) -> None:
     _sweep_options(p, "versus.json", "--models/versus")
     p.set_defaults(handler=cmd_versus)
 
+    from .learn import LEARN_PLANTS, LearnSettings, upper_flights
+    from .training_refs import references_per_iteration
+
+    per_level = LearnSettings.per_level
     p = sub.add_parser("learn", help="learn from the flights it flies: fly, train on the flights, fly the new model",
                        description="On one plant with physics the nominal equations lack, fly the nominal equations "
                                    "with the SQP on random training references (perturbed, with input dither; never "
@@ -167,12 +171,13 @@ def register(sub) -> None:
                                    "flight so far, fly the new model on fresh references, and repeat. Each "
                                    "iteration's model flies the held-out figure8-fast: the learning curve. Then two "
                                    "controls (the same minutes of open-loop excitation, and an upper bound trained "
-                                   "on the flights plus 18 of figure8-fast itself) and the evaluation on "
+                                   "on the flights plus flights of figure8-fast itself, "
+                                   f"as many as an iteration flies, {upper_flights(per_level)} at the default "
+                                   f"--per-level {per_level}) and the "
+                                   "evaluation on "
                                    "figure8-fast and the speed ladder against the nominal equations. Writes "
                                    "OUT/PLANT/learn.json; "
                                    "resumable: a rerun reuses every stage already written (docs/learning.md).")
-    from .learn import LEARN_PLANTS
-
     p.add_argument("--plant", required=True, choices=tuple(LEARN_PLANTS),
                    help="highfi: our simulator's high-fidelity set-up; rotorpy: RotorPy with its motor lag and "
                         "aerodynamics; crazyflie: RotorPy's Crazyflie 2.0 preset, 72 ms motor lag (both need the "
@@ -181,8 +186,9 @@ def register(sub) -> None:
     p.add_argument("--models", type=Path, default=Path("models"),
                    help="models folder, for the plant's best open-loop model (default models)")
     p.add_argument("--iterations", type=int, default=3, help="models trained on flown data (default 3)")
-    p.add_argument("--per-level", type=int, default=2,
-                   help="training references per family and speed level in each iteration (default 2: 12 flights)")
+    p.add_argument("--per-level", type=int, default=per_level,
+                   help=f"training references per family and speed level in each iteration (default {per_level}: "
+                        f"{references_per_iteration(per_level)} flights)")
     p.add_argument("--members", type=int, default=10,
                    help="ensemble members on figure8-fast for the nominal equations, the final model and the "
                         "controls (default 10)")

@@ -611,6 +611,14 @@ def training_refs_of(settings: LearnSettings, iteration: int):
     return training_references(iteration, settings.per_level, settings.seed)
 
 
+def upper_flights(per_level: int) -> int:
+    """Flights of ``figure8-fast`` the upper-bound control adds to the final model's: as many as an iteration flies
+    at ``per_level`` references per family and speed level."""
+    from .training_refs import references_per_iteration
+
+    return references_per_iteration(per_level)
+
+
 def _controls(s: LearnSettings, out: Path, flights: list[dict], final: str, jobs: int, progress) -> dict:
     """The two controls (two trainings at once): as many minutes of open-loop excitation as the final model flew, and
     the upper bound, trained on the final model's flights plus as many flights of ``figure8-fast`` as an
@@ -637,7 +645,7 @@ def _controls(s: LearnSettings, out: Path, flights: list[dict], final: str, jobs
     # The upper bound: the final model's flights plus one iteration's worth of flights of the evaluation reference
     # itself (perturbed, dithered), flown with the final model: what the loop would reach had it been allowed to fly
     # the test.
-    n_up = len(training_refs_of(s, 0))
+    n_up = upper_flights(s.per_level)
     _say(progress, f"controls: {n_up} flights of figure8-fast itself with {Path(final).stem} (upper bound only)")
     up = _flights_stage(s, c / "upper_flights.npz", [FlightJob(s, "upper", 0, k, final) for k in range(n_up)],
                         jobs, progress, "upper bound", held_out=False)

@@ -39,6 +39,8 @@ from sim.params import DT
 
 from .errors import ScenarioError
 
+#: Families of the training references, in the order :func:`training_references` gives them.
+FAMILIES = ("minsnap", "orbit")
 #: Speed levels of the training references: their peak speed, m/s. ``figure8-fast`` peaks at 2.2 m/s (7 m/s^2),
 #: the ladder's fastest lap at 3.3 m/s (16 m/s^2, a rotor at 97 % of its thrust).
 SPEED_LEVELS_MS = (1.0, 2.0, 3.0)
@@ -77,6 +79,11 @@ def accel_limit(level_ms: float) -> float:
     return min(ACCEL_CAP, ACCEL_AT_1_5 * (level_ms / 1.5) ** 2)
 
 
+def references_per_iteration(per_level: int) -> int:
+    """How many references :func:`training_references` gives for ``per_level`` of each family and speed level."""
+    return len(FAMILIES) * len(SPEED_LEVELS_MS) * per_level
+
+
 def training_references(iteration: int, per_level: int = 1, seed: int = 0) -> list[TrainingReference]:
     """The references of one iteration of a learning loop: ``per_level`` of each family and speed level.
 
@@ -92,7 +99,8 @@ def training_references(iteration: int, per_level: int = 1, seed: int = 0) -> li
     Returns
     -------
     list of TrainingReference
-        ``2 * len(SPEED_LEVELS_MS) * per_level`` references, min-snap paths first.
+        :func:`references_per_iteration` references (``len(FAMILIES) * len(SPEED_LEVELS_MS) * per_level``),
+        min-snap paths first.
     """
     from mpc.minsnap import minsnap_through, random_minsnap
 
@@ -240,5 +248,5 @@ def check_held_out(training: dict[str, np.ndarray], held_out: dict[str, np.ndarr
                                     f"of the held-out reference {other!r}: it must not enter training")
 
 
-__all__ = ["Perturbed", "SPEED_LEVELS_MS", "TrainingReference", "accel_limit", "check_held_out", "evaluation_references",
-           "fingerprints", "reference_positions", "training_references"]
+__all__ = ["FAMILIES", "Perturbed", "SPEED_LEVELS_MS", "TrainingReference", "accel_limit", "check_held_out", "evaluation_references",
+           "fingerprints", "reference_positions", "references_per_iteration", "training_references"]

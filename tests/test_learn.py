@@ -375,6 +375,31 @@ def test_stage_times_keep_a_finished_stage_and_time_one_that_works(tmp_path):
     assert json.loads((tmp_path / learn.STAGE_TIMES).read_text()) == t.seconds
 
 
+def test_learn_help_says_how_many_flights_of_figure8_fast_the_upper_bound_adds(tmp_path, monkeypatch, capsys):
+    """The help's count of the upper bound's flights of figure8-fast, and of an iteration's flights, are what the code
+    flies at the default --per-level."""
+    import re
+
+    from scenarios.cli import build_parser, main
+
+    with pytest.raises(SystemExit) as e:
+        main(["learn", "--help"])
+    assert e.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    m = re.search(r"figure8-fast itself, as many as an iteration flies, (\d+) at the default --per-level (\d+)\)",
+                  text)
+    assert m is not None, text
+    n_upper, per_level = int(m.group(1)), int(m.group(2))
+    assert build_parser().parse_args(["learn", "--plant", "highfi"]).per_level == per_level
+    s = LearnSettings(per_level=per_level)
+    assert f"(default {per_level}: {len(learn.training_refs_of(s, 0))} flights)" in text
+    fakes = _Fakes()
+    fakes.install(monkeypatch)
+    flights = [_hover_flight(f"f{i}", learn.PIECE_STEPS + 1, i) for i in range(2)]
+    learn._controls(s, tmp_path, flights, str(tmp_path / "final.onnx"), 1, None)
+    assert fakes.calls["fly"] == n_upper == len(load_flights(tmp_path / "controls" / "upper_flights.npz"))
+
+
 def test_the_curve_flies_all_members_for_the_nominal_and_final_models_and_fewer_between(tmp_path, monkeypatch):
     """The first and last rows are the evaluation's own runs (``members``); the rows between fly the first
     ``curve_members`` of those members, so that every row's runs are a prefix of the same ensemble."""
