@@ -111,9 +111,24 @@ LEARN_PLANTS = {
 }
 
 
+#: The option of ``pinnmpc learn`` that sets each setting of :class:`LearnSettings` (the others have none): an invalid
+#: setting's error names its option as typed, since that is where the value came from on the command line.
+SETTING_OPTIONS = {"plant": "--plant", "iterations": "--iterations", "per_level": "--per-level", "seed": "--seed",
+                   "profile": "--profile", "members": "--members", "curve_members": "--curve-members",
+                   "ladder_members": "--ladder-members", "controls": "--no-controls"}
+
+
 @dataclass(frozen=True)
 class LearnSettings:
-    """What defines a learning study (stored in ``learn.json``; a rerun into the same folder must match)."""
+    """What defines a learning study (stored in ``learn.json``; a rerun into the same folder must match).
+
+    Raises
+    ------
+    ScenarioError
+        For an invalid setting, named by its option of ``pinnmpc learn`` (:data:`SETTING_OPTIONS`:
+        ``--per-level must be an integer >= 1; found 0`` for ``per_level=0``), or by its field where it has none
+        (``dither``, ``perturb_m``).
+    """
 
     plant: str = "highfi"
     iterations: int = 3          # models trained on flown data (>= 1)
@@ -128,20 +143,24 @@ class LearnSettings:
     controls: bool = True        # train and fly the two controls
 
     def __post_init__(self):
+        def named(name: str) -> str:
+            return SETTING_OPTIONS.get(name, name)
+
         if self.plant not in LEARN_PLANTS:
-            raise ScenarioError(f"plant must be one of {', '.join(LEARN_PLANTS)}; found {self.plant!r}")
+            raise ScenarioError(f"{named('plant')} must be one of {', '.join(LEARN_PLANTS)}; found {self.plant!r}")
         for name in ("iterations", "per_level", "members", "curve_members", "ladder_members"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ScenarioError(f"{name} must be an integer >= 1; found {v!r}")
+                raise ScenarioError(f"{named(name)} must be an integer >= 1; found {v!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ScenarioError(f"seed must be an integer >= 0; found {self.seed!r}")
+            raise ScenarioError(f"{named('seed')} must be an integer >= 0; found {self.seed!r}")
         for name in ("dither", "perturb_m"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ScenarioError(f"{name} must be a finite number >= 0; found {v!r}")
+                raise ScenarioError(f"{named(name)} must be a finite number >= 0; found {v!r}")
         if self.profile not in LEARN_PROFILES:
-            raise ScenarioError(f"profile must be one of {', '.join(LEARN_PROFILES)}; found {self.profile!r}")
+            raise ScenarioError(f"{named('profile')} must be one of {', '.join(LEARN_PROFILES)}; "
+                                f"found {self.profile!r}")
 
     @property
     def spec(self) -> LearnPlant:

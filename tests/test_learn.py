@@ -191,11 +191,42 @@ def test_the_crazyflie_study_flies_and_learns_its_own_vehicle():
 
 
 def test_bad_settings_name_the_setting():
-    for kw, word in (({"plant": "moon"}, "plant"), ({"iterations": 0}, "iterations"), ({"per_level": 1.5}, "per_level"),
-                     ({"dither": -1.0}, "dither"), ({"profile": "long"}, "profile"), ({"seed": -2}, "seed"),
-                     ({"curve_members": 0}, "curve_members")):
-        with pytest.raises(ScenarioError, match=word):
+    """By its option of pinnmpc learn where it has one (the error reaches the command line as it is)."""
+    for kw, word in (({"plant": "moon"}, "--plant"), ({"iterations": 0}, "--iterations"),
+                     ({"per_level": 1.5}, "--per-level"), ({"dither": -1.0}, "dither"), ({"profile": "long"}, "--profile"),
+                     ({"seed": -2}, "--seed"), ({"curve_members": 0}, "--curve-members"),
+                     ({"members": 0}, "--members"), ({"ladder_members": True}, "--ladder-members"),
+                     ({"perturb_m": float("nan")}, "perturb_m")):
+        with pytest.raises(ScenarioError, match=f"^{word} must be "):
             LearnSettings(**kw)
+
+
+def test_the_settings_options_are_the_learn_command_s():
+    """Each setting named by an option in its errors is that option of pinnmpc learn, stored in that setting."""
+    from scenarios.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if a.dest == "command").choices["learn"]
+    options = {o: a.dest for a in sub._actions for o in a.option_strings}
+    for name, option in learn.SETTING_OPTIONS.items():
+        assert option in options and name in LearnSettings.__dataclass_fields__
+        assert options[option] == ("no_controls" if name == "controls" else name)
+
+
+@pytest.mark.parametrize("args,option", [
+    (["--per-level", "0"], "--per-level"), (["--iterations", "0"], "--iterations"), (["--members", "0"], "--members"),
+    (["--curve-members", "0"], "--curve-members"), (["--ladder-members", "0"], "--ladder-members"),
+    (["--seed=-1"], "--seed"),
+])
+def test_bad_learn_options_are_a_one_line_error_naming_the_option(tmp_path, capsys, args, option):
+    from scenarios.cli import main
+
+    out = tmp_path / "study"
+    code = main(["learn", "--plant", "highfi", "--out", str(out), "--models", str(tmp_path / "models"), *args])
+    std = capsys.readouterr()
+    lines = std.err.splitlines()
+    assert code == 2 and len(lines) == 1 and std.out == ""
+    assert lines[0].startswith(f"pinnmpc learn: error: {option} must be ") and "found" in lines[0]
+    assert list(tmp_path.iterdir()) == []
 
 
 # ------------------------------------------------------------------ resume (the loop's stages, fast)
