@@ -92,10 +92,19 @@ def test_a_renamed_or_embedded_evaluation_reference_is_refused_before_training()
 
 
 def test_the_loop_refuses_to_train_on_flights_of_an_evaluation_reference(tmp_path, monkeypatch):
-    """A flight whose recorded reference is figure8-fast under a training name stops the study before training."""
+    """A flight whose recorded reference is figure8-fast under a training name stops the study before training.
+
+    Its reference as drawn passes the check before flying; the refusal is the check of the flown flights, with its
+    own message. Every later stage is a stand-in that works without files, so that the study would end without an
+    error (and the test fail) if that check were gone.
+    """
+    import re
+
     fast = get_scenario("figure8-fast")
     fig8 = reference_positions(fast.reference(), fast.steps * DT)
-    trained = []
+    s = LearnSettings(iterations=1, per_level=1, controls=False)
+    culprit = learn.training_refs_of(s, 0)[1].name
+    trained, evaluated = [], []
 
     def fake_fly(job):
         ref = fig8 if job.index == 1 else None
@@ -104,9 +113,14 @@ def test_the_loop_refuses_to_train_on_flights_of_an_evaluation_reference(tmp_pat
     monkeypatch.setattr(learn, "fly_flight", fake_fly)
     monkeypatch.setattr(learn, "_curve_row", lambda *a, **k: {"iteration": a[2]})
     monkeypatch.setattr(learn, "train_model", lambda *a, **k: trained.append(a) or {})
-    with pytest.raises(ScenarioError, match="figure8-fast"):
-        learn.run_learn(LearnSettings(iterations=1, per_level=1), tmp_path, jobs=1, progress=None)
-    assert trained == []
+    monkeypatch.setattr(learn, "_evaluate", lambda *a, **k: evaluated.append(a) or {"label": "fake"})
+    refusal = (rf"^training reference {re.escape(repr(culprit))} repeats \d+ windows of 0.25 s of the held-out "
+               rf"reference 'figure8-fast': it must not enter training$")
+    with pytest.raises(ScenarioError, match=refusal):
+        learn.run_learn(s, tmp_path, jobs=1, progress=None)
+    study = tmp_path / "highfi"
+    assert [f["name"] for f in load_flights(study / "it0" / "flights.npz")][1] == culprit    # flown, then refused
+    assert trained == [] and evaluated == [] and not (study / "it1" / "data.npz").exists()
 
 
 # ------------------------------------------------------------------ flights as data
