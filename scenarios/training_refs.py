@@ -248,5 +248,6 @@ def check_held_out(training: dict[str, np.ndarray], held_out: dict[str, np.ndarr
                                     f"of the held-out reference {other!r}: it must not enter training")
 
 
-__all__ = ["FAMILIES", "Perturbed", "SPEED_LEVELS_MS", "TrainingReference", "accel_limit", "check_held_out", "evaluation_references",
-           "fingerprints", "reference_positions", "references_per_iteration", "training_references"]
+__all__ = ["FAMILIES", "Perturbed", "SPEED_LEVELS_MS", "TrainingReference", "accel_limit", "check_held_out",
+           "evaluation_references", "fingerprints", "reference_positions", "references_per_iteration",
+           "training_references"]

@@ -207,9 +207,10 @@ def test_the_crazyflie_study_flies_and_learns_its_own_vehicle():
 def test_bad_settings_name_the_setting():
     """By its option of pinnmpc learn where it has one (the error reaches the command line as it is)."""
     for kw, word in (({"plant": "moon"}, "--plant"), ({"iterations": 0}, "--iterations"),
-                     ({"per_level": 1.5}, "--per-level"), ({"dither": -1.0}, "dither"), ({"profile": "long"}, "--profile"),
-                     ({"seed": -2}, "--seed"), ({"curve_members": 0}, "--curve-members"),
-                     ({"members": 0}, "--members"), ({"ladder_members": True}, "--ladder-members"),
+                     ({"per_level": 1.5}, "--per-level"), ({"dither": -1.0}, "dither"),
+                     ({"profile": "long"}, "--profile"), ({"seed": -2}, "--seed"),
+                     ({"curve_members": 0}, "--curve-members"), ({"members": 0}, "--members"),
+                     ({"ladder_members": True}, "--ladder-members"),
                      ({"perturb_m": float("nan")}, "perturb_m")):
         with pytest.raises(ScenarioError, match=f"^{word} must be "):
             LearnSettings(**kw)
