@@ -30,6 +30,10 @@ import numpy as np
 
 from .errors import ConfigurationError, SolverError
 
+#: QP solvers of the LTV-MPC and the SQP (:attr:`mpc.ltv.LTVSettings.qp`): OSQP on the sparse QP, or DAQP on this
+#: module's condensed one. Kept here, in a module that imports only numpy, so that the command line can offer them
+#: without loading a solver.
+QP_SOLVERS = ("osqp", "daqp")
 #: DAQP's exit flags that mean a solution: optimal, and optimal with soft constraints relaxed.
 SOLVED_FLAGS = (1, 2)
 

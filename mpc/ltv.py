@@ -34,6 +34,7 @@ from sim.rotors import load_matrix, realize
 
 from .base import MPCBase, shift_stages
 from .controller import ControlInfo, Reference, Timer, check_common_settings, check_measured
+from .dense_qp import QP_SOLVERS
 from .errors import ConfigurationError
 from .models import PredictionModel
 from .timing import PeriodClock
@@ -59,10 +60,6 @@ def csc_in_entry_order(rows, cols, vals, shape):
     ids.sort_indices()
     perm = ids.data.astype(np.int64) - 1
     return sp.csc_matrix((vals[perm], ids.indices, ids.indptr), shape=shape), perm
-
-
-#: QP solvers of the LTV-MPC and the SQP (:attr:`LTVSettings.qp`).
-QP_SOLVERS = ("osqp", "daqp")
 
 
 @dataclass(frozen=True)

@@ -247,15 +247,21 @@ def estimator_plan(models: list[str], names: list[str], scenarios_given: bool,
 
 
 def main_plan(models_dir="models", full: bool = False, scenarios: list[str] | None = None, plant: str = "sim",
-              vehicle: str | None = None, estimator: str | None = None) -> list[RunSpec]:
+              vehicle: str | None = None, estimator: str | None = None, qp: str = "osqp") -> list[RunSpec]:
     """The closed-loop runs of the main job (see the module docstring).
 
     With another ``plant`` or ``vehicle`` the same runs fly there (the oracle becoming the nominal equations
     where the plant has no known equations, without the high-fidelity scenarios), and the runs of
     :func:`plant_plan` are left out. With ``estimator`` (``"none"`` or ``"ekf"``) every run flies with that
     setting; by default (None) every run flies without an estimator and the disturbance and noise cases with
-    and without (:func:`estimator_plan`).
+    and without (:func:`estimator_plan`). ``qp``: the QP solver of every run (:attr:`scenarios.runner.RunSpec.qp`),
+    which the LTV-MPC's and the SQP's runs use and the others leave alone.
     """
+    if qp != "osqp":
+        import dataclasses
+
+        return [dataclasses.replace(s, qp=qp) for s in main_plan(models_dir, full, scenarios, plant, vehicle,
+                                                                   estimator)]
     if estimator is not None:
         from .runner import ESTIMATORS
 
@@ -457,8 +463,11 @@ def reusable_evaluation(out_dir, models_dir, folders) -> tuple[Path, dict] | Non
 def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bool = False,
                  progress: bool = True, scenarios: list[str] | None = None, engine: str = "process",
                  address: str | None = None, resume: bool = True, plant: str = "sim",
-                 vehicle: str | None = None, estimator: str | None = None) -> dict:
+                 vehicle: str | None = None, estimator: str | None = None, qp: str = "osqp") -> dict:
     """Run everything and build the report; returns ``{"results": [...], "report": path}``.
+
+    ``qp``: the QP solver of every LTV-MPC and SQP run (:attr:`scenarios.runner.RunSpec.qp`; ``"osqp"`` or
+    ``"daqp"``); the NMPC's and the LQR's runs are the same either way.
 
     ``engine``, ``address`` and ``resume`` are those of :func:`scenarios.sweep.sweep`: closed-loop runs already
     saved in ``out_dir`` with the same spec, seed, model file and code are reused unless ``resume`` is False, and
@@ -468,7 +477,7 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
 
     out = Path(out_dir)
     jobs = max(1, os.cpu_count() or 1) if jobs is None else jobs
-    specs = main_plan(models_dir, full, scenarios, plant, vehicle, estimator)   # validates names and files first
+    specs = main_plan(models_dir, full, scenarios, plant, vehicle, estimator, qp)   # validates names and files first
     if progress and plant == "sim" and vehicle is None and scenarios is None and not rotorpy_available():
         print("RotorPy is not installed: the runs on other plants are left out (pip install -e '.[rotorpy]')",
               file=sys.stderr)
@@ -530,7 +539,7 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
     results = sweep(specs, out, jobs=jobs, progress=progress, engine=engine, address=address, resume=resume)
     from sim.vehicle import load_vehicle
 
-    write_json(out / "results.json", {"plan": {"full": full, "models_dir": str(models_dir), "plant": plant,
+    write_json(out / "results.json", {"plan": {"full": full, "models_dir": str(models_dir), "plant": plant, "qp": qp,
                                            "vehicle": None if vehicle is None else load_vehicle(vehicle).name,
                                            "rotorpy": rotorpy_available(),
                                            "specs": [spec_dict(s) for s in specs]}, "runs": results})

@@ -12,9 +12,35 @@ from sim.files import check_writable, write_json, write_npz, write_text
 from .engines import ENGINES
 
 #: Fields printed by ``pinnmpc fly``, in order (names other tools rely on).
-FLY_FIELDS = ("scenario", "controller", "model", "plant", "vehicle", "timing", "estimator", "rmse_position_m", "max_position_error_m", "crashed",
+FLY_FIELDS = ("scenario", "controller", "qp", "model", "plant", "vehicle", "timing", "estimator", "rmse_position_m", "max_position_error_m", "crashed",
               "crash_time_s", "solve_ms", "deadline_misses", "deadline_fallbacks", "solver_failures",
               "fallbacks")
+
+
+#: How to install the dense QP solver (the optional extra ``dense``).
+DENSE_INSTALL = 'python -m pip install -e ".[dense]"'
+
+
+def _qp_option(p, what: str) -> None:
+    """``--qp``: the QP solver of every LTV-MPC and SQP the command builds (``what`` says which those are)."""
+    from mpc.dense_qp import QP_SOLVERS
+
+    p.add_argument("--qp", choices=QP_SOLVERS, default="osqp",
+                   help=f"QP solver of {what}: osqp (sparse, the default) or daqp (the QP condensed onto the "
+                        f"inputs and solved by a dense active-set solver, usually faster; the optional extra "
+                        f"dense: {DENSE_INSTALL}). A run records it, and a saved run is reused only by the same "
+                        f"solver")
+
+
+def _check_qp(qp: str) -> None:
+    """``--qp daqp`` without DAQP installed: a user-input error naming the option and the install command, raised
+    before anything is loaded, written or flown."""
+    if qp == "daqp":
+        from mpc.dense_qp import daqp_installed
+
+        if not daqp_installed():
+            raise ValueError(f"--qp daqp needs DAQP, which is not installed (the optional extra dense): "
+                             f"{DENSE_INSTALL}; or give --qp osqp")
 
 
 def _sweep_options(p, published: str, where: str) -> None:
@@ -78,6 +104,7 @@ def register(sub) -> None:
                    help="none: the controller sees the true state (plus the scenario's noise; default); ekf: it "
                         "sees an extended Kalman filter's estimate from motion capture and an IMU, on its own "
                         "model, with a disturbance estimate (docs/estimation.md)")
+    _qp_option(p, "the ltv and sqp controllers (the others solve no QP)")
     p.add_argument("--json", metavar="FILE", type=Path, default=None, help="write the result as JSON")
     p.add_argument("--trace", metavar="FILE.npz", type=Path, default=None, help="write the trace arrays")
     p.add_argument("--plot", metavar="FILE.png", type=Path, default=None, help="plot path, height, error, inputs")
@@ -114,6 +141,7 @@ def register(sub) -> None:
                    help="fly every run with this setting (none: the true state plus noise; ekf: the state "
                         "estimator's estimate, docs/estimation.md). Default: every run without, and the "
                         "disturbance and noise cases with the SQP both ways")
+    _qp_option(p, "every LTV-MPC and SQP run (the NMPC's and the LQR's runs are unchanged)")
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser("study", help="dose-response: fly every zoo model as an ensemble and score the predictors",
@@ -137,6 +165,7 @@ def register(sub) -> None:
                         "study_ekf.json beside study.json, for the report's threshold with and without it")
     p.add_argument("--select", default=None, metavar="NAMES",
                    help="comma-separated zoo models to fly (default: all)")
+    _qp_option(p, "every LTV-MPC and SQP run")
     p.set_defaults(handler=cmd_study)
 
     p = sub.add_parser("versus", help="learned against nominal: fly the models trained on plants with unmodelled "
@@ -158,6 +187,7 @@ def register(sub) -> None:
                    help="comma-separated plants: highfi, rotorpy (default both; rotorpy needs the rotorpy extra), "
                         "crazyflie (RotorPy's Crazyflie preset: no open-loop model is trained on it)")
     _sweep_options(p, "versus.json", "--models/versus")
+    _qp_option(p, "every SQP run")
     p.set_defaults(handler=cmd_versus)
 
     from .learn import LEARN_PLANTS, LearnSettings, upper_flights
@@ -277,7 +307,12 @@ def cmd_realdata(args: argparse.Namespace) -> int:
 def cmd_fly(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc fly``."""
     from .metrics import SETTLE_WINDOW_S
-    from .runner import RunSpec, fly
+    from .runner import DEFAULT_QP, QP_CONTROLLERS, RunSpec, fly
+
+    _check_qp(args.qp)
+    if args.qp != DEFAULT_QP and args.controller not in QP_CONTROLLERS:
+        raise ValueError(f"--qp applies to the controllers that solve a QP ({', '.join(QP_CONTROLLERS)}); found "
+                         f"--qp {args.qp} with --controller {args.controller}")
 
     if args.plot is not None and args.plot.suffix.lower() != ".png":
         raise ValueError(f"--plot must name a .png file; found {str(args.plot)!r}")
@@ -289,7 +324,7 @@ def cmd_fly(args: argparse.Namespace) -> int:
     from .runner import load_run_model
 
     spec = RunSpec(args.scenario, args.controller, args.model, args.seed, args.horizon, args.timing,
-                   plant=args.plant, vehicle=args.vehicle, estimator=args.estimator)
+                   plant=args.plant, vehicle=args.vehicle, estimator=args.estimator, qp=args.qp)
     model = load_run_model(spec)
     ready = require(model, spec.controller)     # the same verdict as pinnmpc check-model prints
     if ready.warning:
@@ -334,6 +369,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc run``."""
     from .campaign import run_main_job
 
+    _check_qp(args.qp)
     if args.jobs is not None and args.jobs < 1:
         raise ValueError(f"--jobs must be >= 1; found {args.jobs}")
     if args.address is not None and args.engine != "ray":
@@ -342,7 +378,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     check_writable(args.out, "--out", folder=True)
     out = run_main_job(args.out, args.models, args.jobs, args.full, progress=True, engine=args.engine,
                        address=args.address, resume=not args.fresh, plant=args.plant, vehicle=args.vehicle,
-                       estimator=args.estimator)
+                       estimator=args.estimator, qp=args.qp)
     runs = out["results"]
     crashed = [r["run_id"] for r in runs if r.get("crashed")]
     errors = [r["run_id"] for r in runs if r.get("error")]
@@ -364,9 +400,12 @@ def cmd_study(args: argparse.Namespace) -> int:
     if args.score_only:
         if args.estimator != "none" or args.select is not None:
             raise ValueError("--score-only rescores the study without an estimator; drop --estimator and --select")
+        if args.qp != "osqp":
+            raise ValueError(f"--score-only flies nothing, so it has no QP solver; drop --qp {args.qp}")
         out = rescore_study(args.models, args.out, publish=not args.no_publish)
         print(format_study(out))
         return 0
+    _check_qp(args.qp)
     jobs = args.jobs if args.jobs is not None else (os.cpu_count() or 1)
     if jobs < 1 or args.members < 1:
         raise ValueError(f"--jobs and --members must be >= 1; found {jobs} and {args.members}")
@@ -384,7 +423,7 @@ def cmd_study(args: argparse.Namespace) -> int:
         raise ValueError("a study of some models would replace the zoo's study.json; give --no-publish")
     out = run_study(args.models, args.out, args.members, jobs, progress=True, publish=not args.no_publish,
                     engine=args.engine, address=args.address, resume=not args.fresh, plant=args.plant,
-                    vehicle=args.vehicle, estimator=args.estimator, select=select)
+                    vehicle=args.vehicle, estimator=args.estimator, select=select, qp=args.qp)
     print(format_study(out))
     name = study_file(args.estimator)
     print(f"wrote {args.out / name}" + ("" if args.no_publish else f" and {args.models / name}"))
@@ -402,6 +441,7 @@ def cmd_versus(args: argparse.Namespace) -> int:
 
     from .versus import format_versus, parse_plants, run_versus
 
+    _check_qp(args.qp)
     jobs = args.jobs if args.jobs is not None else (os.cpu_count() or 1)
     for name, v in (("--jobs", jobs), ("--members", args.members), ("--ladder-members", args.ladder_members)):
         if v < 1:
@@ -411,7 +451,7 @@ def cmd_versus(args: argparse.Namespace) -> int:
     check_writable(args.out, "--out", folder=True)
     out = run_versus(args.models, args.out, args.members, args.ladder_members, parse_plants(args.plants), jobs,
                      progress=True, publish=not args.no_publish, engine=args.engine, address=args.address,
-                     resume=not args.fresh)
+                     resume=not args.fresh, qp=args.qp)
     print(format_versus(out))
     print(f"wrote {args.out / 'versus.json'}"
           + ("" if args.no_publish else f" and {args.models / 'versus' / 'versus.json'}"))

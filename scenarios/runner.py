@@ -66,6 +66,10 @@ ESTIMATORS = ("none", "ekf")
 #: Model names that stand for equations rather than a file: the plant's own equations where they are known, and
 #: the nominal rigid-body equations with the vehicle's values.
 EQUATION_MODELS = ("oracle", "nominal")
+#: The controllers that solve a QP each period, and so take a QP solver (:attr:`RunSpec.qp`).
+QP_CONTROLLERS = ("ltv", "sqp")
+#: The QP solver of a run unless stated (the solver of a run's record and cache key before the choice existed).
+DEFAULT_QP = "osqp"
 
 
 def model_name(model: str) -> str:
@@ -134,7 +138,10 @@ class RunSpec:
     ``scenario`` is a scenario name or a scenario file (``.toml``);
     ``model`` is ``"oracle"``, ``"nominal"``, ``"analytic:..."`` or an ONNX
     path; ``plant`` one of :data:`sim.plants.PLANTS`; ``vehicle`` a shipped
-    vehicle's name or a vehicle file (None: the default vehicle).
+    vehicle's name or a vehicle file (None: the default vehicle); ``qp`` the
+    QP solver of the LTV-MPC and the SQP (:data:`mpc.dense_qp.QP_SOLVERS`: ``"osqp"``
+    or ``"daqp"``, the dense path), which the other controllers have no use
+    for (see :attr:`qp_solver`).
     """
 
     scenario: str
@@ -147,6 +154,7 @@ class RunSpec:
     plant: str = "sim"            # the plant flown
     vehicle: str | None = None    # vehicle name or file; None: the default vehicle
     estimator: str = "none"       # "none" (the state, plus the scenario's noise) or "ekf" (sensors and a filter)
+    qp: str = DEFAULT_QP          # QP solver of the LTV-MPC and the SQP: "osqp" or "daqp"
 
     def __post_init__(self):
         from sim.vehicle import load_vehicle
@@ -168,6 +176,10 @@ class RunSpec:
             raise ScenarioError(f"timing must be one of {', '.join(TIMINGS)}; found {self.timing!r}")
         if self.estimator not in ESTIMATORS:
             raise ScenarioError(f"estimator must be one of {', '.join(ESTIMATORS)}; found {self.estimator!r}")
+        from mpc.dense_qp import QP_SOLVERS
+
+        if self.qp not in QP_SOLVERS:
+            raise ScenarioError(f"qp must be one of {', '.join(QP_SOLVERS)}; found {self.qp!r}")
         sc = get_scenario(self.scenario)  # raises for an unknown name or a bad scenario file
         object.__setattr__(self, "_scenario_name", sc.name)
         if sc.high_fidelity and self.plant != "sim":
@@ -196,6 +208,12 @@ class RunSpec:
         return model_name(self.model)
 
     @property
+    def qp_solver(self) -> str | None:
+        """The QP solver the run's controller uses: :attr:`qp` for the LTV-MPC and the SQP, None for the others
+        (the NMPC's IPOPT and the LQR solve no QP), so that their runs are the same whatever ``qp`` says."""
+        return self.qp if self.controller in QP_CONTROLLERS else None
+
+    @property
     def vehicle_data(self):
         """The :class:`sim.vehicle.Vehicle` flown."""
         return self._vehicle
@@ -211,7 +229,8 @@ class RunSpec:
 
         ``__s<seed>`` is appended for an explicit seed, ``__m<k>`` for ensemble member k, ``__realtime`` for
         that timing, ``__<plant>`` for a plant other than ``sim``, ``__<vehicle>`` for a vehicle other than
-        the default and ``__ekf`` with the estimator.
+        the default, ``__ekf`` with the estimator and ``__<qp>`` for a QP solver other than OSQP (the LTV-MPC's
+        and the SQP's runs only, :attr:`qp_solver`), so that runs by either solver can share a results folder.
         """
         from sim.vehicle import DEFAULT_VEHICLE
 
@@ -226,6 +245,8 @@ class RunSpec:
             base += f"__m{self.member}"
         if self.estimator != "none":
             base += f"__{self.estimator}"
+        if self.qp_solver not in (None, DEFAULT_QP):
+            base += f"__{self.qp_solver}"
         return base if self.timing == "ideal" else f"{base}__{self.timing}"
 
 
@@ -269,7 +290,7 @@ ESTIMATOR_RESERVE_S = 0.003
 
 
 def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing: str = "ideal", vehicle=None,
-                    estimator: str = "none", sqp: dict | None = None):
+                    estimator: str = "none", sqp: dict | None = None, qp: str = DEFAULT_QP):
     """The controller ``kind`` (``nmpc``, ``sqp``, ``ltv``, ``lqr``) on prediction ``model`` following ``reference``.
 
     The controller gets the model, the reference and the vehicle's datasheet
@@ -279,7 +300,9 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
     without its wall-clock budget (at most its iteration limit), so that the
     run is reproducible bit for bit; with ``realtime`` timing the budget applies, less
     :data:`ESTIMATOR_RESERVE_S` with a state ``estimator`` (its time counts against the same period).
-    ``sqp``: other :class:`mpc.sqp.SQPSettings` values for the SQP (for example ``{"jacobian_refresh": "full"}``).
+    ``sqp``: other :class:`mpc.sqp.SQPSettings` values for the SQP (for example ``{"jacobian_refresh": "full"}``;
+    a ``"qp"`` there wins over ``qp``). ``qp``: the QP solver of the LTV-MPC and the SQP (``"osqp"`` or
+    ``"daqp"``, :attr:`mpc.ltv.LTVSettings.qp`); the NMPC and the LQR have none.
     """
     from mpc.lqr import LQRController
     from mpc.ltv import LTVMPC, LTVSettings
@@ -293,7 +316,7 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
         import dataclasses
 
         from mpc.sqp import SQPMPC, SQPSettings
-        other = dict(sqp or {})
+        other = {"qp": qp, **(sqp or {})}
         if timing == "ideal":
             return SQPMPC(model, reference, SQPSettings(horizon=horizon, time_budget_s=None, cold_start_budget_s=None,
                                                         **other), spec=spec)
@@ -303,7 +326,7 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
                                      cold_start_budget_s=st.cold_start_budget_s - ESTIMATOR_RESERVE_S)
         return SQPMPC(model, reference, st, spec=spec)
     if kind == "ltv":
-        return LTVMPC(model, reference, LTVSettings(horizon=horizon), spec=spec)
+        return LTVMPC(model, reference, LTVSettings(horizon=horizon, qp=qp), spec=spec)
     if kind == "lqr":
         return LQRController(reference, model, spec=spec)
     raise ScenarioError(f"controller must be one of {', '.join(CONTROLLERS)}; found {kind!r}")
@@ -395,6 +418,14 @@ def _feedforward_key(spec: "RunSpec", sc, inputs: dict, K: int, sqp) -> str | No
         return None
 
 
+def flown_qp(spec: "RunSpec", sqp: dict | None = None) -> str | None:
+    """The QP solver a run of ``spec`` flies with: :attr:`RunSpec.qp_solver`, or for the SQP the ``"qp"`` of the
+    other settings ``sqp`` (:func:`fly`) when they give one; None for a controller without a QP."""
+    if spec.controller == "sqp" and sqp and "qp" in sqp:
+        return sqp["qp"]
+    return spec.qp_solver
+
+
 def make_run_plant(spec: "RunSpec", sc):
     """The plant of a run: ``spec.plant`` flying ``spec``'s vehicle with the scenario's disturbances."""
     from sim.plants import make_plant
@@ -416,6 +447,9 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
     loaded :class:`mpc.models.PredictionModel`) saves loading ``spec.model`` again. ``ekf_config`` (an
     :class:`mpc.estimator.EKFConfig`) replaces the estimator's default tuning. ``sqp``: other
     :class:`mpc.sqp.SQPSettings` values for the SQP (:func:`make_controller`; benchmarks compare its paths).
+
+    The result's ``qp`` names the QP solver the controller used (:func:`flown_qp`): ``spec.qp`` for the LTV-MPC
+    and the SQP (or the ``"qp"`` of ``sqp``), None for the NMPC and the LQR.
     """
     from .loop import IdealClock, RealtimeClock, StateSensor, Trace, fly_loop
 
@@ -445,12 +479,12 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
             "model": spec.model_name, "model_file": None if sha is None else str(spec.model),
             "model_sha256": sha, "seed": sc.seed, "member": spec.member, "horizon": spec.horizon,
             "timing": spec.timing, "plant": spec.plant, "vehicle": vehicle.name, "estimator": spec.estimator,
-            "inputs_sha256": inputs}
+            "qp": flown_qp(spec, sqp), "inputs_sha256": inputs}
     t0 = time.perf_counter()
     realtime = spec.timing == "realtime"
     try:
         ctrl = make_controller(spec.controller, model, ref, spec.horizon, spec.timing, vehicle, spec.estimator,
-                               sqp=sqp)
+                               sqp=sqp, qp=spec.qp)
         # The reference is known before take-off: its feed-forward is fitted now (or taken from this process's
         # last run of the same model and reference: an ensemble's members differ only in their start and seed),
         # and a controller that plans ahead (the SQP) makes its first plan from the state the vehicle stands in.
@@ -603,6 +637,9 @@ def code_version() -> str:
 def cache_key(spec: RunSpec, inputs: dict | None = None) -> str:
     """Identity of a run's result: its spec, its seed, the SHA-256 of every file it reads and the code version.
 
+    The QP solver (:attr:`RunSpec.qp_solver`) is part of it: a run flown with one solver is never reused for
+    the other. It enters only where it is not OSQP, so an OSQP run's key is made as before the choice existed.
+
     ``inputs``: those hashes (:func:`input_hashes`) as a run recorded them when it started flying; None: the
     files as they are now. A saved result is reused only when the two agree, so a run flown with a file that was
     replaced since (or replaced during the sweep) is flown again.
@@ -617,6 +654,9 @@ def cache_key(spec: RunSpec, inputs: dict | None = None) -> str:
              "horizon": spec.horizon,
              "timing": spec.timing, "plant": spec.plant, "vehicle": spec.vehicle_data.to_dict(),
              "estimator": spec.estimator, "code": code_version()}
+    if spec.qp_solver not in (None, DEFAULT_QP):
+        # Only where it is not OSQP, the solver of every run before the choice: an OSQP run keeps its identity.
+        ident["qp"] = spec.qp_solver
     return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
 
 
@@ -685,7 +725,8 @@ def fly_for_sweep(spec: RunSpec) -> tuple[dict, dict]:
 def not_flown(spec: RunSpec, error: str) -> dict:
     """The result of a run that did not fly: its metrics null, ``error`` the reason (one line)."""
     return {"run_id": spec.run_id, "scenario": spec.scenario_name, "controller": spec.controller,
-            "model": spec.model_name, "plant": spec.plant, "vehicle": spec.vehicle_data.name, **NOT_FLOWN,
+            "model": spec.model_name, "plant": spec.plant, "vehicle": spec.vehicle_data.name, "qp": spec.qp_solver,
+            **NOT_FLOWN,
             "error": error, "inputs_sha256": input_hashes(spec)}
 
 

@@ -113,10 +113,12 @@ def plant_models(key: str, models_dir) -> list[str]:
     return eq + [str(Path(models_dir) / m) for m in p.models if (Path(models_dir) / m).is_file()]
 
 
-def versus_specs(key: str, models: list[str], members: int = 10, ladder_members: int = 10) -> dict:
+def versus_specs(key: str, models: list[str], members: int = 10, ladder_members: int = 10,
+                 qp: str = "osqp") -> dict:
     """The runs of one plant: ``{"ensemble": {model: [RunSpec]}, "ladder": {model: {rung: [RunSpec]}}}``.
 
-    The ladder's :data:`VERSUS_SCENARIO` rung is the ensemble itself (no run is flown twice).
+    The ladder's :data:`VERSUS_SCENARIO` rung is the ensemble itself (no run is flown twice). ``qp``: the QP
+    solver of every run (:attr:`scenarios.runner.RunSpec.qp`).
     """
     _count("members", members)
     _count("ladder_members", ladder_members)
@@ -124,9 +126,10 @@ def versus_specs(key: str, models: list[str], members: int = 10, ladder_members:
     ens, lad = {}, {}
     for m in models:
         ens[m] = [RunSpec(p.scenario(VERSUS_SCENARIO), VERSUS_CONTROLLER, m, member=k, plant=p.plant,
-                          vehicle=p.vehicle) for k in range(members)]
+                          vehicle=p.vehicle, qp=qp) for k in range(members)]
         lad[m] = {r: (ens[m] if r == VERSUS_SCENARIO else
-                      [RunSpec(p.scenario(r), VERSUS_CONTROLLER, m, member=k, plant=p.plant, vehicle=p.vehicle)
+                      [RunSpec(p.scenario(r), VERSUS_CONTROLLER, m, member=k, plant=p.plant, vehicle=p.vehicle,
+                               qp=qp)
                        for k in range(ladder_members)]) for r in ladder_names()}
     return {"ensemble": ens, "ladder": lad}
 
@@ -223,7 +226,8 @@ def summarize_plant(key: str, models: list[str], results: dict, speeds: dict) ->
 
 @locks_out_dir
 def run_versus(models_dir="models", out_dir="results/versus", members: int = 10, ladder_members: int = 10,
-               plants=None, jobs: int = 1, progress: bool = True, publish: bool = True, **sweep_kwargs) -> dict:
+               plants=None, jobs: int = 1, progress: bool = True, publish: bool = True, qp: str = "osqp",
+               **sweep_kwargs) -> dict:
     """Fly the study (a resumable sweep) and write ``versus.json`` (see the module docstring).
 
     Parameters
@@ -238,6 +242,8 @@ def run_versus(models_dir="models", out_dir="results/versus", members: int = 10,
         Keys of :data:`VERSUS_PLANTS` (default all).
     publish : bool
         Also copy ``versus.json`` into ``models_dir/versus`` (where the main job finds it for the report).
+    qp : {"osqp", "daqp"}
+        The QP solver of every run (:attr:`scenarios.runner.RunSpec.qp`).
     sweep_kwargs
         ``engine``, ``address``, ``resume`` of :func:`scenarios.sweep.sweep`.
     """
@@ -253,7 +259,7 @@ def run_versus(models_dir="models", out_dir="results/versus", members: int = 10,
     all_specs, tags = [], []
     models = {k: plant_models(k, models_dir) for k in keys}
     for k in keys:
-        sp = versus_specs(k, models[k], members, ladder_members)
+        sp = versus_specs(k, models[k], members, ladder_members, qp)
         for m, runs in sp["ensemble"].items():
             all_specs += runs
             tags += [(k, m, None)] * len(runs)
@@ -277,8 +283,10 @@ def run_versus(models_dir="models", out_dir="results/versus", members: int = 10,
            "ladder_members": ladder_members,
            "ladder": {"rungs": ladder_names(), "speeds_mps": speeds, "rmse_bound_m": LADDER_RMSE_BOUND_M},
            "goal": WIN_FRACTION, "plants": out_plants, "runs": len(results), "code_version": code_version(),
+           "qp": qp,
            "command": f"pinnmpc versus --models {models_dir} --out {out_dir} --members {members} "
-                      f"--ladder-members {ladder_members} --plants {','.join(keys)}",
+                      f"--ladder-members {ladder_members} --plants {','.join(keys)}"
+                      + ("" if qp == "osqp" else f" --qp {qp}"),
            "wall_time_s": wall, "date": time.strftime("%Y-%m-%d")}
     path = write_json(Path(out_dir) / "versus.json", out)
     if publish:

@@ -133,18 +133,20 @@ def refused_models(models_dir) -> dict[str, dict]:
 
 
 def study_specs(models: dict[str, dict], members: int = 10, controllers=STUDY_CONTROLLERS, plant: str = "sim",
-                vehicle: str | None = None, estimator: str = "none") -> tuple[RunSpec, list[RunSpec], list[RunSpec]]:
+                vehicle: str | None = None, estimator: str = "none",
+                qp: str = "osqp") -> tuple[RunSpec, list[RunSpec], list[RunSpec]]:
     """(oracle reference run, ensemble runs, speed-ladder runs) of the study, on ``plant`` flying ``vehicle``.
 
     The reference run is the oracle's, or on a plant without known equations (``rotorpy``) the nominal
     equations', without an estimator (its trace scores the open-loop candidates). With ``estimator``
     (``"ekf"``) the ensembles fly with the state estimator and there is no ladder (the study of the threshold).
+    ``qp``: the QP solver of every run (:attr:`scenarios.runner.RunSpec.qp`).
     """
     if isinstance(members, bool) or not isinstance(members, int) or members < 1:
         raise ScenarioError(f"members must be an integer >= 1; found {members!r}")
     from sim.plants import KNOWN_EQUATIONS
 
-    where = {"plant": plant, "vehicle": vehicle}
+    where = {"plant": plant, "vehicle": vehicle, "qp": qp}
     oracle = RunSpec(STUDY_SCENARIO, "sqp", "oracle" if plant in KNOWN_EQUATIONS else "nominal", **where)
     ens = [RunSpec(STUDY_SCENARIO, c, m["path"], member=k, estimator=estimator, **where) for m in models.values()
            for c in controllers for k in range(members)]
@@ -210,7 +212,8 @@ def _candidates(name: str, entry: dict, oracle_trace: dict) -> dict:
 @locks_out_dir
 def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10, jobs: int = 1,
               controllers=STUDY_CONTROLLERS, progress: bool = True, publish: bool = True, plant: str = "sim",
-              vehicle: str | None = None, estimator: str = "none", select=None, **sweep_kwargs) -> dict:
+              vehicle: str | None = None, estimator: str = "none", select=None, qp: str = "osqp",
+              **sweep_kwargs) -> dict:
     """Fly the study (a resumable sweep), score the predictors and write ``study.json``.
 
     Parameters
@@ -231,6 +234,8 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
         written to ``study_ekf.json`` (:func:`study_file`) beside the one without.
     select : list of str, optional
         Fly only these models of the zoo (default: all).
+    qp : {"osqp", "daqp"}
+        The QP solver of every LTV-MPC and SQP run (:attr:`scenarios.runner.RunSpec.qp`).
     sweep_kwargs
         ``engine``, ``address``, ``resume`` of :func:`scenarios.sweep.sweep`.
     """
@@ -253,7 +258,7 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
     models = {n: e for n, e in models.items() if n not in failed}
     if not models:
         raise ScenarioError(f"{models_dir}: no model can be flown: " + "; ".join(f"{n}: {w}" for n, w in failed.items()))
-    oracle, ens, ladder = study_specs(models, members, controllers, plant, vehicle, estimator)
+    oracle, ens, ladder = study_specs(models, members, controllers, plant, vehicle, estimator, qp)
     t0 = time.perf_counter()
     results = sweep([oracle, *ens, *ladder], out_dir, jobs=jobs, progress=progress, **sweep_kwargs)
     wall = time.perf_counter() - t0
@@ -290,11 +295,12 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
            "refused": refused_models(models_dir), "failed": failed,
            "runs": len(results), "code_version": code_version(), "plant": plant,
            "vehicle": oracle.vehicle_data.name,
-           "estimator": estimator,
+           "estimator": estimator, "qp": qp,
            "command": f"pinnmpc study --models {models_dir} --out {out_dir} --members {members}"
                       + ("" if plant == "sim" else f" --plant {plant}") + ("" if vehicle is None else f" --vehicle {vehicle}")
                       + ("" if estimator == "none" else f" --estimator {estimator}")
-                      + ("" if select is None else f" --select {','.join(models)}"),
+                      + ("" if select is None else f" --select {','.join(models)}")
+                      + ("" if qp == "osqp" else f" --qp {qp}"),
            "wall_time_s": wall, "date": time.strftime("%Y-%m-%d")}
     path = write_json(Path(out_dir) / study_file(estimator), out)
     if publish:
