@@ -17,8 +17,9 @@ def register(sub) -> None:
                                    "when present (against central differences, across the flight envelope). Then "
                                    "print, for each controller, whether it can fly the model and how it gets the "
                                    "model's derivatives; pinnmpc fly refuses exactly what this refuses. Exit 0 "
-                                   "when the file is valid (even if no controller can fly it); otherwise exit 2 "
-                                   "with a message naming the defect.")
+                                   "when the file is valid and some controller can fly it; exit 1 when it is "
+                                   "valid but no controller can fly it (a last line on stderr says why); exit 2 "
+                                   "with a message naming the defect when the file is not valid.")
     p.add_argument("file", metavar="FILE", type=Path, help="the .onnx model file")
     p.add_argument("--json", metavar="FILE", type=Path, default=None, help="write what the model declares as JSON")
     p.set_defaults(handler=cmd_check_model)
@@ -58,7 +59,10 @@ def format_model_info(info, ready=None) -> str:
 
 
 def cmd_check_model(args: argparse.Namespace) -> int:
-    """Handler of ``pinnmpc check-model``."""
+    """Handler of ``pinnmpc check-model``: 0 when some controller can fly the file, 1 when none can (a valid file,
+    but nothing here flies it), and an invalid file raises (the command line's exit 2)."""
+    import sys
+
     from .models import OnnxModel
     from .readiness import readiness
 
@@ -71,4 +75,8 @@ def cmd_check_model(args: argparse.Namespace) -> int:
                                                    "warning": r.warning}
                                                for c, r in ready.items()}})
         print(f"wrote {args.json}")
+    if not any(r.flies for r in ready.values()):
+        why = "; ".join(dict.fromkeys(r.reason for r in ready.values()))
+        print(f"pinnmpc check-model: no controller can fly {args.file}: {why}", file=sys.stderr)
+        return 1
     return 0

@@ -364,8 +364,11 @@ def test_jacobian_graph_with_wrong_outputs_is_rejected(tmp_path):
 
 def test_cli_valid_model(valid, tmp_path, capsys):
     js = tmp_path / "out" / "info.json"
-    assert main(["check-model", str(valid), "--json", str(js)]) == 0
-    out = capsys.readouterr().out
+    # Valid, but the toy network has no LQR about its hover trim, so no controller flies it: exit 1, saying why.
+    assert main(["check-model", str(valid), "--json", str(js)]) == 1
+    cap = capsys.readouterr()
+    out = cap.out
+    assert cap.err.startswith(f"pinnmpc check-model: no controller can fly {valid}: no LQR about the model's hover trim")
     assert "valid" in out and "architecture    toy" in out and "float64" in out and "toy.jac.onnx" in out
     assert "one_step_rmse" in out
     d = json.loads(js.read_text())

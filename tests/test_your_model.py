@@ -53,7 +53,7 @@ def linear(tmp_path_factory) -> Path:
     return d / "linear.onnx"
 
 
-def _linear_matrices(yaw_torque=True):
+def _linear_matrices(yaw_torque=True, rates_held=False):
     dt, g, m = 0.01, 9.81, 0.068
     J = np.array([6.86e-5, 9.20e-5, 1.366e-4])
     M = np.zeros((17, 17))
@@ -63,14 +63,18 @@ def _linear_matrices(yaw_torque=True):
     M[6:9, 13:16] = np.diag(1.0 / J)
     if not yaw_torque:
         M[8, 15] = 0.0
+    if rates_held:                      # no torque reaches the body rates: they hold whatever the inputs
+        M[6:9, 13:16] = 0.0
     M[11, 12], M[11, 16] = -1.0 / m, g
     E = sum(np.linalg.matrix_power(M * dt, k) / math.factorial(k) for k in range(8))
     return E[:12, :12], E[:12, 12:16], E[:12, 16]
 
 
-def build_linear(path, *, dtype=np.float64, dt="0.01", nan=False, nx=12, yaw_torque=True, meta=None) -> Path:
-    """The page's model with one change: dtype, dt, a NaN output, the state width, or no yaw torque."""
-    Ad, Bd, c = _linear_matrices(yaw_torque)
+def build_linear(path, *, dtype=np.float64, dt="0.01", nan=False, nx=12, yaw_torque=True, rates_held=False,
+                 meta=None) -> Path:
+    """The page's model with one change: dtype, dt, a NaN output, the state width, no yaw torque, or no torque at
+    all on the body rates (``rates_held``)."""
+    Ad, Bd, c = _linear_matrices(yaw_torque, rates_held)
     et = helper.np_dtype_to_tensor_dtype(np.dtype(dtype))
     nodes = [helper.make_node("MatMul", ["x", "AdT"], ["xa"]), helper.make_node("MatMul", ["u", "BdT"], ["ub"]),
              helper.make_node("Add", ["xa", "ub"], ["s"])]
@@ -166,14 +170,16 @@ def _file_set(d: Path) -> dict[str, Path]:
             "wrong_dt": build_linear(d / "wrong_dt.onnx", dt="0.02"),
             "nan": build_linear(d / "nan.onnx", nan=True),
             "wrong_shape": build_linear(d / "wrong_shape.onnx", nx=10),
-            "no_yaw_torque": build_linear(d / "no_yaw_torque.onnx", yaw_torque=False)}
+            "no_yaw_torque": build_linear(d / "no_yaw_torque.onnx", yaw_torque=False),
+            "rates_held": build_linear(d / "rates_held.onnx", rates_held=True)}
 
 
-#: What check-model must say of each file of the set: (exit code, controllers that fly, words of the defect).
+#: What check-model must say of each file of the set: (exit code, controllers that fly, words of the defect). A
+#: valid file that no controller flies exits 1; a file that is not valid, 2.
 EXPECTED = {"valid": (0, CONTROLLERS, None), "no_derivative_graph": (0, CONTROLLERS, None),
             "float32": (0, CONTROLLERS, None), "wrong_dt": (2, (), "'dt' must equal"),
             "nan": (2, (), "not finite"), "wrong_shape": (2, (), "must have shape"),
-            "no_yaw_torque": (0, (), "no LQR")}
+            "no_yaw_torque": (1, (), "no LQR"), "rates_held": (1, (), "no input changes the body rates")}
 
 
 def test_check_model_and_fly_agree_on_every_file(tmp_path, capsys):
@@ -204,6 +210,30 @@ def test_check_model_and_fly_agree_on_every_file(tmp_path, capsys):
                 assert main(["fly", "--model", str(path), "--controller", c, "--scenario", "hover"]) == 2, (name, c)
                 err = capsys.readouterr().err
                 assert words in err, (name, c, err)
+
+
+def test_check_model_exits_1_when_no_controller_can_fly_a_valid_file_and_says_why(linear, tmp_path, capsys):
+    """A valid file whose body rates no input changes: every controller's line says it cannot fly and why, the
+    JSON is written, and the command ends with exit 1 and one line on stderr naming the file and the reason. The
+    page's own model, which they all fly, exits 0 with nothing on stderr."""
+    import json
+
+    held = build_linear(tmp_path / "rates_held.onnx", rates_held=True)
+    js = tmp_path / "held.json"
+    assert main(["check-model", str(held), "--json", str(js)]) == 1
+    cap = capsys.readouterr()
+    assert f"{held}: valid" in cap.out
+    for c in CONTROLLERS:
+        assert re.search(rf"^\s+{c}\s+cannot fly: no LQR .*no input changes the body rates", cap.out, re.M), cap.out
+    assert cap.err.count("\n") == 1 and cap.err.startswith(f"pinnmpc check-model: no controller can fly {held}: ")
+    assert "no input changes the body rates" in cap.err
+    assert not any(v["flies"] for v in json.loads(js.read_text())["controllers"].values())
+    assert main(["check-model", str(linear)]) == 0
+    assert capsys.readouterr().err == ""
+    with pytest.raises(SystemExit):                         # and its --help says so
+        main(["check-model", "--help"])
+    helptext = " ".join(capsys.readouterr().out.split())
+    assert "exit 1 when it is valid but no controller can fly it" in helptext and "exit 2" in helptext
 
 
 # ---- derivatives without a derivative graph -----------------------------------------------------------
