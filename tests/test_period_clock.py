@@ -58,6 +58,49 @@ def test_expected_times_are_the_recent_median_and_the_longest_line_search():
     assert c.begin(fake()).expect["derivatives"] == pytest.approx(5e-4, abs=TOL["seconds"])
 
 
+@pytest.mark.parametrize("recent", [RECENT_PERIODS, 3])
+def test_slow_periods_age_out_and_the_work_they_held_back_runs_again(recent):
+    """One slow period of each kind of optional work (a line search, a full refresh, a cold start), and a stretch
+    of ``recent`` slow first derivatives, hold that work back only while they are among the last ``recent``
+    periods: once as many normal periods followed, every rule lets it run again. A history that never dropped old
+    periods would keep a line search off for the rest of the flight after one slow one."""
+    slow, normal, qp = 7e-3, 1e-3, 5e-4
+    fake = FakeClock()
+    c = PeriodClock(fake, recent=recent)
+    c.record("assembly", qp)
+    c.record("qp", qp)
+
+    def allowed() -> dict:
+        """What this period may do: a line search after a QP that ended 5 ms into an 8 ms budget, and with 4 ms
+        left before the deadline a full refresh, a cold start from the rollout, or the period's first
+        derivatives (each followed by the QP's 0.5 ms assembly and 0.5 ms solve)."""
+        c.begin(fake(), budget=8e-3)
+        fake.advance(5e-3)
+        out = {"line_search": not c.late(line_search=True)}
+        c.begin(fake(), deadline=fake() + 4e-3)
+        out.update({k: c.fits(c.expect[k]) for k in ("full_derivatives", "cold_start")})
+        out["derivatives"] = not c.no_time_to_start()
+        return out
+
+    kinds = (*OPTIONAL, "derivatives")
+    assert all(allowed().values())                         # nothing recorded yet: every rule lets the work run
+    for k in OPTIONAL:
+        c.record(k, slow)                                  # one slow period of each optional work
+    for _ in range(recent):
+        c.record("derivatives", slow)                      # a stretch of slow periods: the median follows
+    assert not any(allowed().values())
+    for i in range(recent):
+        now = allowed()                                    # a slow period is still among the last `recent`:
+        assert not any(now[k] for k in OPTIONAL), i        # the optional work waits (its longest recent time)
+        assert now["derivatives"] == (2 * i > recent), i   # the first derivatives once most are normal (median)
+        for k in kinds:
+            c.record(k, normal)
+    assert allowed() == dict.fromkeys(kinds, True)         # all of them aged out
+    c.begin(fake())
+    for k in kinds:
+        assert c.expect[k] == pytest.approx(normal, abs=TOL["seconds"]), k
+
+
 def test_a_period_starts_only_if_its_first_derivatives_and_qp_fit_before_the_deadline():
     d, a = 2e-3, 5e-4
     c, fake = clock_with([("derivatives", d), ("assembly", a)])
