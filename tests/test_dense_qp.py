@@ -13,7 +13,12 @@ from mpc.errors import ConfigurationError  # noqa: E402
 #: Tolerances: KKT residuals of the dense solution (it is exact up to rounding); agreement with OSQP solved to
 #: 1e-10 and polished, in states and inputs, and in the multipliers (which OSQP gets less accurately).
 TOL = {"kkt": 1e-8, "primal": 1e-6, "dual": 1e-5, "controller_inputs": 1e-5,
-       "hessian_rel": 1e-12}     # the backward recursion's H against G' W G + R formed in full (rounding)
+       "hessian_rel": 1e-12,     # the backward recursion's H against G' W G + R formed in full (rounding)
+       # The controllers' own dense QP where its constraints bind: a rotor's load n^2 / n_max^2 and the attitude
+       # may pass their bounds by rounding only (measured 4e-16); a constraint within `active` of its bound
+       # counts as active; the dense plan against OSQP's polished one of the same controller QP, in inputs
+       # (N, N m) and states (measured 1.1e-9 and 6.4e-8).
+       "bound": 1e-9, "active": 1e-7, "plan_inputs": 1e-6, "plan_states": 1e-6}
 
 
 def random_qp(seed: int, N: int = 30, nx: int = 12, nu: int = 4, tight: bool = True) -> LTVQP:
@@ -261,3 +266,61 @@ def test_a_bad_qp_solver_is_refused_by_name():
 
     with pytest.raises(ConfigurationError, match="qp must be one of osqp, daqp; found 'gurobi'"):
         LTVSettings(qp="gurobi")
+
+
+# ------------------------------------------------------------------ the controllers' own constraint rows, binding
+#: Attitude limit of the binding case, rad: tight enough that the plan from its start reaches it.
+BINDING_ATTITUDE_RAD = 0.3
+#: Start of the binding case: off the hover point by 3 m in x and 0.5 m in z (below it), moving at 2 m/s in x and
+#: 1 m/s upward (NED). The plan back needs full thrust on some rotors, none on others, and the attitude limit.
+BINDING_OFFSET = np.array([3.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0, 0.0, -1.0])
+
+
+def _binding_controller(kind: str, qp: str, **qp_settings):
+    from mpc.ltv import LTVMPC, LTVSettings
+    from mpc.models import AnalyticModel
+    from mpc.sqp import SQPMPC, SQPSettings
+
+    common = dict(qp=qp, attitude_limit_rad=BINDING_ATTITUDE_RAD, **qp_settings)
+    if kind == "ltv":
+        return LTVMPC(AnalyticModel(), None, LTVSettings(**common))
+    # The SQP's first QP alone (one iteration, full step), from its rollout, so that both solvers answer one QP.
+    return SQPMPC(AnalyticModel(), None, SQPSettings(max_sqp_iter=1, cold_start_max_iter=1, line_search=False,
+                                                     time_budget_s=None, cold_start_budget_s=None, **common))
+
+
+@pytest.mark.parametrize("kind", ["ltv", "sqp"])
+def test_the_controllers_dense_constraints_hold_where_they_bind_and_match_osqp(kind, monkeypatch):
+    """The LTV-MPC's and the SQP's own dense QP (the rotor-load and attitude rows they build for DAQP) on a plan
+    where the rotor limits (both ends) and the attitude limit are active: the dense plan keeps every rotor's
+    n^2 within [0, n_max^2] and the attitude within its limit, touches each bound, and is the plan OSQP gives
+    for the same controller's sparse QP (solved to 1e-6 and polished)."""
+    import mpc.ltv as ltv
+    from sim.rotors import allocate
+
+    polished = []
+    real = ltv.LTVMPC._solve_qp
+
+    def spy(self, *args, **kwargs):
+        res = real(self, *args, **kwargs)
+        if self.s.qp == "osqp":
+            polished.append(res.info.status_polish)
+        return res
+
+    monkeypatch.setattr(ltv.LTVMPC, "_solve_qp", spy)
+    dense = _binding_controller(kind, "daqp")
+    x0 = dense._horizon_reference(0.0)[0][0] + BINDING_OFFSET
+    _, info = dense(x0, 0.0)
+    assert info.status == "optimal" and dense._condensed is not None       # solved, and by the dense path
+    U, X = dense._plan_u, dense._plan_x           # the QP's plan (the input sent out is projected onto the rotors)
+    load = allocate(U, dense.spec) / dense.spec.n_max_sq     # n^2 / n_max^2 from the mixer, not the QP's rows
+    attitude = X[1:, 3:5]
+    assert load.min() >= -TOL["bound"] and load.max() <= 1.0 + TOL["bound"], (load.min(), load.max())
+    assert np.abs(attitude).max() <= BINDING_ATTITUDE_RAD + TOL["bound"], np.abs(attitude).max()
+    assert np.any(load <= TOL["active"]) and np.any(load >= 1.0 - TOL["active"])     # both rotor limits bind
+    assert np.any(np.abs(attitude) >= BINDING_ATTITUDE_RAD - TOL["active"])          # and the attitude limit
+    sparse = _binding_controller(kind, "osqp", eps_abs=1e-6, eps_rel=1e-6, polish=True, max_iter=100000)
+    _, info = sparse(x0, 0.0)
+    assert info.status == "optimal" and polished and polished[-1] == 1, polished     # OSQP's answer is polished
+    np.testing.assert_allclose(U, sparse._plan_u, rtol=0.0, atol=TOL["plan_inputs"])
+    np.testing.assert_allclose(X, sparse._plan_x, rtol=0.0, atol=TOL["plan_states"])
