@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .files import write_json
+from .files import check_writable, write_json
 from .params import FIDELITIES, INPUT_LOGS, THETA_NAMES
 
 
@@ -130,20 +130,41 @@ def cmd_import(args: argparse.Namespace) -> int:
         raise ValueError(f"--out must end in .npz; found {str(args.out)!r}")
     if args.json is not None and args.json.suffix != ".json":
         raise ValueError(f"--json must end in .json; found {str(args.json)!r}")
+    if args.json is not None and args.json.absolute() == args.out.absolute():
+        raise ValueError("--json and --out name the same file")
+    check_writable(args.out, "--out")
+    if args.json is not None:
+        check_writable(args.json, "--json")
     fmt = load_format(args.format)
     vehicle = load_vehicle(args.vehicle)
     names = [p.stem for p in args.logs]
     if len(set(names)) != len(names):
         dup = next(n for n in names if names.count(n) > 1)
         raise ValueError(f"two logs are named {dup!r} (a flight is named by its file's stem)")
-    splits = assign_splits(names, _parse_splits(args.split))
+    patterns = _parse_splits(args.split)
+    splits = assign_splits(names, patterns)
+    for split, pats in patterns.items():
+        if not any(s == split for s in splits.values()):
+            raise ValueError(f"--split {split}={','.join(pats)} matches no flight (the flights: "
+                             f"{', '.join(names[:8])}{', ...' if len(names) > 8 else ''})")
     flights = []
     for i, path in enumerate(args.logs):
         if sys.stderr.isatty():
             print(f"[{i + 1}/{len(args.logs)}] {path}", file=sys.stderr, flush=True)
         flights.append(read_flight(path, fmt, vehicle))
     ds = flights_to_dataset(flights, vehicle, splits, fmt)
+    report = None if args.json is None else {
+        "out": str(args.out), "format": fmt.name, "vehicle": vehicle.name, "splits": splits,
+        "flights": [dataclasses.asdict(f.report) for f in flights]}
+    existed = args.out.exists()
     ds.save(args.out)                  # whole or not at all
+    if report is not None:
+        try:
+            write_json(args.json, report)
+        except OSError as e:           # both files or neither
+            if not existed:
+                args.out.unlink(missing_ok=True)
+            raise ValueError(f"--json {str(args.json)!r} could not be written: {e.strerror or e}") from None
     for f in flights:
         print("\n".join(f.report.lines()))
         for w in f.report.warnings():
@@ -151,9 +172,6 @@ def cmd_import(args: argparse.Namespace) -> int:
     counts = {s: sum(1 for n in names if splits[n] == s) for s in ("train", "val", "test")}
     print(f"wrote {args.out}: {len(flights)} flights ({counts['train']} train, {counts['val']} val, "
           f"{counts['test']} test), {int(ds.usable.sum())} usable one-step samples of {ds.usable.size}")
-    if args.json:
-        write_json(args.json, {"out": str(args.out), "format": fmt.name, "vehicle": vehicle.name,
-                               "splits": splits, "flights": [dataclasses.asdict(f.report) for f in flights]})
     return 0
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -59,10 +60,23 @@ def read_named_toml(spec, folder, kind: str, unknown: str, error=SimInputError) 
         raise error(f"{kind} file {str(path)!r} is not valid TOML: {e}") from None
 
 
+def json_ready(obj):
+    """``obj`` with every float that is not finite (NaN, infinity) replaced by None, in nested dicts, lists and
+    tuples: strict JSON, which has no NaN, holds ``null`` for a value that does not exist."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_ready(v) for v in obj]
+    return obj
+
+
 def write_json(path, obj) -> Path:
-    """Write ``obj`` to ``path`` as indented JSON with a final newline, creating the folder; the path."""
+    """Write ``obj`` to ``path`` as indented, strict JSON (a value that is not a finite number is ``null``) with a
+    final newline, creating the folder; the path."""
     path = Path(path)
-    text = (json.dumps(obj, indent=2) + "\n").encode()
+    text = (json.dumps(json_ready(obj), indent=2, allow_nan=False) + "\n").encode()
     return _replace_from_temp(path, lambda f: f.write(text))
 
 

@@ -12,11 +12,16 @@ Its steps, in order, each reported in :class:`ImportReport`:
    rotors): a row with a NaN, a row *held* (exactly equal to the row before:
    telemetry that was not refreshed) and, for the rotors, a *spike* (a speed
    below 0 or above ``max_rotor_over_n_max`` times the vehicle's ``n_max``)
-   is masked, not guessed. Rows with a repeated timestamp are dropped.
+   is masked, not guessed; so is an attitude row whose quaternion has a zero
+   or non-finite norm. A row is held when each column equals that column's
+   last clean value (a NaN or a spike in the row before does not hide it).
+   Rows with a repeated timestamp are dropped; a log whose median row interval
+   is outside :data:`ROW_INTERVAL_S` is refused (its time unit is wrong).
 3. **Resample** onto the 10 ms grid when the log is not on it (another rate,
    or jittered timestamps): linear interpolation between the two rows around
    each grid time (normalized for a quaternion); a grid sample is valid only
-   if both rows are.
+   if both rows are, and if each is within :data:`GAP_PERIODS` median log
+   periods of it (a sample inside a gap of the log is invented, not measured).
 4. **Convert** frames once, to NED and FRD, and the attitude to continuous
    ZYX Euler angles.
 5. **Cut** to the airborne part: from the first to the last sample of the
@@ -33,7 +38,9 @@ Its steps, in order, each reported in :class:`ImportReport`:
    slope per axis; a negative one means a column's sign is wrong), and the
    thrust the motion shows against the vehicle's ``kt sum n^2 / m`` (a
    negative slope means the body frame is wrong; far from 1, the rotor unit
-   or the vehicle).
+   or the vehicle), and the angular accelerations the body rates show against
+   those the rotor speeds' torques give through the vehicle's inertia (a
+   negative slope means the rotor positions or spins are wrong).
 
 Masked samples are filled by linear interpolation in time (so every array
 is finite) and flagged invalid in the dataset's ``valid`` array.
@@ -65,6 +72,18 @@ DELAY_SMOOTH = 5
 #: Fewest airborne samples a flight must keep.
 MIN_SAMPLES = 100
 GROUPS = ("position", "attitude", "velocity", "rates", "rotors")
+#: A grid sample farther than this many median log periods from the log row on either side of it lies in a gap of
+#: the log: it is filled, and flagged invalid.
+GAP_PERIODS = 1.5
+#: Median interval between log rows (s) that a flight log can have; outside it the time unit is wrong.
+ROW_INTERVAL_S = (1e-4, 1.0)
+#: A quaternion shorter than this is no attitude (a logger's zeros): its row is masked.
+MIN_QUATERNION_NORM = 1e-3
+#: Rotor rows with a spike, as a share of the rows whose rotors turn, above which the log is refused (the rotor unit
+#: is wrong: every speed is out of range).
+MAX_SPIKE_SHARE = 0.5
+#: Share of an axis' angular acceleration the rotor torques must explain for the report not to call the check weak.
+WEAK_TORQUE_EXPLAINED = 0.5
 
 
 @dataclass(frozen=True)
@@ -78,17 +97,22 @@ class ImportReport:
     nan_rows: dict                  # group -> rows with a NaN
     held_rows: dict                 # group -> rows equal to the row before
     spikes: int                     # rotor rows outside [0, max_rotor_over_n_max n_max]
+    invalid_attitude_rows: int      # rows whose quaternion has a zero or non-finite norm (masked)
     resampling: str                 # how the log was brought onto the 10 ms grid
     log_period_s: float             # median period of the log
     airborne_s: tuple               # (start, end) kept, s from the log's first row
     samples: int                    # samples kept (on the grid)
     valid_state_fraction: float     # kept samples whose state is measured (not filled)
     valid_rotor_fraction: float     # kept samples whose rotor speeds are measured
+    gap_samples: int                # kept samples inside a gap of the log (filled, invalid)
+    nonfinite_samples: int          # kept samples whose converted state or wrench was not finite (invalid)
     delay_samples: int              # motor-to-state delay applied (rotor[k] = logged[k - d])
     delay_rss_ratio: float          # residual of the best delay over that of the next best (< 1: clear)
     velocity_check: dict            # slope per axis of logged velocity on differentiated position, rms
     rates_check: dict               # slope per axis of logged rates on attitude-derived rates, rms
     thrust_check: dict              # slope of measured thrust on kt sum n^2 (at the delay), intercept m/s^2
+    torque_check: dict              # slope per axis of angular acceleration on the rotor torques' (J^-1 tau),
+    #                                 share of its variance explained
 
     def lines(self) -> list[str]:
         """The report as short human-readable lines."""
@@ -96,20 +120,32 @@ class ImportReport:
         nans = sum(self.nan_rows.values())
         vs, rs = self.velocity_check["slope"], self.rates_check["slope"]
         ts = self.thrust_check["slope"]
+        qs, qe = self.torque_check["slope"], self.torque_check["explained"]
+        weak = [a for a, e in zip("xyz", qe) if not e >= WEAK_TORQUE_EXPLAINED]
+        invented = ""
+        if self.gap_samples or self.nonfinite_samples:
+            invented = (f"; invalid: {self.gap_samples} samples in gaps of the log (farther than {GAP_PERIODS:g} "
+                        f"log periods from a row), {self.nonfinite_samples} not finite after conversion")
         return [
             f"{self.name}: {self.rows} rows, {self.samples} kept ({self.airborne_s[0]:.2f}-{self.airborne_s[1]:.2f} s "
             f"airborne); {self.resampling}",
-            f"  held rows: {held}; NaN rows {nans}; rotor spikes {self.spikes}; duplicate times "
-            f"{self.duplicate_times}",
-            f"  valid: state {100 * self.valid_state_fraction:.1f} %, rotors {100 * self.valid_rotor_fraction:.1f} %;"
-            f" motor-to-state delay {self.delay_samples} samples (residual ratio {self.delay_rss_ratio:.2f})",
+            f"  held rows: {held}; NaN rows {nans}; rotor spikes {self.spikes}; invalid quaternions "
+            f"{self.invalid_attitude_rows}; duplicate times {self.duplicate_times}",
+            f"  valid: state {100 * self.valid_state_fraction:.1f} %, rotors {100 * self.valid_rotor_fraction:.1f} %"
+            f"{invented}; motor-to-state delay {self.delay_samples} samples (residual ratio "
+            f"{self.delay_rss_ratio:.2f})",
             f"  checks: velocity / d(position)/dt slope {vs[0]:.3f} {vs[1]:.3f} {vs[2]:.3f}; "
             f"rates / attitude-derived slope {rs[0]:.3f} {rs[1]:.3f} {rs[2]:.3f}; "
             f"thrust from motion / kt sum n^2 slope {ts:.3f}",
+            f"  angular acceleration / rotor torques' slope {qs[0]:.3f} {qs[1]:.3f} {qs[2]:.3f}, explaining "
+            f"{100 * qe[0]:.0f} {100 * qe[1]:.0f} {100 * qe[2]:.0f} % (x y z)"
+            + (f": weak about {' '.join(weak)} (the rotor speeds explain little of the rotation there)"
+               if weak else ""),
         ]
 
     def warnings(self) -> list[str]:
-        """Lines for checks that point at a wrong frame or unit (a slope below 0.5 or above 2)."""
+        """Lines for checks that point at a wrong frame, unit or rotor mapping (a velocity, rates or thrust slope
+        outside 0.5-2; a negative torque slope)."""
         out = []
         for what, check in (("velocity against differentiated position", self.velocity_check),
                             ("body rates against attitude-derived rates", self.rates_check)):
@@ -121,6 +157,10 @@ class ImportReport:
         if not (0.5 <= s <= 2.0):
             out.append(f"{self.name}: thrust from motion against the vehicle's kt sum n^2 / m: slope {s:.3f} (the "
                        f"body frame, the rotor unit or the vehicle's kt / m may be wrong)")
+        for axis, s in zip("xyz", self.torque_check["slope"]):
+            if s < 0:
+                out.append(f"{self.name}: angular acceleration about {axis} against the rotor speeds' torque: slope "
+                           f"{s:.3f} (negative: the rotor positions or spins in the format file may be wrong)")
         return out
 
 
@@ -257,12 +297,20 @@ def rotation_vector(R: np.ndarray) -> np.ndarray:
     return v * scale[..., None]
 
 
-def _held(a: np.ndarray) -> np.ndarray:
-    """Rows (n,) exactly equal to the row before (the first row is never held)."""
-    out = np.zeros(len(a), dtype=bool)
-    if len(a) > 1:
-        out[1:] = np.all(a[1:] == a[:-1], axis=1)
-    return out
+def _held(a: np.ndarray, clean: np.ndarray | None = None) -> np.ndarray:
+    """Rows (n,) of ``a`` (n, w) that repeat the last clean value of every column: telemetry not refreshed.
+
+    ``clean`` (n, w) marks the cells that can be repeated (finite, not a spike; default: finite). Each column is
+    compared with its value in the last row before where it was clean, so a NaN or a spike in the row before does
+    not hide a held row. A column with no clean value before a row makes that row fresh (so is the first row).
+    """
+    n, w = a.shape
+    clean = np.isfinite(a) if clean is None else clean
+    rows = np.arange(n)[:, None]
+    last = np.maximum.accumulate(np.where(clean, rows, -1), axis=0)      # last clean row up to and including r
+    before = np.vstack([np.full((1, w), -1), last[:-1]])                # ... strictly before r
+    prev = np.take_along_axis(a, np.maximum(before, 0), axis=0)
+    return np.all((before >= 0) & (a == prev), axis=1)
 
 
 def _fill(t: np.ndarray, a: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -309,11 +357,13 @@ def read_flight(path, fmt: LogFormat, vehicle: Vehicle, name: str | None = None)
     name = name or path.stem
     cols = fmt.columns()
     table = read_table(path, [c for group in cols.values() for c in group])
+    rows = len(table[fmt.time_column])
+    if rows == 0:
+        raise FlightLogError(f"{where} has a header but no data rows")
     for group, names in cols.items():
         for c in names:
             if not np.any(np.isfinite(table[c])):
                 raise FlightLogError(f"{where}: column {c!r} ({group}) holds no number (every row empty or NaN)")
-    rows = len(table[fmt.time_column])
     if rows < 2:
         raise FlightLogError(f"{where}: {rows} row(s); a flight needs many")
     t = table[fmt.time_column] * fmt.time_scale
@@ -328,14 +378,41 @@ def read_flight(path, fmt: LogFormat, vehicle: Vehicle, name: str | None = None)
     keep = np.concatenate([[True], dt > 0])
     duplicates = int(np.sum(~keep))
     t = t[keep] - t[keep][0]
+    if len(t) < 2:
+        raise FlightLogError(f"{where}: column {fmt.time_column!r} (time) holds one time in every row")
+    period = float(np.median(np.diff(t)))
+    lo_s, hi_s = ROW_INTERVAL_S
+    if not lo_s <= period <= hi_s:
+        raise FlightLogError(f"{where}: column {fmt.time_column!r} (time, unit {fmt.time_unit!r}) gives rows "
+                             f"{period:.3g} s apart (median) and a log {t[-1]:.3g} s long; a flight log's rows are "
+                             f"{1e3 * lo_s:g} ms to {hi_s:g} s apart: is [time] unit right?")
     groups = {g: np.stack([table[c][keep] for c in cols[g]], -1) for g in GROUPS}
-    nan_rows = {g: int(np.sum(~np.all(np.isfinite(a), axis=1))) for g, a in groups.items()}
-    held = {g: _held(a) for g, a in groups.items()}
-    ok = {g: np.all(np.isfinite(a), axis=1) & ~held[g] for g, a in groups.items()}
     rot = groups["rotors"] * fmt.rotor_scale
+    n_max = vehicle.n_max_value
+    clean = {g: np.isfinite(a) for g, a in groups.items()}
     with np.errstate(invalid="ignore"):
-        spike = np.any((rot < 0) | (rot > fmt.max_rotor_over_n_max * vehicle.n_max_value), axis=1)
+        spike_cell = (rot < 0) | (rot > fmt.max_rotor_over_n_max * n_max)
+    clean["rotors"] &= ~spike_cell
+    spike = np.any(spike_cell, axis=1)
+    turning = np.any(np.nan_to_num(rot) > 0, axis=1)
+    if spike.sum() > MAX_SPIKE_SHARE * max(int(turning.sum()), 1):
+        raise FlightLogError(
+            f"{where}: rotor speeds in columns {', '.join(repr(c) for c in cols['rotors'])} exceed "
+            f"{fmt.max_rotor_over_n_max:g} x n_max ({fmt.max_rotor_over_n_max * n_max:.4g} rad/s) in "
+            f"{100 * spike.sum() / max(int(turning.sum()), 1):.0f} % of the rows where the rotors turn (median "
+            f"{np.nanmedian(rot[turning]) if turning.any() else 0.0:.4g} rad/s): is [rotors] unit "
+            f"{fmt.rotor_unit!r} right, and the vehicle's n_max?")
+    nan_rows = {g: int(np.sum(~np.all(np.isfinite(a), axis=1))) for g, a in groups.items()}
+    held = {g: _held(a, clean[g]) for g, a in groups.items()}
+    ok = {g: np.all(np.isfinite(a), axis=1) & ~held[g] for g, a in groups.items()}
     ok["rotors"] &= ~spike
+    invalid_attitude = np.zeros(len(t), dtype=bool)
+    if fmt.quaternion is not None:
+        with np.errstate(invalid="ignore", over="ignore"):
+            qn = np.linalg.norm(groups["attitude"], axis=1)
+        invalid_attitude = (np.all(np.isfinite(groups["attitude"]), axis=1)
+                            & ~(np.isfinite(qn) & (qn >= MIN_QUATERNION_NORM)))
+        ok["attitude"] &= ~invalid_attitude
     flag = None
     if fmt.airborne_column is not None:
         flag = table[fmt.airborne_column][keep]
@@ -344,9 +421,9 @@ def read_flight(path, fmt: LogFormat, vehicle: Vehicle, name: str | None = None)
         ref = np.stack([table[c][keep] for c in fmt.reference], -1)
 
     # --- onto the 10 ms grid
-    period = float(np.median(np.diff(t)))
     n_grid = int(math.floor(t[-1] / DT + ON_GRID_TOL)) + 1
     tg = np.arange(n_grid) * DT
+    in_gap = np.zeros(n_grid, dtype=bool)
     if len(t) == n_grid and np.max(np.abs(t - tg)) <= ON_GRID_TOL * DT:
         resampling = "on the 10 ms grid already"
         grid, grid_ok = groups, ok
@@ -357,6 +434,9 @@ def read_flight(path, fmt: LogFormat, vehicle: Vehicle, name: str | None = None)
         j = np.clip(np.searchsorted(t, tg, side="right") - 1, 0, len(t) - 2)
         w = (tg - t[j]) / (t[j + 1] - t[j])
         exact0, exact1 = w <= ON_GRID_TOL, w >= 1.0 - ON_GRID_TOL
+        # a sample between two rows farther apart than the limit on either side is invented: flagged, still filled
+        limit = GAP_PERIODS * period
+        in_gap = ~exact0 & ~exact1 & ((tg - t[j] > limit) | (t[j + 1] - tg > limit))
         grid, grid_ok = {}, {}
         for g, a in groups.items():
             a0, a1 = a[j], a[j + 1]
@@ -365,6 +445,7 @@ def read_flight(path, fmt: LogFormat, vehicle: Vehicle, name: str | None = None)
             grid[g] = np.where(exact0[:, None], a0, np.where(exact1[:, None], a1,
                                                             a0 + w[:, None] * (a1 - a0)))
             grid_ok[g] = np.where(exact0, ok[g][j], np.where(exact1, ok[g][j + 1], ok[g][j] & ok[g][j + 1]))
+            grid_ok[g] &= ~in_gap
         if flag is not None:
             flag = np.where(w < 0.5, flag[j], flag[j + 1])
         if ref is not None:
@@ -378,24 +459,29 @@ def read_flight(path, fmt: LogFormat, vehicle: Vehicle, name: str | None = None)
 
     # --- frames, once
     Cw, Cb = fmt.world_matrix, fmt.body_matrix
-    att = grid["attitude"]
+    att = np.where(x_ok[:, None], grid["attitude"], 0.0)
     if fmt.quaternion is not None:
-        norm = np.linalg.norm(att, axis=1, keepdims=True)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            R_log = quaternion_matrix(att / norm)
+        att[~x_ok, 0] = 1.0                                  # identity where unmeasured (filled below)
+        R_log = quaternion_matrix(att / np.linalg.norm(att, axis=1, keepdims=True))
     else:
         R_log = euler_matrix(att * fmt.angle_scale)
     R = Cw @ R_log @ Cb.T
-    R_fill = np.where(x_ok[:, None, None], R, np.eye(3))
-    eul = matrix_euler(R_fill)
+    eul = matrix_euler(R)
     pos = grid["position"] * fmt.position_scale @ Cw.T
     vel = grid["velocity"] * fmt.velocity_scale
-    vel = vel @ Cw.T if fmt.velocity_frame == "world" else np.einsum("nij,nj->ni", R_fill, vel @ Cb.T)
+    vel = vel @ Cw.T if fmt.velocity_frame == "world" else np.einsum("nij,nj->ni", R, vel @ Cb.T)
     rates = grid["rates"] * fmt.rate_scale @ Cb.T
+    x = np.concatenate([pos, eul, rates, vel], axis=1)
+    # nothing that is not finite is ever flagged measured (an overflow in a scale, a rotation of huge numbers)
+    x_finite, rot_finite = np.all(np.isfinite(x), axis=1), np.all(np.isfinite(rot), axis=1)
+    nonfinite = (x_ok & ~x_finite) | (rot_ok & ~rot_finite)
+    x_ok &= x_finite
+    rot_ok &= rot_finite
+    if not x_ok.any() or not rot_ok.any():
+        raise FlightLogError(f"{where}: no sample is finite once converted to this project's units and frames")
     # continuous angles: unwrap over the measured samples, then fill between them
     for k in range(3):
-        eul[x_ok, k] = np.unwrap(eul[x_ok, k])
-    x = np.concatenate([pos, eul, rates, vel], axis=1)
+        x[x_ok, 3 + k] = np.unwrap(x[x_ok, 3 + k])
     x = _fill(tg, np.where(x_ok[:, None], x, 0.0), x_ok)
     rot = _fill(tg, np.where(rot_ok[:, None], rot, 0.0), rot_ok)
     if ref is not None:
@@ -437,12 +523,15 @@ def read_flight(path, fmt: LogFormat, vehicle: Vehicle, name: str | None = None)
 
     report = ImportReport(
         name=name, source=str(path), rows=rows, duplicate_times=duplicates, nan_rows=nan_rows,
-        held_rows={g: int(h.sum()) for g, h in held.items()}, spikes=int(spike.sum()), resampling=resampling,
+        held_rows={g: int(h.sum()) for g, h in held.items()}, spikes=int(spike.sum()),
+        invalid_attitude_rows=int(invalid_attitude.sum()), resampling=resampling,
         log_period_s=period, airborne_s=(float(tg[0]), float(tg[-1])), samples=int(len(tg)),
         valid_state_fraction=float(x_ok.mean()), valid_rotor_fraction=float(rot_ok.mean()),
+        gap_samples=int(in_gap[sl].sum()), nonfinite_samples=int(nonfinite[sl].sum()),
         delay_samples=int(d), delay_rss_ratio=float(rss_ratio),
         velocity_check=_velocity_check(x, x_ok), rates_check=_rates_check(x, x_ok),
-        thrust_check={"slope": float(coef[0] * vehicle.m / vehicle.kt), "intercept_m_s2": float(coef[1])})
+        thrust_check={"slope": float(coef[0] * vehicle.m / vehicle.kt), "intercept_m_s2": float(coef[1])},
+        torque_check=_torque_check(x, x_ok, u, rot_ok, vehicle))
     return Flight(name=name, t=tg, x=x, rotor_speed=rot, u=u, x_ok=x_ok, rotor_ok=rot_ok, reference=ref,
                   report=report)
 
@@ -530,6 +619,32 @@ def _rates_check(x, ok) -> dict:
     return {"slope": _slope(measured, derived), "rms_rad_s": float(np.sqrt(np.mean((measured - derived) ** 2)))}
 
 
+def _torque_check(x, x_ok, u, u_ok, vehicle: Vehicle) -> dict:
+    """Angular acceleration the body rates show against the one the torques give, per body axis.
+
+    Over each period ``[k, k + 1]`` with the state measured at both ends and the wrench ``u[k]`` (n, 4) measured
+    (``u_ok[k]``), the measured ``(w[k+1] - w[k]) / dt`` is fitted (least squares, with an intercept) by
+    ``J^-1 (tau[k] - w x J w)`` (``w`` the period's mean rate, ``J`` the vehicle's inertia). Returns the slope
+    per axis (1 for consistent rotor positions, spins and inertia; negative for a swapped pair of rotors or
+    reversed spins) and the share of the variance it explains (a real vehicle's noisy rotor speeds explain
+    little).
+    """
+    k = np.flatnonzero(x_ok[:-1] & x_ok[1:] & u_ok[:-1])
+    if len(k) < 10:
+        return {"slope": [math.nan] * 3, "explained": [math.nan] * 3}
+    J = np.array([vehicle.Jxx, vehicle.Jyy, vehicle.Jzz])
+    w = 0.5 * (x[k, 6:9] + x[k + 1, 6:9])
+    measured = (x[k + 1, 6:9] - x[k, 6:9]) / DT
+    given = (u[k, 1:4] - np.cross(w, J * w)) / J
+    slope, explained = [], []
+    for a in range(3):
+        dg, dm = given[:, a] - given[:, a].mean(), measured[:, a] - measured[:, a].mean()
+        sgg, smm = float(dg @ dg), float(dm @ dm)
+        slope.append(float(dg @ dm) / sgg if sgg > 0 else math.nan)
+        explained.append(float(dg @ dm) ** 2 / (sgg * smm) if sgg > 0 and smm > 0 else math.nan)
+    return {"slope": slope, "explained": explained}
+
+
 def finite_samples(x, rotor_speed) -> int:
     """Samples before the first with a non-finite state (n, 12) or rotor speed (n, 4): all n if there is none."""
     finite = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(rotor_speed), axis=1)
@@ -593,10 +708,13 @@ def flown_flight(name: str, t, x, rotor_speed, vehicle: Vehicle, command=None, r
     _, _, coef = estimate_delay(x, ok, rot, 0, keep, (0, 0))
     report = ImportReport(
         name=name, source=source, rows=n, duplicate_times=0, nan_rows={}, held_rows={}, spikes=0,
-        resampling="none: on the 10 ms grid", log_period_s=DT, airborne_s=(float(t[0]), float(t[-1])),
-        samples=int(keep), valid_state_fraction=1.0, valid_rotor_fraction=1.0, delay_samples=0,
+        invalid_attitude_rows=0, resampling="none: on the 10 ms grid", log_period_s=DT,
+        airborne_s=(float(t[0]), float(t[-1])), samples=int(keep), valid_state_fraction=1.0,
+        valid_rotor_fraction=1.0, gap_samples=0, nonfinite_samples=0, delay_samples=0,
         delay_rss_ratio=0.0, velocity_check=_velocity_check(x, ok), rates_check=_rates_check(x, ok),
-        thrust_check={"slope": float(coef[0] * vehicle.m / vehicle.kt), "intercept_m_s2": float(coef[1])})
+        thrust_check={"slope": float(coef[0] * vehicle.m / vehicle.kt), "intercept_m_s2": float(coef[1])},
+        # its rotors answer each period's command within the period: period k's torque is that of sample k + 1
+        torque_check=_torque_check(x, ok, np.vstack([u[1:], u[-1:]]), np.r_[ok[1:], False], vehicle))
     return Flight(name=name, t=t, x=x, rotor_speed=rot, u=u, x_ok=ok, rotor_ok=ok.copy(), reference=reference,
                   report=report, command=command)
 

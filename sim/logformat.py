@@ -121,6 +121,7 @@ class LogFormat:
     path: str
     time_column: str
     time_scale: float              # s per log unit
+    time_unit: str                 # the log's time unit, as the format file names it
     world: str                     # ned, enu, z-up
     body: str                      # frd, flu
     position: tuple[str, ...]
@@ -296,12 +297,13 @@ def parse_format(data: dict, where: str = "format", name: str = "format", path: 
     if (not isinstance(search, list) or len(search) != 2 or not all(isinstance(s, int) and not isinstance(s, bool)
                                                                       for s in search) or search[0] > search[1]):
         raise FlightLogError(f"{where}: [delay] search must be [lowest, highest] whole samples; found {search!r}")
+    time_unit = unit("time", "unit", TIME_UNITS)
     velocity_frame = string("velocity", "frame", "world")
     if velocity_frame not in ("world", "body"):
         raise FlightLogError(f"{where}: [velocity] frame {velocity_frame!r} is not known; choose from world, body")
-    return LogFormat(
+    fmt = LogFormat(
         name=data.get("name", name), path=path,
-        time_column=string("time", "column"), time_scale=TIME_UNITS[unit("time", "unit", TIME_UNITS)],
+        time_column=string("time", "column"), time_scale=TIME_UNITS[time_unit], time_unit=time_unit,
         world=world, body=body,
         position=columns("position"), position_scale=LENGTH_UNITS[unit("position", "unit", LENGTH_UNITS)],
         quaternion=quat, euler=euler, angle_scale=angle_scale,
@@ -316,6 +318,15 @@ def parse_format(data: dict, where: str = "format", name: str = "format", path: 
         max_rotor_over_n_max=number("clean", "max_rotor_over_n_max", 1.5, lo=1.0),
         reference=columns("reference", required=False) if "reference" in data else None,
     )
+    seen: dict[str, str] = {}
+    for table, names in fmt.columns().items():
+        for c in names:
+            if c in seen:
+                twice = f"twice in [{table}]" if seen[c] == table else f"in [{seen[c]}] and in [{table}]"
+                raise FlightLogError(f"{where}: column {c!r} is named {twice}; each quantity needs a column of its "
+                                     f"own")
+            seen[c] = table
+    return fmt
 
 
 def _check_keys(table: dict, name: str, where: str) -> None:

@@ -7,6 +7,7 @@ rows and eRPM spikes.
 """
 
 import csv
+import json
 import math
 import tomllib
 
@@ -34,6 +35,7 @@ FLOWN_SLOPE_TOL = 2e-3    # a flown flight's velocity and rates checks: slopes o
 ROTOR_RTOL = 1e-12        # a run's recorded rotor speeds against those allocated again from its inputs
 ERPM_PER_RAD_S = 360.0 / (2.0 * math.pi)   # 6 pole pairs
 T0 = 12.5                 # the foreign log's time at its first row, s
+TORQUE_SLOPE_TOL = 5e-3   # torque check of a noise-free log: slopes off +-1 and explained shares off 1 by at most this
 
 LAYOUT = """
 name = "foreign-test"
@@ -214,6 +216,18 @@ BAD_CASES = {
     "time backwards": ("swap", None, "'time_ms'"),
     "all-NaN column": ("nan_m3", None, "'m3'"),
     "unknown format key": (None, lambda f: f.replace("[delay]", "[delay]\nwindow = 3"), "'window'"),
+    "header only": ("header_only", None, "no data rows"),
+    # a log in ms declared as s: rows 10 s apart (it once became a thousand times more samples, all "valid")
+    "ms declared as s": (None, lambda f: f.replace('unit = "ms"', 'unit = "s"'), "'time_ms' (time, unit 's')"),
+    # a log in ms declared as us: 10 us apart, 4 ms long (it once said only that there was no airborne part)
+    "ms declared as us": (None, lambda f: f.replace('unit = "ms"', 'unit = "us"'), "'time_ms' (time, unit 'us')"),
+    # eRPM declared as rad/s: every speed far above n_max (it once said no row was "measured and fresh")
+    "rotor unit": (None, lambda f: f.replace('unit = "erpm"\npole_pairs = 6', 'unit = "rad/s"'),
+                   "unit 'rad/s' right"),
+    # one column for all four rotors: a slope of 0.6 and no warning, once
+    "one column for four rotors": (None, lambda f: f.replace('columns = ["m1", "m2", "m3", "m4"]',
+                                                             'columns = ["m1", "m1", "m1", "m1"]'),
+                                   "'m1' is named twice in [rotors]"),
 }
 
 
@@ -230,6 +244,8 @@ def test_bad_logs_give_one_line_and_write_nothing(case, plant_flight, tmp_path, 
         head = lines[0].split(",")
         j = head.index("m3")
         lines = [lines[0]] + [",".join("" if i == j else v for i, v in enumerate(ln.split(","))) for ln in lines[1:]]
+    elif edit_log == "header_only":
+        lines = lines[:1]
     elif edit_log is not None:
         lines[0] = edit_log(lines[0])
     log.write_text("\n".join(lines) + "\n")
@@ -243,6 +259,167 @@ def test_bad_logs_give_one_line_and_write_nothing(case, plant_flight, tmp_path, 
     assert needle in err
     assert (str(log) in err) or (str(fmt) in err)
     assert not out.exists() and not out.parent.exists()
+
+
+def _strict_json(text: str):
+    """JSON as a strict parser reads it: a bare NaN or Infinity is an error."""
+    def refuse(token):
+        raise ValueError(f"not strict JSON: {token}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def _import(tmp_path, log, *extra, layout=LAYOUT):
+    fmt = tmp_path / "fmt.toml"
+    fmt.write_text(layout)
+    return main(["import", str(log), "--format", str(fmt), "--vehicle", "crazyflie", *extra])
+
+
+def _edit_rows(path, edit):
+    """Rewrite a CSV log with ``edit(header, rows)`` (rows as lists of cells) -> rows."""
+    lines = path.read_text().splitlines()
+    head = lines[0].split(",")
+    rows = edit(head, [ln.split(",") for ln in lines[1:]])
+    path.write_text("\n".join([lines[0]] + [",".join(r) for r in rows]) + "\n")
+
+
+def test_zero_quaternion_rows_are_masked_and_nothing_non_finite_is_valid(plant_flight, tmp_path, capsys):
+    """Ten rows of qx = qy = qz = qw = 0 once turned every later Euler angle into NaN, 1,641 of them flagged valid,
+    and a report of bare NaN: now exactly those rows are masked, the rest of the flight is the plant's."""
+    states, rotors, _ = plant_flight
+    log = tmp_path / "zeros.csv"
+    write_foreign(log, states, rotors, faults=False)
+    zero = np.arange(500, 510)
+
+    def zero_quaternion(head, rows):
+        for r in zero:
+            for c in ("qx", "qy", "qz", "qw"):
+                rows[r][head.index(c)] = "0"
+        return rows
+
+    _edit_rows(log, zero_quaternion)
+    out, rep = tmp_path / "d.npz", tmp_path / "r.json"
+    assert _import(tmp_path, log, "--out", str(out), "--json", str(rep)) == 0, capsys.readouterr().err
+    ds = load_dataset(out)
+    assert all(np.all(np.isfinite(getattr(ds, k))) for k in ("x", "x_next", "u", "rotor_speed", "wrench"))
+    f = _strict_json(rep.read_text())["flights"][0]
+    assert f["invalid_attitude_rows"] == len(zero) and f["nonfinite_samples"] == 0
+    flight = read_flight(log, parse_format(tomllib.loads(LAYOUT)), load_vehicle("crazyflie"))
+    idx = np.rint(flight.t / DT).astype(int)
+    assert np.array_equal(flight.x_ok, ~np.isin(idx, zero))
+    assert np.max(np.abs(flight.x[flight.x_ok] - states[idx[flight.x_ok]])) <= STATE_TOL
+    assert "invalid quaternions 10" in capsys.readouterr().out
+
+
+def test_a_gap_in_the_timestamps_is_flagged_not_invented(plant_flight, layout, tmp_path):
+    """3 s of rows removed: the grid samples inside the gap are filled but flagged invalid and counted (they were
+    once "valid: state 100 %", 63 mm off, and moved the delay estimate), every valid sample is the plant's own, and
+    the delay is still found."""
+    states, rotors, _ = plant_flight
+    log = tmp_path / "gap.csv"
+    write_foreign(log, states, rotors, faults=False)
+    _edit_rows(log, lambda head, rows: rows[:800] + rows[1100:])          # rows 800-1099: 8.0 s to 10.99 s
+    flight = read_flight(log, layout, load_vehicle("crazyflie"))
+    idx = np.rint(flight.t / DT).astype(int)
+    inside = (idx >= 800) & (idx < 1100)
+    assert flight.report.gap_samples == inside.sum() == 300
+    rotor_inside = (idx - DELAY >= 800) & (idx - DELAY < 1100)           # rotor[k] = logged[k - d]
+    assert np.array_equal(flight.x_ok, ~inside) and np.array_equal(flight.rotor_ok, ~rotor_inside)
+    assert np.max(np.abs(flight.x[flight.x_ok] - states[idx[flight.x_ok]])) <= STATE_TOL
+    assert flight.report.delay_samples == DELAY
+    assert flight.report.valid_state_fraction == pytest.approx(1 - 300 / len(idx), abs=1e-12)
+    assert "300 samples in gaps of the log" in "\n".join(flight.report.lines())
+
+
+def test_unwritable_outputs_are_refused_before_any_log_is_read(plant_flight, tmp_path, capsys):
+    """A folder that cannot be made (a file is in the way): one line naming the option, exit 2, nothing written;
+    with a writable --out and an unwritable --json the dataset is not written either (it once was)."""
+    states, rotors, _ = plant_flight
+    log = tmp_path / "flight.csv"
+    write_foreign(log, states[:400], rotors[:400], faults=False)
+    blocker = tmp_path / "ro"
+    blocker.write_text("a file, not a folder")
+    ok = tmp_path / "ok.npz"
+    for extra, option in ((["--out", str(blocker / "d.npz")], "--out"),
+                          (["--out", str(ok), "--json", str(blocker / "r.json")], "--json")):
+        capsys.readouterr()
+        assert _import(tmp_path, log, *extra) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and err.startswith("pinnmpc import: error:") and option in err, err
+        assert not ok.exists()
+
+
+def test_swapped_rotors_and_reversed_spins_show_in_the_torque_check(plant_flight, tmp_path):
+    """The torque check fits the angular acceleration by the rotor speeds' torques: 1 on every axis for the right
+    mapping; swapping the columns of rotors 1 and 2 and of 3 and 4 (front right with rear right, rear left with
+    front left) reverses pitch and yaw, and stating every spin the other way reverses yaw. Both once gave a report
+    identical to the right one."""
+    states, rotors, _ = plant_flight
+    log = tmp_path / "f.csv"
+    write_foreign(log, states, rotors, faults=False)
+    v = load_vehicle("crazyflie")
+    right = read_flight(log, parse_format(tomllib.loads(LAYOUT)), v).report
+    assert np.allclose(right.torque_check["slope"], 1.0, atol=TORQUE_SLOPE_TOL)
+    assert min(right.torque_check["explained"]) > 1 - TORQUE_SLOPE_TOL and right.warnings() == []
+    # the format's positions are front-left, front-right, rear-right, rear-left for m1..m4
+    swapped = LAYOUT.replace('columns = ["m1", "m2", "m3", "m4"]', 'columns = ["m4", "m3", "m2", "m1"]')
+    rep = read_flight(log, parse_format(tomllib.loads(swapped)), v).report
+    assert rep.torque_check["slope"][0] == pytest.approx(1.0, abs=TORQUE_SLOPE_TOL)
+    assert np.allclose(rep.torque_check["slope"][1:], -1.0, atol=TORQUE_SLOPE_TOL)
+    assert [w.split("about ")[1][0] for w in rep.warnings()] == ["y", "z"]
+    reversed_spins = LAYOUT.replace('spin = ["cw", "ccw", "cw", "ccw"]', 'spin = ["ccw", "cw", "ccw", "cw"]')
+    rep = read_flight(log, parse_format(tomllib.loads(reversed_spins)), v).report
+    assert np.allclose(rep.torque_check["slope"], [1.0, 1.0, -1.0], atol=TORQUE_SLOPE_TOL)
+
+
+def test_a_log_with_reversed_spins_gets_its_yaw_torque_reversed(plant_flight, tmp_path):
+    """A vehicle whose every rotor turns the other way (front right clockwise), logged and declared so: its rotor
+    speeds are the ones that give the plant's wrench with the yaw torque reversed, and the import must give back
+    the plant's wrench, yaw sign included (dropping the format's yaw sign passed every test once)."""
+    states, rotors, wrench = plant_flight
+    v = load_vehicle("crazyflie")
+    M = mixer_matrix(v.params)
+    M_reversed = M * np.array([1.0, 1.0, 1.0, -1.0])[:, None]
+    n_sq = np.linalg.solve(M_reversed, wrench.T).T             # the speeds that fly the plant's wrench
+    log = tmp_path / "reversed.csv"
+    write_foreign(log, states, np.sqrt(n_sq), faults=False)
+    fmt = parse_format(tomllib.loads(LAYOUT.replace('spin = ["cw", "ccw", "cw", "ccw"]',
+                                                    'spin = ["ccw", "cw", "ccw", "cw"]')))
+    assert fmt.yaw_sign == -1.0
+    flight = read_flight(log, fmt, v)
+    idx = np.rint(flight.t / DT).astype(int)
+    scale = np.abs(wrench).max(axis=0)
+    assert np.all(np.abs(flight.u - wrench[idx]) <= WRENCH_RTOL * scale)
+    assert np.corrcoef(flight.u[:, 3], wrench[idx, 3])[0, 1] > 0.99
+    assert flight.report.torque_check["slope"][2] == pytest.approx(1.0, abs=TORQUE_SLOPE_TOL)
+
+
+def test_a_held_row_after_a_spike_or_a_nan_is_still_held(plant_flight, layout, tmp_path):
+    """Telemetry not refreshed repeats its last values; a spike or a NaN in one column of the row before once hid it
+    (the row was compared with the corrupted one). Each held row is compared with every column's last clean
+    value."""
+    states, rotors, _ = plant_flight
+    log = tmp_path / "held.csv"
+    write_foreign(log, states, rotors, faults=False)
+    before = read_flight(log, layout, load_vehicle("crazyflie")).report.held_rows["rotors"]   # the log's last rows
+    spike_row, nan_row = 600, 900
+
+    def corrupt(head, rows):
+        motors = slice(head.index("m1"), head.index("m4") + 1)
+        for r, bad in ((spike_row, "6000000.0"), (nan_row, "")):
+            rows[r][motors] = rows[r - 1][motors]        # held ...
+            rows[r][head.index("m3")] = bad              # ... but for one corrupted column
+            rows[r + 1][motors] = rows[r - 1][motors]    # and held again: the row to be found
+        return rows
+
+    _edit_rows(log, corrupt)
+    flight = read_flight(log, layout, load_vehicle("crazyflie"))
+    assert flight.report.held_rows["rotors"] == before + 2     # rows 601 and 901 repeat the last clean speeds
+    assert flight.report.spikes == 1 and flight.report.nan_rows["rotors"] == 1
+    idx = np.rint(flight.t / DT).astype(int)
+    d = flight.report.delay_samples
+    for r in (spike_row, nan_row):
+        assert not flight.rotor_ok[np.flatnonzero(idx == r + 1 + d)].any()
 
 
 def test_import_command_writes_a_dataset_with_validity(plant_flight, tmp_path, capsys):
@@ -275,14 +452,25 @@ def test_import_command_writes_a_dataset_with_validity(plant_flight, tmp_path, c
     assert not (tmp_path / "m").exists()
 
 
+def test_a_split_that_matches_no_flight_is_refused(plant_flight, tmp_path, capsys):
+    """--split test=melon* with no melon log once gave a dataset with 0 test flights and exit 0."""
+    states, rotors, _ = plant_flight
+    log = tmp_path / "square_1.csv"
+    write_foreign(log, states[:400], rotors[:400], faults=False)
+    out = tmp_path / "d.npz"
+    assert _import(tmp_path, log, "--out", str(out), "--split", "test=melon*") == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--split test=melon* matches no flight" in err and "square_1" in err
+    assert not out.exists()
+
+
 def test_mixer_of_reversed_spins_flips_yaw_only():
     """A log whose front-right rotor turns clockwise gets the yaw torque reversed and nothing else."""
     fmt = parse_format(tomllib.loads(LAYOUT.replace('spin = ["cw", "ccw", "cw", "ccw"]',
                                                                  'spin = ["ccw", "cw", "ccw", "cw"]')))
     assert fmt.yaw_sign == -1.0
-    assert load_format  # the shipped formats load too
-    for name in ("nanodrone-raw", "nanodrone-processed"):
-        assert load_format(name).rotors[0].startswith("m1")
+    for name in ("nanodrone-raw", "nanodrone-processed"):          # the spins the benchmark's logs bear out
+        assert load_format(name).rotors[0].startswith("m1") and load_format(name).yaw_sign == 1.0
     M = mixer_matrix(load_vehicle("crazyflie").params)
     assert M[3, 0] > 0
 
