@@ -16,10 +16,12 @@ forward differences over one period:
   ``kt`` or ``kq`` from the rotor layout), ``c_gyro`` the inertia ratio of
   Euler's equations and ``b`` a torque bias per unit inertia.
 
-Each coefficient gets its pooled estimate, the spread of the per-flight
-estimates and a 95 % interval from that spread (a t interval over flights,
-which stays honest when residuals are correlated in time), and each
-equation its share of explained variance. :func:`fisher_table` asks the
+Each coefficient gets its pooled estimate, the per-flight estimates and a
+95 % interval of the pooled estimate from a jackknife over flights (the
+pooled fit repeated with each flight left out; a t interval of that spread
+around the pooled value, which stays honest when residuals are correlated
+in time within a flight), and each equation its share of explained
+variance. :func:`fisher_table` asks the
 paper's Table II of the real flights: the Fisher information of the six
 absolute parameters (m, Jxx, Jyy, Jzz, kt, kq) in these equations, whose
 smallest eigenvalue is zero (the common scale), and the Cramer-Rao bounds
@@ -51,14 +53,14 @@ def _t95(dof: int) -> float:
 
 @dataclass(frozen=True)
 class Coefficient:
-    """One fitted coefficient: pooled value, per-flight values and a 95 % interval over flights."""
+    """One fitted coefficient: pooled value, per-flight values and a 95 % interval of the pooled value."""
 
     name: str
     unit: str
     value: float              # pooled least squares over every flight
     per_flight: tuple         # one value per flight
-    low: float                # 95 % interval over flights (t interval of the per-flight mean)
-    high: float
+    low: float                # 95 % interval of the pooled value: value -+ t * jackknife standard error over
+    high: float               # flights (NaN with one flight)
 
     @property
     def relative_spread(self) -> float:
@@ -134,6 +136,20 @@ _COEFS = {
 }
 
 
+def _jackknife_half_width(per, eq: str) -> np.ndarray:
+    """Half-width of the 95 % interval of each pooled coefficient of equation ``eq``: ``t * se`` with ``se`` the
+    jackknife standard error over flights (the pooled fit with each flight left out in turn); NaN with one flight."""
+    n = len(per)
+    if n < 2:
+        return np.full(per[0][eq][1].shape[1], math.nan)
+    # each refit on the stacked rows (normal equations would square the regressors' condition, 1e7 against 1)
+    loo = np.array([np.linalg.lstsq(np.concatenate([p[eq][1] for j, p in enumerate(per) if j != i]),
+                                    np.concatenate([p[eq][0] for j, p in enumerate(per) if j != i]), rcond=None)[0]
+                    for i in range(n)])
+    se = np.sqrt((n - 1) / n * np.sum((loo - loo.mean(axis=0)) ** 2, axis=0))
+    return _t95(n - 1) * se
+
+
 def identify(flights, vehicle) -> RealIdentification:
     """Fit the ratios, drags and biases of the module docstring on ``flights`` (imported, rotor speeds in rad/s).
 
@@ -148,13 +164,11 @@ def identify(flights, vehicle) -> RealIdentification:
         pooled, *_ = np.linalg.lstsq(A, y, rcond=None)
         explained[eq] = float(1.0 - np.var(y - A @ pooled) / np.var(y))
         each = np.array([np.linalg.lstsq(p[eq][1], p[eq][0], rcond=None)[0] for p in per])
+        half = _jackknife_half_width(per, eq)
         for j, (name, unit) in enumerate(names):
-            vals = each[:, j]
-            half = _t95(len(vals) - 1) * np.std(vals, ddof=1) / math.sqrt(len(vals)) if len(vals) > 1 else math.nan
-            mid = float(np.mean(vals))
             coefficients[name] = Coefficient(name=name, unit=unit, value=float(pooled[j]),
-                                             per_flight=tuple(float(v) for v in vals),
-                                             low=mid - half, high=mid + half)
+                                             per_flight=tuple(float(v) for v in each[:, j]),
+                                             low=float(pooled[j] - half[j]), high=float(pooled[j] + half[j]))
     return RealIdentification(coefficients=coefficients, explained=explained,
                               samples=int(sum(len(p["a_z"][0]) for p in per)),
                               flights=tuple(f.name for f in flights),

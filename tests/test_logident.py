@@ -18,6 +18,8 @@ EXACT = 1e-9          # the plant's own equations predict its noise-free flight 
 RATIO_RTOL = 2e-3     # identified ratios against the true ones (forward differences bias them by O(dt))
 SCALE_TOL = 1e-6      # the Fisher information's null direction against the common scale
 GAIN_TOL_M = 1e-4     # h=50 position error of the identified physics on a wrench logged with a 10 % wrong kt
+JACKKNIFE_RTOL = 1e-6 # interval half-width against the jackknife recomputed from refits (normal equations vs lstsq)
+T95 = {3: 3.18}       # Student t, two-sided 95 %, by degrees of freedom (4 flights)
 
 
 def _flights(ds):
@@ -83,8 +85,25 @@ def test_identified_ratios_are_the_vehicles(crazyflie_flights):
         assert abs(ident.value(c)) < 1e-2
     # with the midpoint regressors the equations hold to second order in the period (x and y carry no force at all)
     assert min(ident.explained[e] for e in ("a_z", "p_dot", "q_dot", "r_dot")) > 1 - 1e-6
-    c = ident.coefficients["kt/m"]
-    assert c.low <= np.mean(c.per_flight) <= c.high and len(c.per_flight) == 4
+    assert all(len(c.per_flight) == 4 for c in ident.coefficients.values())
+
+
+def test_each_interval_is_the_jackknife_over_flights_around_the_pooled_value(noisy_flights):
+    """Every coefficient's interval holds its own pooled value (an interval of the per-flight mean once showed a
+    value outside it), and its half-width is t(n - 1) times the jackknife standard error of the pooled fit with each
+    flight left out in turn, computed here by fitting every subset again."""
+    vehicle, flights = noisy_flights
+    ident = identify(flights, vehicle)
+    n = len(flights)
+    loo = [identify(flights[:i] + flights[i + 1:], vehicle) for i in range(n)]
+    for name, c in ident.coefficients.items():
+        assert c.low <= c.value <= c.high, name
+        vals = np.array([r.value(name) for r in loo])
+        se = np.sqrt((n - 1) / n * np.sum((vals - vals.mean()) ** 2))
+        assert (c.high - c.low) / 2 == pytest.approx(T95[n - 1] * se, rel=JACKKNIFE_RTOL), name
+        assert c.value == pytest.approx((c.high + c.low) / 2, rel=JACKKNIFE_RTOL, abs=1e-300)
+    one = identify(flights[:1], vehicle).coefficients["kt/m"]
+    assert np.isnan(one.low) and np.isnan(one.high)
 
 
 def test_fisher_information_has_the_common_scale_as_its_null_direction(noisy_flights):
