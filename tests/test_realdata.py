@@ -2,13 +2,14 @@
 
 import json
 import os
+import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from scenarios.cli import main
-from scenarios.realdata import RAW_DIR, benchmark_filter
+from scenarios.realdata import RAW_DIR, benchmark_filter, logs_commit
 from sim import NoiseModel
 from sim.excitation import make_dataset
 from sim.vehicle import load_vehicle
@@ -208,7 +209,7 @@ def test_the_report_section_shows_every_model_beside_the_published_rows(bench):
     assert sec.count("(published, melon run 1 filtered)") == 4 and "\n# " not in "\n" + sec
     assert "### h = 50 (0.5 s), mean error over every window" in sec
     for name, m in r["models"].items():
-        row = next(ln for ln in sec.splitlines() if ln.startswith(f"| {name} ({m['kind']}), raw melon (all) |"))
+        row = next(ln for ln in sec.splitlines() if ln.startswith(f"| {name} ({m['kind']}), raw test flights (all) |"))
         assert row.endswith(" | ".join(f"{m['raw'][q][-1]:.4f}" for q in ("position", "velocity", "rotation",
                                                                             "angular_velocity")) + " |")
     assert realdata_section(None) == NO_REALDATA
@@ -237,9 +238,53 @@ def test_your_own_logs_with_your_own_split_patterns(tmp_path):
         write_nanodrone_parquet(tmp_path / f"{name}.parquet", np.concatenate([ds.x[i], ds.x_next[i, -1:]]),
                                 np.concatenate([ds.rotor_speed[i], ds.rotor_speed[i, -1:]]))
     out = tmp_path / "out"
+    # the logs lie untracked inside a git checkout: its commit is not theirs (the study once recorded it)
+    git = ["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run(git[:3] + ["init", "-q"], check=True)
+    (tmp_path / "README").write_text("a checkout that does not hold the logs\n")
+    subprocess.run(git + ["add", "README"], check=True)
+    subprocess.run(git + ["commit", "-q", "-m", "readme"], check=True)
     assert main(["realdata", "--logs", str(tmp_path), "--out", str(out), "--vehicle", "crazyflie", "--plants", "none",
                  "--learn", "none", "--format", "nanodrone-raw", "--test", "hold*", "--val", "check*"]) == 0
-    r = json.loads((out / "realdata.json").read_text())
+    text = (out / "realdata.json").read_text()
+    r = json.loads(text, parse_constant=_refuse)                 # strict JSON: no bare NaN
     assert r["splits"] == {"train": ["fly_a", "fly_b"], "val": ["check_a"], "test": ["hold_run1"]}
     m = r["models"]["nominal physics"]
     assert max(m["raw"]["position"]) <= EXACT
+    assert r["source"]["commit"] is None
+    # the rows name the flights used; the benchmark's published rows (for its melon flights) are left out
+    md = (out / "realdata.md").read_text()
+    assert "melon" not in md.replace("the four melon runs, melon run 1 filtered", "")
+    assert "hold_run1 filtered" in md and "(published" not in md and r["published_h50"] is None
+    # with the logs committed, the commit is theirs
+    subprocess.run(git + ["add", "."], check=True)
+    subprocess.run(git + ["commit", "-q", "-m", "logs"], check=True)
+    head = subprocess.run(git[:3] + ["rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    logs = sorted(tmp_path.glob("*.parquet"))
+    assert logs_commit(logs) == head and len(head) == 40
+    (tmp_path / "fly_a.parquet").write_bytes(b"changed")
+    assert logs_commit(logs) is None
+
+
+def _refuse(token):
+    raise ValueError(f"not strict JSON: {token}")
+
+
+def test_a_split_with_no_flight_is_refused_naming_its_pattern(tmp_path, capsys):
+    """Two flights: no validation flight matches the default patterns. The study once went on, with 19 "nan to nan"
+    intervals and bare NaN in its JSON; now it stops in one line naming --val and its patterns, and writes nothing."""
+    ds = make_dataset("small", 2, 2.0, 5, noise=NoiseModel.none(), vehicle="crazyflie")
+    for i, name in enumerate(["melon_a_run1", "square_a_run1"]):
+        write_nanodrone_parquet(tmp_path / f"{name}.parquet", np.concatenate([ds.x[i], ds.x_next[i, -1:]]),
+                                np.concatenate([ds.rotor_speed[i], ds.rotor_speed[i, -1:]]))
+    out = tmp_path / "out"
+    base = ["realdata", "--logs", str(tmp_path), "--out", str(out), "--vehicle", "crazyflie", "--plants", "none",
+            "--learn", "none"]
+    for extra, needle in (([], "--val multisine_*_run4,random1_*_run4,random2_*_run4,square_*_run5 matches no flight"),
+                          (["--test", "circle*"], "--test circle* matches no flight"),
+                          (["--test", "melon*", "--val", "square*"], "no flight is left to train on")):
+        capsys.readouterr()
+        assert main(base + extra) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and needle in err, err
+        assert not (out / "realdata.json").exists()
