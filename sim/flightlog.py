@@ -404,8 +404,7 @@ def read_flight(path, fmt: LogFormat, vehicle: Vehicle, name: str | None = None)
             f"{fmt.rotor_unit!r} right, and the vehicle's n_max?")
     nan_rows = {g: int(np.sum(~np.all(np.isfinite(a), axis=1))) for g, a in groups.items()}
     held = {g: _held(a, clean[g]) for g, a in groups.items()}
-    ok = {g: np.all(np.isfinite(a), axis=1) & ~held[g] for g, a in groups.items()}
-    ok["rotors"] &= ~spike
+    ok = {g: np.all(clean[g], axis=1) & ~held[g] for g in GROUPS}
     invalid_attitude = np.zeros(len(t), dtype=bool)
     if fmt.quaternion is not None:
         with np.errstate(invalid="ignore", over="ignore"):
