@@ -166,7 +166,7 @@ def _retrain(entry: dict, name: str, tmp_path) -> dict:
     return new
 
 
-@pytest.mark.slow
+@pytest.mark.retrain
 @pytest.mark.parametrize("name", sorted(IDENT_MANIFEST))
 def test_retraining_an_identification_model_reproduces_it(tmp_path, name):
     """Run a models/identification manifest command into a temporary folder (5-8 minutes each)."""
@@ -177,7 +177,7 @@ def test_retraining_an_identification_model_reproduces_it(tmp_path, name):
         assert abs(now - old) <= TOL["reproduce_theta"] * abs(old) + 0.01, (key, old, now)
 
 
-@pytest.mark.slow
+@pytest.mark.retrain
 @pytest.mark.parametrize("name", sorted(VERSUS_MANIFEST))
 def test_retraining_a_versus_model_reproduces_it(tmp_path, name):
     """Retrain a models/versus model (5-10 minutes); RotorPy's dataset first, with the manifest's data command
