@@ -53,7 +53,7 @@ def test_readme_is_short_and_has_the_two_set_up_commands():
     assert blocks[1].strip() == 'python -m pip install -e ".[test]" && python -m pytest'
     # CI runs the README's test command, then the slower checks it leaves out
     ci = [ln.strip() for ln in (REPO / ".ci" / "run").read_text().splitlines() if ln.strip()]
-    assert ci[-2:] == [blocks[1].strip(), "python -m pytest -m slow"]
+    assert ci[-2:] == [blocks[1].strip(), "python -m pytest -m slow -n 2 --dist loadfile"]
 
 
 def test_every_relative_link_of_the_docs_resolves():

@@ -128,7 +128,7 @@ def test_exported_derivatives_match_central_differences(folder, name):
         assert np.max(rel) < TOL["fd"]
 
 
-@pytest.mark.slow
+@pytest.mark.retrain
 def test_retraining_reproduces_the_shipped_metrics(tmp_path):
     """Run the manifest command of the shipped baseline into a temporary folder (about 5 minutes)."""
     from scenarios.cli import main
