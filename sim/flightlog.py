@@ -13,7 +13,9 @@ Its steps, in order, each reported in :class:`ImportReport`:
    telemetry that was not refreshed) and, for the rotors, a *spike* (a speed
    below 0 or above ``max_rotor_over_n_max`` times the vehicle's ``n_max``)
    is masked, not guessed; so is an attitude row whose quaternion has a zero
-   or non-finite norm. A row is held when each column equals that column's
+   or non-finite norm, and a position *glitch* (a row farther than
+   ``max_position_jump_m`` from the running median of the rows around it: a
+   logger's row of zeros). A row is held when each column equals that column's
    last clean value (a NaN or a spike in the row before does not hide it).
    Rows with a repeated timestamp are dropped; a log whose median row interval
    is outside :data:`ROW_INTERVAL_S` is refused (its time unit is wrong).
@@ -82,6 +84,8 @@ MIN_QUATERNION_NORM = 1e-3
 #: Rotor rows with a spike, as a share of the rows whose rotors turn, above which the log is refused (the rotor unit
 #: is wrong: every speed is out of range).
 MAX_SPIKE_SHARE = 0.5
+#: Half-width of the running median a position row is compared with, s (at least 2 rows each side).
+GLITCH_HALF_WINDOW_S = 0.05
 #: Share of an axis' angular acceleration the rotor torques must explain for the report not to call the check weak.
 WEAK_TORQUE_EXPLAINED = 0.5
 
@@ -97,6 +101,7 @@ class ImportReport:
     nan_rows: dict                  # group -> rows with a NaN
     held_rows: dict                 # group -> rows equal to the row before
     spikes: int                     # rotor rows outside [0, max_rotor_over_n_max n_max]
+    position_glitches: int          # position rows off the running median by more than max_position_jump_m
     invalid_attitude_rows: int      # rows whose quaternion has a zero or non-finite norm (masked)
     resampling: str                 # how the log was brought onto the 10 ms grid
     log_period_s: float             # median period of the log
@@ -129,8 +134,9 @@ class ImportReport:
         return [
             f"{self.name}: {self.rows} rows, {self.samples} kept ({self.airborne_s[0]:.2f}-{self.airborne_s[1]:.2f} s "
             f"airborne); {self.resampling}",
-            f"  held rows: {held}; NaN rows {nans}; rotor spikes {self.spikes}; invalid quaternions "
-            f"{self.invalid_attitude_rows}; duplicate times {self.duplicate_times}",
+            f"  held rows: {held}; NaN rows {nans}; rotor spikes {self.spikes}; position glitches "
+            f"{self.position_glitches}; invalid quaternions {self.invalid_attitude_rows}; duplicate times "
+            f"{self.duplicate_times}",
             f"  valid: state {100 * self.valid_state_fraction:.1f} %, rotors {100 * self.valid_rotor_fraction:.1f} %"
             f"{invented}; motor-to-state delay {self.delay_samples} samples (residual ratio "
             f"{self.delay_rss_ratio:.2f})",
@@ -313,6 +319,28 @@ def _held(a: np.ndarray, clean: np.ndarray | None = None) -> np.ndarray:
     return np.all((before >= 0) & (a == prev), axis=1)
 
 
+def _position_glitches(pos: np.ndarray, period: float, limit: float) -> np.ndarray:
+    """Rows (n,) of positions ``pos`` (n, 3), m, farther than ``limit`` (m) from the running median (per coordinate,
+    over :data:`GLITCH_HALF_WINDOW_S` each side, at least 2 rows, over the finite rows) of the rows around them.
+
+    The median of a smooth path's neighbouring samples is the path itself (exactly, where a coordinate is
+    monotonic), so only a row off the path stands out: a logger's row of zeros, a wild value. A run of up to
+    ``half`` such rows in a row is found.
+    """
+    from scipy.ndimage import median_filter
+
+    out = np.zeros(len(pos), dtype=bool)
+    finite = np.all(np.isfinite(pos), axis=1)
+    if finite.sum() < 3:
+        return out
+    half = max(2, int(round(GLITCH_HALF_WINDOW_S / period)))
+    p = pos[finite]
+    med = median_filter(p, size=(2 * half + 1, 1), mode="nearest")
+    with np.errstate(over="ignore", invalid="ignore"):
+        out[finite] = ~(np.linalg.norm(p - med, axis=1) <= limit)
+    return out
+
+
 def _fill(t: np.ndarray, a: np.ndarray, ok: np.ndarray) -> np.ndarray:
     """``a`` (n, w) with the rows where ``ok`` is False replaced by linear interpolation in ``t`` (nearest at ends)."""
     out = a.copy()
@@ -393,6 +421,8 @@ def read_flight(path, fmt: LogFormat, vehicle: Vehicle, name: str | None = None)
     with np.errstate(invalid="ignore"):
         spike_cell = (rot < 0) | (rot > fmt.max_rotor_over_n_max * n_max)
     clean["rotors"] &= ~spike_cell
+    glitch = _position_glitches(groups["position"] * fmt.position_scale, period, fmt.max_position_jump_m)
+    clean["position"] &= ~glitch[:, None]
     spike = np.any(spike_cell, axis=1)
     turning = np.any(np.nan_to_num(rot) > 0, axis=1)
     if spike.sum() > MAX_SPIKE_SHARE * max(int(turning.sum()), 1):
@@ -523,7 +553,7 @@ def read_flight(path, fmt: LogFormat, vehicle: Vehicle, name: str | None = None)
     report = ImportReport(
         name=name, source=str(path), rows=rows, duplicate_times=duplicates, nan_rows=nan_rows,
         held_rows={g: int(h.sum()) for g, h in held.items()}, spikes=int(spike.sum()),
-        invalid_attitude_rows=int(invalid_attitude.sum()), resampling=resampling,
+        position_glitches=int(glitch.sum()), invalid_attitude_rows=int(invalid_attitude.sum()), resampling=resampling,
         log_period_s=period, airborne_s=(float(tg[0]), float(tg[-1])), samples=int(len(tg)),
         valid_state_fraction=float(x_ok.mean()), valid_rotor_fraction=float(rot_ok.mean()),
         gap_samples=int(in_gap[sl].sum()), nonfinite_samples=int(nonfinite[sl].sum()),
@@ -707,7 +737,7 @@ def flown_flight(name: str, t, x, rotor_speed, vehicle: Vehicle, command=None, r
     _, _, coef = estimate_delay(x, ok, rot, 0, keep, (0, 0))
     report = ImportReport(
         name=name, source=source, rows=n, duplicate_times=0, nan_rows={}, held_rows={}, spikes=0,
-        invalid_attitude_rows=0, resampling="none: on the 10 ms grid", log_period_s=DT,
+        position_glitches=0, invalid_attitude_rows=0, resampling="none: on the 10 ms grid", log_period_s=DT,
         airborne_s=(float(t[0]), float(t[-1])), samples=int(keep), valid_state_fraction=1.0,
         valid_rotor_fraction=1.0, gap_samples=0, nonfinite_samples=0, delay_samples=0,
         delay_rss_ratio=0.0, velocity_check=_velocity_check(x, ok), rates_check=_rates_check(x, ok),

@@ -51,6 +51,7 @@ names it::
 
     [clean]                                  # optional
     max_rotor_over_n_max = 1.5               # a rotor speed above this multiple of n_max is a spike
+    max_position_jump_m = 0.2                # a position this far from the running median around it is a glitch
 
     [reference]                              # optional: the flight's position reference
     columns = ["x_r", "y_r", "z_r"]          # same world frame and unit as [position]
@@ -107,7 +108,7 @@ _KEYS = {
     "rotors": ("columns", "unit", "pole_pairs", "positions", "spin"),
     "airborne": ("column", "min_thrust_to_weight", "margin_s"),
     "delay": ("search",),
-    "clean": ("max_rotor_over_n_max",),
+    "clean": ("max_rotor_over_n_max", "max_position_jump_m"),
     "reference": ("columns",),
 }
 _REQUIRED = ("time", "frames", "position", "attitude", "velocity", "rates", "rotors")
@@ -143,6 +144,7 @@ class LogFormat:
     margin_s: float
     delay_search: tuple[int, int]
     max_rotor_over_n_max: float
+    max_position_jump_m: float     # a position row farther than this (m) from the running median around it is masked
     reference: tuple[str, ...] | None
 
     @property
@@ -316,6 +318,7 @@ def parse_format(data: dict, where: str = "format", name: str = "format", path: 
         margin_s=number("airborne", "margin_s", 0.5),
         delay_search=(int(search[0]), int(search[1])),
         max_rotor_over_n_max=number("clean", "max_rotor_over_n_max", 1.5, lo=1.0),
+        max_position_jump_m=number("clean", "max_position_jump_m", 0.2, lo=1e-6),
         reference=columns("reference", required=False) if "reference" in data else None,
     )
     seen: dict[str, str] = {}

@@ -394,6 +394,36 @@ def test_a_log_with_reversed_spins_gets_its_yaw_torque_reversed(plant_flight, tm
     assert flight.report.torque_check["slope"][2] == pytest.approx(1.0, abs=TORQUE_SLOPE_TOL)
 
 
+def test_a_row_of_zeros_in_the_position_is_a_glitch_and_a_fast_smooth_path_is_not(plant_flight, layout, tmp_path):
+    """A logger's rows of zeros in the position (the real logs have such rows, and height jumps of 0.3-0.5 m in one
+    sample) once imported as measured: they are masked and counted as glitches, the rest of the flight is the
+    plant's. The plant's own flight, and a fast circle at 3 m/s logged at 100 Hz and at 10 Hz, have none."""
+    from sim.flightlog import _position_glitches
+
+    states, rotors, _ = plant_flight
+    log = tmp_path / "zeros.csv"
+    write_foreign(log, states, rotors, faults=False)
+    bad = [700, 1300, 1301]
+
+    def zero_position(head, rows):
+        for r in bad:
+            for c in ("px", "py", "pz"):
+                rows[r][head.index(c)] = "0.0"
+        return rows
+
+    _edit_rows(log, zero_position)
+    flight = read_flight(log, layout, load_vehicle("crazyflie"))
+    assert flight.report.position_glitches == len(bad)
+    idx = np.rint(flight.t / DT).astype(int)
+    assert np.array_equal(flight.x_ok, ~np.isin(idx, bad))
+    assert np.max(np.abs(flight.x[flight.x_ok] - states[idx[flight.x_ok]])) <= STATE_TOL
+    assert not _position_glitches(states[:, 0:3], DT, 0.2).any()
+    for period in (0.01, 0.1):
+        t = np.arange(0.0, 10.0, period)
+        circle = np.c_[1.5 * np.cos(2.0 * t), 1.5 * np.sin(2.0 * t), -1.0 + 0.3 * np.sin(5.0 * t)]   # 3 m/s
+        assert not _position_glitches(circle, period, 0.2).any(), period
+
+
 def test_a_held_row_after_a_spike_or_a_nan_is_still_held(plant_flight, layout, tmp_path):
     """Telemetry not refreshed repeats its last values; a spike or a NaN in one column of the row before once hid it
     (the row was compared with the corrupted one). Each held row is compared with every column's last clean
