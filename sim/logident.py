@@ -175,6 +175,20 @@ def identify(flights, vehicle) -> RealIdentification:
                               delays=tuple(int(f.report.delay_samples) for f in flights))
 
 
+def _bounds(info: np.ndarray) -> np.ndarray:
+    """Cramer-Rao standard deviation of each parameter from the information ``info`` (n x n).
+
+    A direction whose eigenvalue is at most ``1e-10`` of the largest is one the data do not see: a parameter
+    with a part in such a direction has no finite bound (infinity; null in JSON), as when the flights never
+    excite a torque. The others are bounded by the pseudo-inverse, which for them equals the inverse.
+    """
+    lam, vec = np.linalg.eigh(info)
+    seen = lam > 1e-10 * max(lam[-1], 0.0)
+    var = np.einsum("ij,j,ij->i", vec[:, seen], 1.0 / lam[seen], vec[:, seen])
+    blind = np.abs(vec[:, ~seen]).max(axis=1, initial=0.0) > 1e-6
+    return np.where(blind, np.inf, np.sqrt(var))
+
+
 def fisher_table(flights, vehicle, ident: RealIdentification) -> dict:
     """Fisher information of (m, Jxx, Jyy, Jzz, kt, kq) in the z-force and the three rotational equations.
 
@@ -182,7 +196,7 @@ def fisher_table(flights, vehicle, ident: RealIdentification) -> dict:
     inertia ratios of Euler's equations), evaluated at the vehicle file's values, with each equation's residual
     variance taken from the fit ``ident``. Returns the eigenvalues of the information in relative parameters
     (``d theta / theta``, smallest first), the direction of the smallest, and the Cramer-Rao bound (relative
-    standard deviation) of each parameter with the mass fixed.
+    standard deviation) of each parameter with the mass fixed, infinite for one the flights cannot bound.
     """
     lever = vehicle.d / math.sqrt(2.0)
     theta0 = np.array([vehicle.m, vehicle.Jxx, vehicle.Jyy, vehicle.Jzz, vehicle.kt, vehicle.kq])
@@ -215,8 +229,7 @@ def fisher_table(flights, vehicle, ident: RealIdentification) -> dict:
         F += S.T @ S / sigma2
     evals, evecs = np.linalg.eigh(F)
     null = evecs[:, 0] * np.sign(evecs[np.argmax(np.abs(evecs[:, 0])), 0])
-    sub = F[1:, 1:]
-    crlb = np.sqrt(np.diag(np.linalg.inv(sub)))
+    crlb = _bounds(F[1:, 1:])
     return {
         "parameters": list(PARAMS),
         "eigenvalues": [float(e) for e in evals],

@@ -1,5 +1,6 @@
 """Real-flight identification and the benchmark's prediction protocol, on flights with known answers."""
 
+import warnings
 from types import SimpleNamespace
 
 import numpy as np
@@ -7,8 +8,9 @@ import pytest
 
 from sim import NoiseModel
 from sim.excitation import make_dataset
+from sim.files import json_ready
 from sim.logbench import HORIZONS, physics_step, prediction_errors, rotation_angle
-from sim.logident import fisher_table, identify
+from sim.logident import _bounds, fisher_table, identify
 from sim.params import DT
 from sim.rotors import wrench_from_rotor_sq
 from sim.vehicle import load_vehicle
@@ -19,6 +21,7 @@ RATIO_RTOL = 2e-3     # identified ratios against the true ones (forward differe
 SCALE_TOL = 1e-6      # the Fisher information's null direction against the common scale
 GAIN_TOL_M = 1e-4     # h=50 position error of the identified physics on a wrench logged with a 10 % wrong kt
 JACKKNIFE_RTOL = 1e-6 # interval half-width against the jackknife recomputed from refits (normal equations vs lstsq)
+BOUND_RTOL = 1e-9    # Cramer-Rao bounds against the inverse computed directly
 T95 = {3: 3.18}       # Student t, two-sided 95 %, by degrees of freedom (4 flights)
 
 
@@ -113,6 +116,36 @@ def test_fisher_information_has_the_common_scale_as_its_null_direction(noisy_fli
     assert abs(ev[0]) <= 1e-9 * ev[-1]
     assert np.allclose(table["weakest_direction"], 1 / np.sqrt(6), atol=SCALE_TOL)
     assert all(v > 0 for v in table["crlb_relative_with_m_fixed"].values())
+
+
+def test_a_parameter_the_information_does_not_see_has_no_finite_bound():
+    """On a positive-definite information the bounds are the square roots of the inverse's diagonal; with a
+    parameter it holds no information about, that one is unbounded and the others are the bounds of the rest."""
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(5, 5))
+    info = a @ a.T + 0.1 * np.eye(5)
+    assert np.allclose(_bounds(info), np.sqrt(np.diag(np.linalg.inv(info))), rtol=BOUND_RTOL, atol=0)
+    info[2, :] = info[:, 2] = 0.0
+    b = _bounds(info)
+    rest = np.delete(np.delete(info, 2, 0), 2, 1)
+    assert np.isinf(b[2])
+    assert np.allclose(np.delete(b, 2), np.sqrt(np.diag(np.linalg.inv(rest))), rtol=BOUND_RTOL, atol=0)
+
+
+def test_flights_without_a_torque_leave_the_inertias_unbounded_instead_of_a_traceback(noisy_flights):
+    """Flights whose four rotors always turn alike (same total thrust, no torque) once stopped the Fisher table
+    with 'Singular matrix'. The inertias and kq have no bound then; kt keeps the bound the z equation gives it,
+    which is the whole of its bound in the excited flights too (there kt/Jxx leaves kt to the z equation)."""
+    vehicle, flights = noisy_flights
+    level = [SimpleNamespace(**{**vars(f), "rotor_speed": np.repeat(
+        np.sqrt((f.rotor_speed ** 2).mean(axis=1, keepdims=True)), 4, axis=1)}) for f in flights]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bound = fisher_table(level, vehicle, identify(level, vehicle))["crlb_relative_with_m_fixed"]
+    excited = fisher_table(flights, vehicle, identify(flights, vehicle))["crlb_relative_with_m_fixed"]
+    assert all(np.isinf(bound[p]) for p in ("Jxx", "Jyy", "Jzz", "kq"))
+    assert bound["kt"] == pytest.approx(excited["kt"], rel=BOUND_RTOL)
+    assert json_ready(bound)["Jxx"] is None
 
 
 def test_the_wrench_of_the_flights_is_the_rotor_speeds_through_the_mixer(crazyflie_flights):
