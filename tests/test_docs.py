@@ -50,7 +50,7 @@ def test_readme_is_short_and_has_the_two_set_up_commands():
     assert len(text.encode("utf-8")) < README_MAX_BYTES
     blocks = re.findall(r"```bash\n(.*?)```", text, re.S)
     assert blocks[0].strip() == 'python -m pip install -e ".[rotorpy]" && pinnmpc run'
-    assert blocks[1].strip() == 'python -m pip install -e ".[test]" && python -m pytest'
+    assert blocks[1].strip() == 'python -m pip install -e ".[test]" && python -m pytest -n 2 --dist loadfile'
     # CI runs the README's test command, then the slower checks it leaves out
     ci = [ln.strip() for ln in (REPO / ".ci" / "run").read_text().splitlines() if ln.strip()]
     assert ci[-2:] == [blocks[1].strip(), "python -m pytest -m slow -n 2 --dist loadfile"]
