@@ -599,7 +599,7 @@ def _fly_all(tasks, jobs: int, what: str) -> dict:
     died twice is ``(None, None)``: not flown."""
     from tqdm import tqdm
 
-    from scenarios.engines import worker_init
+    from sim.workers import worker_init
     from scenarios.pool import run_pool
 
     flown = {}

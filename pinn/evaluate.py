@@ -350,7 +350,7 @@ def evaluate_dir(folder, data_path=None, progress: bool = False, jobs: int = 1, 
             import concurrent.futures as cf
             import multiprocessing as mp
 
-            from scenarios.engines import worker_init
+            from sim.workers import worker_init
             from sim.compiled import precompile
             from sim.fisher import sensitivity_function
 

@@ -182,17 +182,13 @@ def train_run(run: ZooRun, out: Path, test_ds=None, threads: int = 1, progress: 
 
 
 def flight_check(path) -> str | None:
-    """None when every controller can be built on the model at ``path``, else the reason it cannot."""
-    from mpc.errors import ConfigurationError
-    from mpc.lqr import LQRController
+    """None when every controller can fly the model at ``path``, else the reason none can: the check of
+    ``pinnmpc check-model`` (:func:`mpc.readiness.readiness`, the LQR about the model's hover trim)."""
     from mpc.models import load_model
-    from scenarios.library import get_scenario
+    from mpc.readiness import readiness
 
-    try:
-        LQRController(get_scenario("figure8-fast").reference(), load_model(str(path)))
-    except ConfigurationError as e:
-        return str(e)
-    return None
+    why = [r.reason for r in readiness(load_model(str(path))).values() if not r.flies]
+    return why[0] if why else None
 
 
 def sort_refused(out, names) -> dict:

@@ -58,6 +58,7 @@ from pathlib import Path
 
 from mpc.contract import model_files
 from sim.files import write_json
+from sim.plants import rotorpy_available
 
 from .errors import ScenarioError
 from .lock import locks_out_dir
@@ -163,13 +164,6 @@ def main_scenarios(full: bool = False) -> list[str]:
     if full:
         return names
     return [n for n in names if "+" not in n or (n.startswith("figure8-fast+") and not n.endswith("+highfi"))]
-
-
-def rotorpy_available() -> bool:
-    """True when RotorPy (the optional external plant) can be imported."""
-    import importlib.util
-
-    return importlib.util.find_spec("rotorpy") is not None
 
 
 def plant_plan(models_dir="models", full: bool = False) -> list[RunSpec]:
@@ -463,8 +457,12 @@ def reusable_evaluation(out_dir, models_dir, folders) -> tuple[Path, dict] | Non
 def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bool = False,
                  progress: bool = True, scenarios: list[str] | None = None, engine: str = "process",
                  address: str | None = None, resume: bool = True, plant: str = "sim",
-                 vehicle: str | None = None, estimator: str | None = None, qp: str = "osqp") -> dict:
+                 vehicle: str | None = None, estimator: str | None = None, qp: str = "osqp",
+                 report=None) -> dict:
     """Run everything and build the report; returns ``{"results": [...], "report": path}``.
+
+    ``report(out_dir) -> path`` builds the report once the runs are saved (the command line passes
+    :func:`reports.build_report`: the reports sit above this layer); without it ``"report"`` is None.
 
     ``qp``: the QP solver of every LTV-MPC and SQP run (:attr:`scenarios.runner.RunSpec.qp`; ``"osqp"`` or
     ``"daqp"``); the NMPC's and the LQR's runs are the same either way.
@@ -473,8 +471,6 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
     saved in ``out_dir`` with the same spec, seed, model file and code are reused unless ``resume`` is False, and
     so is an open-loop evaluation of the same models by the same code (:func:`reusable_evaluation`).
     """
-    from reports import build_report
-
     out = Path(out_dir)
     jobs = max(1, os.cpu_count() or 1) if jobs is None else jobs
     specs = main_plan(models_dir, full, scenarios, plant, vehicle, estimator, qp)   # validates names and files first
@@ -556,6 +552,6 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
     # The report shows the wall times up to its own build (building it twice to include that would cost its
     # 15 s again); provenance.json then gets the whole job's, and `pinnmpc report` shows those.
     write_provenance(stages["report"], list(stages)[:-1])
-    report = build_report(out)
+    built = None if report is None else report(out)
     write_provenance(time.time(), list(stages))
-    return {"results": results, "report": report}
+    return {"results": results, "report": built}

@@ -367,6 +367,8 @@ def _check_vehicle(vehicle) -> None:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc run``."""
+    from reports import build_report
+
     from .campaign import run_main_job
 
     _check_qp(args.qp)
@@ -378,7 +380,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     check_writable(args.out, "--out", folder=True)
     out = run_main_job(args.out, args.models, args.jobs, args.full, progress=True, engine=args.engine,
                        address=args.address, resume=not args.fresh, plant=args.plant, vehicle=args.vehicle,
-                       estimator=args.estimator, qp=args.qp)
+                       estimator=args.estimator, qp=args.qp, report=build_report)
     runs = out["results"]
     crashed = [r["run_id"] for r in runs if r.get("crashed")]
     errors = [r["run_id"] for r in runs if r.get("error")]
@@ -470,7 +472,7 @@ def cmd_learn(args: argparse.Namespace) -> int:
     from .learn import LEARN_PLANTS
 
     if LEARN_PLANTS[args.plant].plant == "rotorpy":
-        from .campaign import rotorpy_available
+        from sim.plants import rotorpy_available
 
         if not rotorpy_available():
             raise ValueError(f"plant {args.plant} needs RotorPy: python -m pip install -e '.[rotorpy]'")

@@ -29,26 +29,13 @@ import logging
 import os
 import sys
 
+from sim.workers import worker_env, worker_init
+
 from .errors import ScenarioError
 from .pool import RETRIES, run_pool
 
 ENGINES = ("process", "ray")
 
-#: Environment of every worker: one BLAS thread (the workers already fill the cores) and, on x86-64, the BLAS
-#: kernel the project pins (see :mod:`sim`), set before the worker loads numpy.
-WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-
-
-def worker_env() -> dict[str, str]:
-    env = dict(WORKER_ENV)
-    if "OPENBLAS_CORETYPE" in os.environ:
-        env["OPENBLAS_CORETYPE"] = os.environ["OPENBLAS_CORETYPE"]
-    return env
-
-
-def worker_init() -> None:
-    """Set :data:`WORKER_ENV` in this process (the initializer of every pool worker)."""
-    os.environ.update(WORKER_ENV)
 
 
 def run_batches(batches, done, engine: str = "process", jobs: int = 1, address: str | None = None,

@@ -365,7 +365,7 @@ def _fly_all(jobs_list: list[FlightJob], workers: int, progress, what: str) -> l
         for item in items:
             done(item, _fly_item(item))
     else:
-        from .engines import worker_init
+        from sim.workers import worker_init
         from .pool import run_pool
 
         worker_init()

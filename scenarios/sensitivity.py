@@ -46,7 +46,7 @@ def perturbed_rmse(spec: RunSpec, trials: int = 5, step_m: float = 1e-9, jobs: i
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    from .engines import worker_init
+    from sim.workers import worker_init
 
     with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"), initializer=worker_init) as pool:
         return list(pool.map(_trial, [spec] * trials, offsets))

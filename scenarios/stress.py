@@ -55,7 +55,7 @@ def sweep_levels(controller: str = "ltv", jobs: int = 2, progress: bool = True) 
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    from .engines import worker_init
+    from sim.workers import worker_init
 
     tasks = [(s, controller, "noise", f) for s in SCENARIOS for f in NOISE_FACTORS]
     tasks += [(s, controller, "delay", d) for s in SCENARIOS for d in DELAYS]

@@ -251,7 +251,7 @@ def run_versus(models_dir="models", out_dir="results/versus", members: int = 10,
     if not Path(models_dir).is_dir():
         raise ScenarioError(f"models folder {str(models_dir)!r} does not exist")
     if any(VERSUS_PLANTS[k].plant == "rotorpy" for k in keys):
-        from .campaign import rotorpy_available
+        from sim.plants import rotorpy_available
 
         if not rotorpy_available():
             raise ScenarioError("plants rotorpy and crazyflie need RotorPy (pip install -e '.[rotorpy]'), or fly "

@@ -9,8 +9,6 @@ Public names::
     x1 = s.step(x, u)                 # one control period; batched over leading axes
 """
 
-__version__ = "0.1.0"
-
 import os as _os
 import platform as _platform
 
@@ -21,6 +19,7 @@ import platform as _platform
 if _platform.machine().lower() in ("x86_64", "amd64"):
     _os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
 
+from ._version import __version__  # noqa: E402, F401
 from .dynamics import dynamics, rk4_step  # noqa: E402
 from .errors import DatasetError, SimInputError  # noqa: E402
 from .params import (  # noqa: E402

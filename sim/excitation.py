@@ -33,7 +33,7 @@ import control
 import numpy as np
 from scipy.linalg import expm
 
-from . import __version__
+from ._version import __version__
 from ._validate import choice, positive_finite, positive_int
 from .errors import DatasetError, SimInputError
 from .params import DT, INPUT_LOGS, NOMINAL, Fidelity, NoiseModel, QuadParams

@@ -100,7 +100,7 @@ def source_digest(entries, root=None):
     sorted order: the identity of code, for a cache key."""
     import hashlib
 
-    from . import __version__
+    from ._version import __version__
 
     root = Path(__file__).resolve().parents[1] if root is None else Path(root)
     h = hashlib.sha256(__version__.encode())

@@ -16,6 +16,13 @@ PLANTS = ("sim", "rotorpy", "rotorpy-ideal")
 KNOWN_EQUATIONS = ("sim", "rotorpy-ideal")
 
 
+def rotorpy_available() -> bool:
+    """True when RotorPy (the optional external plant) can be imported."""
+    import importlib.util
+
+    return importlib.util.find_spec("rotorpy") is not None
+
+
 def known_equations(name: str, params: QuadParams) -> QuadParams | None:
     """The parameters of the rigid-body equations plant ``name`` integrates for a vehicle of ``params``, or None.
 

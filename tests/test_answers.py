@@ -16,9 +16,11 @@ def _folder(root, rmse=0.1, solve_ms=3.0, key="abc", x0=0.0, solve_s=0.002, real
     runs = []
     for rid, timing, x in (("a", "ideal", x0), ("b__realtime", "realtime", realtime_x)):
         rec = {"run_id": rid, "timing": timing, "rmse_position_m": rmse, "cache_key": key,
-               "inputs_sha256": {"model": "m1"}, "solve_ms": {"median": solve_ms}, "trace": f"traces/{rid}.npz"}
+               "inputs_sha256": {"model": "m1"}, "solve_ms": {"median": solve_ms}, "trace": f"traces/{rid}.npz",
+               "wall_time_s": 10 * solve_ms, "estimator_ms": {"median": solve_ms}}
         (root / "runs" / f"{rid}.json").write_text(json.dumps(rec))
-        np.savez(root / "traces" / f"{rid}.npz", x=np.full((3, 12), x), solve_s=np.full(3, solve_s))
+        np.savez(root / "traces" / f"{rid}.npz", x=np.full((3, 12), x), solve_s=np.full(3, solve_s),
+                 estimator_s=np.full(3, 2 * solve_s))
         runs.append(rec)
     (root / "results.json").write_text(json.dumps({"plan": {"full": False}, "runs": runs}))
     (root / "fisher.json").write_text(json.dumps({"cases": [1.0], "inputs_sha256": key, "seconds": solve_ms}))

@@ -349,3 +349,26 @@ def test_the_pages_path_from_data_to_a_flown_model(tmp_path, monkeypatch, capsys
     out = capsys.readouterr().out
     settled = float(out.split("settled_error_m")[1].split()[0])
     assert "crashed               False" in out and settled < TOL["doc_model_settled_m"]
+
+
+def test_the_zoo_refuses_what_check_model_refuses(linear, tmp_path):
+    """A trained zoo member that no controller can fly leaves the manifest for refused.json with check-model's
+    reason, and its file is removed; one they all fly stays."""
+    import json
+    import shutil
+
+    from mpc.models import load_model
+    from mpc.readiness import readiness
+    from pinn.zoo import sort_refused
+
+    shutil.copyfile(linear, tmp_path / "flies.onnx")
+    build_linear(tmp_path / "held.onnx", rates_held=True)
+    entries = {n: {"command": "test", "files": {"onnx": f"{n}.onnx"}} for n in ("flies", "held")}
+    (tmp_path / "manifest.json").write_text(json.dumps(entries))
+    reason = readiness(load_model(str(tmp_path / "held.onnx")))["lqr"].reason
+    refused = sort_refused(tmp_path, ["flies", "held"])
+    assert list(refused) == ["held"] and refused["held"]["reason"] == reason
+    assert "no input changes the body rates" in reason
+    assert json.loads((tmp_path / "refused.json").read_text())["held"]["reason"] == reason
+    assert list(json.loads((tmp_path / "manifest.json").read_text())) == ["flies"]
+    assert not (tmp_path / "held.onnx").exists() and (tmp_path / "flies.onnx").exists()
