@@ -6,7 +6,7 @@ import numpy as np
 
 from sim.params import DT
 
-from .controller import MAX_FAILURES_BEFORE_LQR
+from .controller import MAX_FAILURES_BEFORE_LQR, ControllerBase
 from .errors import ConfigurationError
 from .lqr import LQRController
 from .models import PredictionModel
@@ -17,7 +17,7 @@ def shift_stages(a: np.ndarray) -> np.ndarray:
     return np.concatenate([a[1:], a[-1:]])
 
 
-class MPCBase:
+class MPCBase(ControllerBase):
     """What the LTV-MPC and the NMPC share: set-up of model, reference, weights and LQR, and failure bookkeeping.
 
     After a failed solve, :meth:`_failure` says what to apply: ``"shifted_plan"``
@@ -58,25 +58,14 @@ class MPCBase:
         self.ff.prepare(t_end + self.N * self.ff.dt)
         self.tracker.reset()
 
-    def applied(self, u) -> None:
-        """The input (4,) in effect during the period just flown (to carry the model's extra states)."""
-        self.tracker.applied(u)
-
     def _horizon_reference(self, t: float):
         """Reference states (N + 1, nx) and feed-forward inputs (N, 4) over the horizon from time ``t`` (s)
         (under the disturbance of :meth:`set_disturbance`, the target the disturbed model can fly)."""
         return self.ff.horizon(t + DT * np.arange(self.N + 1))
 
-    def set_disturbance(self, d, x=None) -> None:
-        """Offset-free control: a disturbance ``d`` (6,) (estimated acceleration, m/s^2 NED, and angular
-        acceleration, rad/s^2 body; None or zeros: none) enters the prediction and the target from the next call.
-        ``x``: the state whose attitude sets the disturbance's effect on the Euler angles (level if None).
-        See :mod:`mpc.offset_free`."""
-        from .offset_free import disturbance_offset
-
-        off = disturbance_offset(d, x, self.nx)
-        self.ff.set_disturbance(None if off is None else d, off)
-        self._set_offset(off)
+    def start_extra(self, x: np.ndarray, t: float = 0.0) -> np.ndarray:
+        """The model's extra states (n_extra,) at the first period: the LQR's (:meth:`LQRController.start_extra`)."""
+        return self.lqr.start_extra(x, t)
 
     def _set_offset(self, offset) -> None:
         """Add ``offset`` (nx,) or None to every step of the prediction (each MPC's own)."""

@@ -1,11 +1,13 @@
-"""What every controller shares: the call signature, the info record, references.
+"""What every controller shares: the interface the closed loop calls, the info record, references.
 
 A controller is called once per control period::
 
     u, info = controller(x, t)        # x (12,) measured state, t (s) -> u (4,), ControlInfo
 
 and follows the reference it was built with: a callable ``reference(times)``
-returning the desired states (K, 12) at the times (K,) (s).
+returning the desired states (K, 12) at the times (K,) (s). :class:`Controller`
+states the whole interface; :class:`ControllerBase` holds the parts the LQR and
+the MPCs share.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import time
 from contextlib import contextmanager
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -43,6 +46,74 @@ class ControlInfo:
     def is_optimal(self) -> bool:
         """True when the solver reported an optimal solution (LQR counts as optimal)."""
         return self.status in ("optimal", "lqr") and self.fallback is None
+
+
+class Controller(Protocol):
+    """What the closed loop (:func:`scenarios.loop.fly_loop`) and the runner ask of a controller.
+
+    Attributes
+    ----------
+    preflight : ControlInfo or None
+        What the controller did planning before take-off in :meth:`prepare` (the SQP's first plan); None for a
+        controller that does not plan ahead.
+    """
+
+    preflight: ControlInfo | None
+
+    def __call__(self, x: np.ndarray, t: float) -> tuple[np.ndarray, ControlInfo]:
+        """The input (4,) for the measured state ``x`` (12,; the model's whole state from an estimator) at time
+        ``t`` (s), and what it did."""
+
+    def prepare(self, t_end: float, x0: np.ndarray | None = None) -> None:
+        """Before a flight of ``t_end`` s: compute what the flight will need. ``x0`` (12,): the state before
+        take-off, for a controller that plans its first period ahead."""
+
+    def applied(self, u: np.ndarray) -> None:
+        """After each period: the input (4,) that was in effect during it (a model with extra states carries
+        them with it)."""
+
+    def set_deadline(self, at: float | None) -> None:
+        """In real time, before each call: the time (``time.perf_counter``, s) by which the input must be out,
+        or None for none. A controller that cannot keep a deadline ignores it."""
+
+    def set_disturbance(self, d: np.ndarray | None, x: np.ndarray | None = None) -> None:
+        """With an estimator, before each call: the estimated disturbance ``d`` (6,) (acceleration, m/s^2 NED;
+        angular acceleration, rad/s^2 body; None: none) at the estimated state ``x`` (offset-free control)."""
+
+    def start_extra(self, x: np.ndarray, t: float = 0.0) -> np.ndarray:
+        """The model's extra states (n_extra,) at the first period, at time ``t`` (s) and state ``x`` (12,)."""
+
+
+class ControllerBase:
+    """The hooks of :class:`Controller` that the LQR and the MPCs share, one definition for all.
+
+    A subclass sets ``model`` (:class:`mpc.models.PredictionModel`), ``ff`` (:class:`mpc.feedforward.FeedForward`)
+    and ``tracker`` (:class:`mpc.extended.ExtraStateTracker`), and may override :meth:`_set_offset` (a prediction
+    of its own to offset) and :meth:`set_deadline` (a solver that can stop at a deadline).
+    """
+
+    preflight: ControlInfo | None = None
+
+    def applied(self, u) -> None:
+        """The input (4,) in effect during the period just flown (to carry the model's extra states)."""
+        self.tracker.applied(u)
+
+    def set_deadline(self, at: float | None) -> None:
+        """Ignored: this controller's call has no budget to keep."""
+
+    def set_disturbance(self, d, x=None) -> None:
+        """Offset-free control: a disturbance ``d`` (6,) (estimated acceleration, m/s^2 NED, and angular
+        acceleration, rad/s^2 body; None or zeros: none) enters the target (and the prediction, see
+        :meth:`_set_offset`) from the next call. ``x``: the state whose attitude sets the disturbance's effect on
+        the Euler angles (level if None). See :mod:`mpc.offset_free`."""
+        from .offset_free import disturbance_offset
+
+        off = disturbance_offset(d, x, self.model.nx)
+        self.ff.set_disturbance(None if off is None else d, off)
+        self._set_offset(off)
+
+    def _set_offset(self, offset) -> None:
+        """Add ``offset`` (nx,) or None to every step of the controller's own prediction (none here)."""
 
 
 def hover_reference(position=(0.0, 0.0, -1.0), yaw: float = 0.0):

@@ -15,7 +15,7 @@ import numpy as np
 from sim.params import DT, NU, NX
 from sim.rotors import realize
 
-from .controller import ControlInfo, Timer, check_measured
+from .controller import ControlInfo, ControllerBase, Timer, check_measured
 from .errors import ConfigurationError
 from .feedforward import FeedForward
 from .models import AnalyticModel, PredictionModel
@@ -156,7 +156,7 @@ def lqr(A, B, Q, R) -> tuple[np.ndarray, np.ndarray]:
     return K, P
 
 
-class LQRController:
+class LQRController(ControllerBase):
     """LQR about the prediction model's own hover trim, with the model's feed-forward along the reference.
 
     ``u = u_ff(t) - K (x - x_ref(t))``, projected onto the rotor-feasible set
@@ -213,17 +213,6 @@ class LQRController:
         if self.ff.model_reference:
             return self.ff.full_states(tt)[0, NX:]
         return extra_equilibrium(self.model, x[None], self.ff.inputs(tt), self.ff.trim_extra[None])[0]
-
-    def applied(self, u) -> None:
-        """The input (4,) in effect during the period just flown (to carry the model's extra states)."""
-        self.tracker.applied(u)
-
-    def set_disturbance(self, d, x=None) -> None:
-        """Offset-free control: track the target under the disturbance ``d`` (6,) (see :mod:`mpc.offset_free`)."""
-        from .offset_free import disturbance_offset
-
-        off = disturbance_offset(d, x, self.model.nx)
-        self.ff.set_disturbance(None if off is None else d, off)
 
     def prepare(self, t_end: float, x0=None) -> None:
         """Compute the reference and feed-forward up to ``t_end`` (s) before a flight (``x0`` is not needed)."""

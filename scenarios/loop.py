@@ -40,6 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mpc.controller import Controller
 from sim.params import DT, NU, NX, SUBSTEPS
 
 from .metrics import crash_reason
@@ -257,7 +258,7 @@ def nees(x_true: np.ndarray, x_est: np.ndarray, P: np.ndarray) -> float:
         return float("nan")
 
 
-def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, progress=None,
+def fly_loop(plant, sensor, controller: Controller, clock, x_ref: np.ndarray, steps: int, progress=None,
              estimator: Estimator | None = None) -> Trace:
     """Fly ``steps`` control periods from the plant's current state; the :class:`Trace`.
 
@@ -274,10 +275,6 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
     tr = Trace.empty(steps)
     tr.x[0] = plant.x
     tr.rotor_speed[0] = plant.rotor_speed
-    tell = getattr(controller, "applied", None)
-    # In real time, a controller that can keep a deadline (the MPCs on OSQP) is told when its input must be out.
-    set_deadline = getattr(controller, "set_deadline", None) if clock.realtime else None
-    disturb = getattr(controller, "set_disturbance", None)
     if estimator is not None:
         _estimate_fields(tr, steps, estimator.ekf.nx, estimator.ekf.nz)
     periods = range(steps) if progress is None else progress(range(steps))
@@ -293,8 +290,8 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
             # by the plant's allocations is not the controller's time.
             with collector_paused(clock.realtime):
                 c0 = time.perf_counter()
-                if set_deadline is not None:
-                    set_deadline(c0 + DT - DEADLINE_MARGIN_S)
+                if clock.realtime:      # a controller that can keep a deadline (the MPCs on OSQP) keeps this one
+                    controller.set_deadline(c0 + DT - DEADLINE_MARGIN_S)
                 if estimator is not None:
                     try:
                         est = estimator.estimate()
@@ -302,8 +299,7 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
                         tr.crash_step, tr.crash_reason = k, f"estimator failed: {e}"
                         break
                     xm = est.x
-                    if disturb is not None:
-                        disturb(est.disturbance, est.x)
+                    controller.set_disturbance(est.disturbance, est.x)
                 c1 = time.perf_counter()
                 u_cmd, info = controller(xm, t)
                 tr.latency_s[k] = time.perf_counter() - c0
@@ -324,8 +320,7 @@ def fly_loop(plant, sensor, controller, clock, x_ref: np.ndarray, steps: int, pr
             tr.lqr_fallback[k] = info.fallback == "lqr"
             clock.command(k, u_cmd, tr.latency_s[k])
         tr.u[k] = clock.fly_period(plant, k)
-        if tell is not None:
-            tell(clock.sent)
+        controller.applied(clock.sent)
         if estimator is not None:
             # The filter predicts with what drove the plant: after an actuation delay, the command sent that many
             # periods ago (a flight computer knows its own delay), not the one sent in this period.

@@ -527,7 +527,7 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
                                       planned_steps=K, called=tr.called[:k_end] if realtime else None)
     else:
         metrics = dict(NOT_FLOWN)
-    pre = getattr(ctrl, "preflight", None)    # the SQP's plan made before take-off: what it did, and (timing) how long
+    pre = None if ctrl is None else ctrl.preflight    # the SQP's plan before take-off: what it did, and how long
     preflight = None if pre is None else {"iterations": int(pre.iterations), "status": pre.status}
     failed, lqr_fb = tr.solver_failed[:k_end], tr.lqr_fallback[:k_end]
     # Real time: periods whose plan could not be made before the deadline (the fallback's input went out).
@@ -587,7 +587,7 @@ def make_estimator(ctrl, model, plant, sc, guess=None, config=None):
     from .loop import Estimator
 
     suite = estimator_sensors(sc)
-    start = getattr(ctrl, "lqr", ctrl).start_extra
+    start = ctrl.start_extra
     from mpc.estimator import EKFConfig
 
     ekf = DisturbanceEKF(model, suite.mocap, suite.imu, config=EKFConfig() if config is None else config,

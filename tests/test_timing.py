@@ -161,6 +161,9 @@ class DeadlineRecorder:
     def set_deadline(self, at):
         self.deadlines.append(at)
 
+    def applied(self, u):
+        pass
+
     def __call__(self, x, t):
         self.starts.append(time.perf_counter())
         return HOVER_U.copy(), ControlInfo(solve_time_s=0.0, status="optimal")
