@@ -54,23 +54,24 @@ from sim import Simulator
 from sim.files import write_json
 from sim.params import DT, NX
 
-from .contract import model_files
-from .controller import collector_paused, hover_reference
-from .dense_qp import daqp_installed
-from .lqr import LQRController
-from .ltv import LTVMPC, LTVSettings
-from .models import AnalyticModel, OnnxModel, PredictionModel
-from .nmpc import NMPC, NMPCSettings
-from .sqp import SQPMPC, SQPSettings
-from .trajectory import Figure8
+from .prediction.contract import model_files
+from .controllers.controller import collector_paused, hover_reference
+from .controllers.dense_qp import daqp_installed
+from .controllers.lqr import LQRController
+from .controllers.ltv import LTVMPC, LTVSettings
+from .prediction.models import AnalyticModel, OnnxModel, PredictionModel
+from .controllers.nmpc import NMPC, NMPCSettings
+from .controllers.sqp import SQPMPC, SQPSettings
+from .references.trajectory import Figure8
 
 HORIZON = 30
 CONTROLLERS = ("nmpc", "sqp", "ltv", "lqr")
 SPLIT = ("derivatives", "assembly", "osqp", "line_search")
 #: The SQP's two ways to its derivatives, flown side by side: today's (every Jacobian in every iteration that
-#: evaluates them) and the partial refresh (:class:`mpc.sqp.SQPSettings`).
+#: evaluates them) and the partial refresh (:class:`mpc.controllers.sqp.SQPSettings`).
 PATHS = {"full": {"jacobian_refresh": "full"}, "partial": {"jacobian_refresh": "partial"}}
-#: The speed benchmark also flies the partial path with the condensed QP solved by DAQP (:mod:`mpc.dense_qp`), when
+#: The speed benchmark also flies the partial path with the condensed QP solved by DAQP
+#: (:mod:`mpc.controllers.dense_qp`), when
 #: DAQP is installed.
 DENSE_PATH = {"dense": {"jacobian_refresh": "partial", "qp": "daqp"}}
 #: Every path a benchmark can fly by name.
@@ -151,13 +152,13 @@ def floor_us(model, repeat: int = 200, single: bool = False) -> float:
     """Microseconds of one batched model + Jacobian evaluation over the horizon.
 
     ``single``: with the Jacobians in single precision, as the QP controllers
-    evaluate them (:meth:`mpc.models.PredictionModel.linearize_single`).
+    evaluate them (:meth:`mpc.prediction.models.PredictionModel.linearize_single`).
     """
     x = np.zeros((HORIZON, NX))
     x[:, 2] = -1.0
     u = np.tile([0.667, 0.0, 0.0, 0.0], (HORIZON, 1))
     if model.n_extra:
-        from .extended import extra_equilibrium
+        from .prediction.extended import extra_equilibrium
 
         x = np.hstack([x, extra_equilibrium(model, x, u)])
     lin = model.linearize_single if single else model.linearize
@@ -191,9 +192,9 @@ def derivative_paths(path, stages: int = HORIZON, repeats: int = 200) -> dict:
 
     import casadi as ca
 
-    from .contract import _envelope_batch
+    from .prediction.contract import _envelope_batch
     from .errors import ModelContractError
-    from .symbolic import casadi_step
+    from .prediction.symbolic import casadi_step
 
     x, u = _envelope_batch(stages, np.float64, seed=3)
     graph = OnnxModel(path)
@@ -355,7 +356,7 @@ def estimator_cost(model: str, scenario: str = "figure8-fast") -> dict:
     (median / p95 / max), the deadline misses of the charged time, the periods that sent the shifted plan because
     no plan could be made before the deadline, and the position RMSE, m.
     """
-    from scenarios.runner import RunSpec, fly     # the closed loop with sensors lives with the scenarios
+    from scenarios.closed_loop.runner import RunSpec, fly     # the closed loop with sensors lives with the scenarios
 
     r, tr = fly(RunSpec(scenario, "sqp", model, timing="realtime", estimator="ekf"))
     called = np.asarray(tr.get("called", np.ones(len(tr["solve_s"]), dtype=bool)), dtype=bool)
@@ -449,7 +450,7 @@ def slow_machine(model: str, factor: float = 2.0, scenario: str = "figure8-fast"
     (the deadline misses), the periods that sent the shifted plan because no plan could be made in time, and the
     position RMSE, m.
     """
-    from scenarios.runner import RunSpec, fly, load_run_model
+    from scenarios.closed_loop.runner import RunSpec, fly, load_run_model
 
     spec = RunSpec(scenario, "sqp", model, timing="realtime", estimator=estimator)
     r, tr = fly(spec, model=SlowedModel(load_run_model(spec), factor), sqp=ALL_PATHS[path])
@@ -521,7 +522,7 @@ def _main_estimator(args) -> int:
 def unit_cost(vehicle: str, controller: str, plant: str = "rotorpy", estimator: str = "none",
               scenario: str = "figure8-fast", repeats: int = 3) -> dict:
     """The nominal equations with ``controller`` on ``scenario`` (ideal timing), ``vehicle`` (a name or file) flown
-    in its own rotor unit and in normalized units (:meth:`sim.vehicle.Vehicle.normalized`), alternately
+    in its own rotor unit and in normalized units (:meth:`sim.vehicles.vehicle.Vehicle.normalized`), alternately
     ``repeats`` times (this machine's speed drifts between flights).
 
     Returns, for ``"own"`` and ``"normalized"``: the per-period time (ms: median of the flights' medians, largest
@@ -530,8 +531,8 @@ def unit_cost(vehicle: str, controller: str, plant: str = "rotorpy", estimator: 
     """
     import tempfile
 
-    from scenarios.runner import RunSpec, fly
-    from sim.vehicle import load_vehicle
+    from scenarios.closed_loop.runner import RunSpec, fly
+    from sim.vehicles.vehicle import load_vehicle
 
     v = load_vehicle(vehicle)
     out = {"vehicle": v.name, "n_max": v.n_max_value, "controller": controller, "plant": plant,
@@ -586,7 +587,7 @@ def _main_units(args) -> int:
 
 def _fly_path(task):
     """One ideal-timing SQP run of ``(model, scenario, member, path)``: ``(RMSE m, crashed)``."""
-    from scenarios.runner import RunSpec, fly
+    from scenarios.closed_loop.runner import RunSpec, fly
 
     model, scenario, member, path = task
     r, _ = fly(RunSpec(scenario, "sqp", model, member=member), sqp=ALL_PATHS[path])
@@ -595,12 +596,12 @@ def _fly_path(task):
 
 def _fly_all(tasks, jobs: int, what: str) -> dict:
     """``{task: (RMSE m, crashed)}`` for :func:`_fly_path` tasks on ``jobs`` workers of the sweeps' pool
-    (:func:`scenarios.pool.run_pool`, with their worker environment), with a progress bar. A task whose worker
+    (:func:`scenarios.sweeps.pool.run_pool`, with their worker environment), with a progress bar. A task whose worker
     died twice is ``(None, None)``: not flown."""
     from tqdm import tqdm
 
     from sim.workers import worker_init
-    from scenarios.pool import run_pool
+    from scenarios.sweeps.pool import run_pool
 
     flown = {}
     with tqdm(total=len(tasks), desc=what, unit="run") as bar:

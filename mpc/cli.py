@@ -26,7 +26,8 @@ def register(sub) -> None:
 
 
 def format_model_info(info, ready=None) -> str:
-    """Short human-readable summary of a :class:`mpc.contract.ModelInfo` and, if given, the controllers' readiness."""
+    """Short human-readable summary of a :class:`mpc.prediction.contract.ModelInfo` and, if given, the controllers'
+    readiness."""
     def opt(v, text=str):
         return "(not given)" if v is None else text(v)
 
@@ -63,8 +64,8 @@ def cmd_check_model(args: argparse.Namespace) -> int:
     but nothing here flies it), and an invalid file raises (the command line's exit 2)."""
     import sys
 
-    from .models import OnnxModel
-    from .readiness import readiness
+    from .prediction.models import OnnxModel
+    from .controllers.readiness import readiness
 
     model = OnnxModel(args.file)
     ready = readiness(model)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 
 class ModelContractError(ValueError):
-    """An ONNX model file (or its derivative graph) violates the model contract (:mod:`mpc.contract`)."""
+    """An ONNX model file (or its derivative graph) violates the model contract (:mod:`mpc.prediction.contract`)."""
 
 
 class SolverError(RuntimeError):

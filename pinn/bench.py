@@ -46,7 +46,7 @@ def _best(fn, repeat: int = 5, number: int = 50) -> float:
 
 def quick_training_times() -> dict:
     """Seconds to train each architecture with the quick profile (2 threads)."""
-    from sim.excitation import make_dataset
+    from sim.identification.excitation import make_dataset
 
     from .train import make_config, train
 
@@ -65,7 +65,7 @@ def derivative_paths(model: Path) -> dict:
     import casadi
     import onnxruntime
 
-    from mpc.contract import jacobian_path, open_session
+    from mpc.prediction.contract import jacobian_path, open_session
 
     lib = glob.glob(os.path.join(os.path.dirname(onnxruntime.__file__), "capi", "libonnxruntime.so*"))
     if lib:

@@ -94,7 +94,7 @@ def register(sub) -> None:
 # ------------------------------------------------------------------ helpers
 def _dataset(args):
     """(dataset, data spec) from --data or the default dataset of --regime."""
-    from sim.excitation import load_dataset, make_dataset
+    from sim.identification.excitation import load_dataset, make_dataset
 
     if args.data is not None:
         ds = load_dataset(args.data)
@@ -147,7 +147,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc train``."""
     import torch
 
-    from mpc.contract import config_hash
+    from mpc.prediction.contract import config_hash
     from sim.params import THETA_NAMES
 
     from .export import export_model
@@ -261,7 +261,7 @@ def _ablation_job(job):
 
 def _reusable(folder: Path, recipe: str, spec: dict, profile: str, seed: int):
     """An already trained model of ``folder`` with exactly this configuration and data, as a job result."""
-    from mpc.contract import check_model
+    from mpc.prediction.contract import check_model
 
     from .train import make_config
 

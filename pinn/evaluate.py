@@ -5,7 +5,7 @@ says which dataset it was trained on, the dataset is regenerated from its
 seed and checked against the stored fingerprint, and the metrics of
 :mod:`pinn.metrics` are computed on its test split. Identified parameters
 are compared with the truth and with the Cramer-Rao standard deviation of
-the training split (:mod:`sim.fisher`).
+the training split (:mod:`sim.identification.fisher`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpc.contract import check_model, model_files, open_session
+from mpc.prediction.contract import check_model, model_files, open_session
 from sim.params import THETA_NAMES, NoiseModel, QuadParams
 
 from .metrics import one_step_mae, rollout_mae
@@ -57,7 +57,7 @@ def data_spec(training_config: dict) -> dict:
 
 def regenerate(spec: dict, with_clean: bool = False):
     """Rebuild the dataset of ``spec`` and check its fingerprint (with ``with_clean``: and its noise-free twin)."""
-    from sim.excitation import make_dataset
+    from sim.identification.excitation import make_dataset
     from sim.params import FIDELITIES
 
     noise = NoiseModel() if spec.get("noise", "default") == "default" else NoiseModel.none()
@@ -91,8 +91,8 @@ def crlb_train_split(ds, clean=None) -> dict:
 
     ``clean``: the same flights without noise, if already at hand (flown again from ``ds``'s description if not).
     """
-    from sim.excitation import make_dataset
-    from sim.fisher import fisher_from_dataset
+    from sim.identification.excitation import make_dataset
+    from sim.identification.fisher import fisher_from_dataset
     from sim.params import Fidelity
 
     m = ds.meta
@@ -167,12 +167,13 @@ def model_extra_states(info, ds):
 
     Returns ``(None, None)`` for a model of the rigid body alone. A motor-lag model (rotor speeds ``n1`` .. ``n4``
     as extra states, ``motor_tau`` in its metadata) gets the rotor speeds its own lag gives along the logged
-    commands (from the first command's speed; :func:`sim.motor_lag.rotor_trajectory` with its theta-hat and
+    commands (from the first command's speed; :func:`sim.identification.motor_lag.rotor_trajectory` with its theta-hat
+    and
     tau-hat): ``((flights, steps, 4), tau_m)``. Other extra states cannot be reconstructed from a flight log.
     """
     if not info.extra_states:
         return None, None
-    from sim.motor_lag import rotor_trajectory
+    from sim.identification.motor_lag import rotor_trajectory
 
     if tuple(info.extra_states) != ("n1", "n2", "n3", "n4") or "motor_tau" not in info.metadata \
             or info.theta is None:
@@ -194,13 +195,14 @@ def model_extra_states(info, ds):
 def lag_summary(ds, clean=None) -> dict | None:
     """The lag-aware classical fit of a dataset flown with a motor lag, or None (no lag, no noise, realized inputs).
 
-    Seven parameters (:mod:`sim.motor_lag`: the nominal six and the motor time constant, the rotor speeds a
+    Seven parameters (:mod:`sim.identification.motor_lag`: the nominal six and the motor time constant, the rotor
+    speeds a
     state driven by the logged commands), with the Cramér-Rao bound of the same model on the training split.
     """
     import time
 
-    from sim.excitation import make_dataset
-    from sim.motor_lag import LAG_THETA_NAMES, estimate_with_lag, lag_fisher, true_theta7
+    from sim.identification.excitation import make_dataset
+    from sim.identification.motor_lag import LAG_THETA_NAMES, estimate_with_lag, lag_fisher, true_theta7
     from sim.params import Fidelity
 
     m = ds.meta
@@ -229,12 +231,13 @@ def lag_summary(ds, clean=None) -> dict | None:
 def data_summary(ds, crlb: dict, estimate: bool = True, clean=None) -> dict:
     """What one training dataset allows: its saturation, the CRLB of its training split and the classical fit.
 
-    The classical estimator (:func:`sim.estimate.estimate_theta`) is fitted to the training split, the data the
+    The classical estimator (:func:`sim.identification.estimate.estimate_theta`) is fitted to the training split, the
+    data the
     PINNs train on; its error is given in % and as a multiple of the same CRLB standard deviation as theirs.
     """
     import time
 
-    from sim.estimate import estimate_theta
+    from sim.identification.estimate import estimate_theta
 
     tr = ds.split == 0
     out = {"regime": ds.meta["regime"], "fidelity": fidelity_name(ds.meta.get("fidelity", {})),
@@ -272,13 +275,13 @@ EFFECT_SPECS = tuple({"regime": "small", "n_traj": 30, "duration_s": 10.0, "seed
 
 def _spec_task(task) -> tuple[dict, list[dict]]:
     """Worker: one dataset (regenerated from its spec or read from a file), its summary and its models' rows."""
-    import sim.fisher   # (the package first: it pins the BLAS kernel and threads in a fresh worker)
+    import sim.identification.fisher   # (the package first: it pins the BLAS kernel and threads in a fresh worker)
 
     spec, data_path, files, threads = task
     if threads is not None:
-        sim.fisher.MAP_THREADS = threads     # a pool's workers share the cores: one thread each
+        sim.identification.fisher.MAP_THREADS = threads     # a pool's workers share the cores: one thread each
     if data_path is not None:
-        from sim.excitation import load_dataset
+        from sim.identification.excitation import load_dataset
         ds, clean = load_dataset(data_path), None
     else:
         ds, clean = regenerate(spec, with_clean=True)
@@ -294,7 +297,7 @@ def _spec_task(task) -> tuple[dict, list[dict]]:
 
 #: The code an evaluation depends on besides its models (paths under the project's root): the datasets, the
 #: Fisher bounds and the classical estimator (``sim``), the metrics (``pinn``) and the model contract.
-EVALUATION_CODE = ("sim", "pinn", "mpc/contract.py", "mpc/models.py", "mpc/errors.py")
+EVALUATION_CODE = ("sim", "pinn", "mpc/prediction/contract.py", "mpc/prediction/models.py", "mpc/errors.py")
 
 
 def evaluation_key(folder, extra_specs=()) -> str:
@@ -351,8 +354,8 @@ def evaluate_dir(folder, data_path=None, progress: bool = False, jobs: int = 1, 
             import multiprocessing as mp
 
             from sim.workers import worker_init
-            from sim.compiled import precompile
-            from sim.fisher import sensitivity_function
+            from sim.equations.compiled import precompile
+            from sim.identification.fisher import sensitivity_function
 
             worker_init()      # one BLAS thread per worker, as in the closed-loop sweep (inherited at spawn)
             # Compiled once here, not in every worker at the same time.

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-from mpc.contract import CONTRACT_VERSION, config_hash, jacobian_path
+from mpc.prediction.contract import CONTRACT_VERSION, config_hash, jacobian_path
 from sim import __version__ as code_version
 from sim.params import DT, INPUT_NAMES, STATE_NAMES, THETA_NAMES
 

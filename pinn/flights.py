@@ -2,7 +2,8 @@
 
 A real log's rotor speeds explain little of the vehicle's angular acceleration, so the physics this model
 starts from is the one that predicts real flights best over half a second: the identified rigid body with the
-body rates held (``sim.logbench.physics_step`` with ``hold_rates``, its drags and biases). A network adds what
+body rates held (``sim.flightlogs.logbench.physics_step`` with ``hold_rates``, its drags and biases). A network adds
+what
 that physics misses, to the body rates and to the velocity (in the body frame, so that the model does not depend
 on the heading)::
 
@@ -39,7 +40,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from sim.logbench import GOAL_H50 as GOALS, goal_score as score
+from sim.flightlogs.logbench import GOAL_H50 as GOALS, goal_score as score
 from sim.params import DT
 
 
@@ -48,7 +49,8 @@ PHYSICS_SUBSTEPS = 1
 
 
 def rotation_torch(e: torch.Tensor) -> torch.Tensor:
-    """Body-to-world rotation of ZYX Euler angles ``e`` (B, 3) as (B, 3, 3), as :func:`sim.dynamics.rotation_matrix`."""
+    """Body-to-world rotation of ZYX Euler angles ``e`` (B, 3) as (B, 3, 3), as
+    :func:`sim.equations.dynamics.rotation_matrix`."""
     sphi, cphi = torch.sin(e[:, 0]), torch.cos(e[:, 0])
     sth, cth = torch.sin(e[:, 1]), torch.cos(e[:, 1])
     spsi, cpsi = torch.sin(e[:, 2]), torch.cos(e[:, 2])
@@ -59,7 +61,8 @@ def rotation_torch(e: torch.Tensor) -> torch.Tensor:
 
 
 class HeldRatesPhysics(nn.Module):
-    """:func:`sim.logbench.physics_step` with ``hold_rates=True`` in torch (RK4, :data:`PHYSICS_SUBSTEPS` substeps).
+    """:func:`sim.flightlogs.logbench.physics_step` with ``hold_rates=True`` in torch (RK4, :data:`PHYSICS_SUBSTEPS`
+    substeps).
 
     Parameters
     ----------
@@ -212,7 +215,7 @@ def flight_stats(flights, gain, history: int) -> dict:
 
 
 def _torch_step(model):
-    """``step(x, u)`` of a torch model for :func:`sim.logbench.prediction_errors`: float64, no gradient."""
+    """``step(x, u)`` of a torch model for :func:`sim.flightlogs.logbench.prediction_errors`: float64, no gradient."""
     m = copy.deepcopy(model).double().eval()
 
     def step(x, u):
@@ -223,7 +226,8 @@ def _torch_step(model):
 
 
 def flight_step(model: FlightModel, gain):
-    """``(step, start)`` for :func:`sim.logbench.prediction_errors`: the model in float64, no gradient, on the
+    """``(step, start)`` for :func:`sim.flightlogs.logbench.prediction_errors`: the model in float64, no gradient, on
+    the
     logged wrench times ``gain``; ``start`` builds the register from the log."""
     inner = _torch_step(model)
     gain = np.asarray(gain, dtype=float)
@@ -286,15 +290,15 @@ def train_flight_model(train_flights, val_flights, physics_kw: dict, config: Fli
 
     Parameters
     ----------
-    train_flights, val_flights : sequence of :class:`sim.flightlog.Flight`
+    train_flights, val_flights : sequence of :class:`sim.flightlogs.flightlog.Flight`
         Imported flights (their ``x``, ``u``, ``x_ok``).
     physics_kw : dict
-        :func:`sim.logident.identified_model` with ``hold_rates=True``: ``p``, the drags, the bias and
+        :func:`sim.flightlogs.logident.identified_model` with ``hold_rates=True``: ``p``, the drags, the bias and
         ``wrench_gain``.
     progress : callable, optional
         Called with one line per epoch.
     """
-    from sim.logbench import prediction_errors
+    from sim.flightlogs.logbench import prediction_errors
 
     torch.manual_seed(config.seed)
     gen = np.random.default_rng(config.seed)
@@ -357,7 +361,7 @@ def export_flight_model(model: FlightModel, path, theta: dict, description: str)
     """
     import json
 
-    from mpc.contract import CONTRACT_VERSION
+    from mpc.prediction.contract import CONTRACT_VERSION
     from sim import __version__ as code_version
     from sim.params import INPUT_NAMES, STATE_NAMES
 
@@ -400,7 +404,8 @@ BUDGETS = {
 class LearnedModel:
     """A model trained on the training flights, at the epoch its validation score chose.
 
-    ``step(z, u)`` and ``start(flight, idx)`` are :func:`sim.logbench.prediction_errors`'s (``start`` None: the
+    ``step(z, u)`` and ``start(flight, idx)`` are :func:`sim.flightlogs.logbench.prediction_errors`'s (``start`` None:
+    the
     model's state is the rigid body's); ``export(path)`` writes it as an ONNX model file and returns the path.
     """
 
@@ -422,9 +427,9 @@ def learned_models(flights: dict, vehicle, ident, fmt, budget: str = "full", pro
     held-rates physics plus a network (:class:`FlightModel`), without and with a register of :data:`HISTORY`
     periods.
     """
-    from sim.flightlog import flights_to_dataset
-    from sim.logbench import prediction_errors
-    from sim.logident import identified_model, identified_vehicle
+    from sim.flightlogs.flightlog import flights_to_dataset
+    from sim.flightlogs.logbench import prediction_errors
+    from sim.flightlogs.logident import identified_model, identified_vehicle
 
     from .export import export_model
     from .train import make_config, train

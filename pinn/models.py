@@ -417,7 +417,7 @@ class HybridLag(Hybrid):
             self.register_buffer(key, torch.as_tensor(stats[key], dtype=torch.float32).clone())
         n_max_sq, lever = (float(v) for v in torch.as_tensor(stats["rotor"], dtype=torch.float64).reshape(-1)[:2])
         self.register_buffer("rotor", torch.tensor([n_max_sq, lever], dtype=torch.float64))
-        from sim.rotors import mixer
+        from sim.vehicles.rotors import mixer
         unit = torch.tensor(mixer(1.0, 1.0, lever), dtype=torch.float64)
         self.register_buffer("mixer_unit", unit)
         self.register_buffer("mixer_unit_inv", torch.linalg.inv(unit))   # (the exporter has no matrix inverse)

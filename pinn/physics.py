@@ -1,7 +1,7 @@
 """Quadrotor dynamics, torch backend, for the physics losses.
 
-The third backend of the nominal model, beside :mod:`sim.dynamics` (numpy)
-and :mod:`sim.dynamics_casadi`; ``tests/test_pinn.py`` (``test_torch_dynamics_equals_numpy``) holds it equal
+The third backend of the nominal model, beside :mod:`sim.equations.dynamics` (numpy)
+and :mod:`sim.equations.dynamics_casadi`; ``tests/test_pinn.py`` (``test_torch_dynamics_equals_numpy``) holds it equal
 to the numpy one. Parameters ``theta = (m, Jxx, Jyy, Jzz, kt, kq)`` are
 tensors so that the physics residual can be differentiated with respect to
 them.
@@ -14,7 +14,7 @@ import math
 import torch
 
 from sim.params import DT, SUBSTEPS, QuadParams
-from sim.rotors import mixer
+from sim.vehicles.rotors import mixer
 
 
 def dynamics_torch(x: torch.Tensor, u: torch.Tensor, theta: torch.Tensor, g: float, c_d: float) -> torch.Tensor:
@@ -190,7 +190,7 @@ def rk4_increment_tangent(x: torch.Tensor, u: torch.Tensor, theta: torch.Tensor,
 
 
 def mixer_torch(theta: torch.Tensor, p: QuadParams) -> torch.Tensor:
-    """Mixer ``M`` (4, 4) with ``wrench = M n^2``, from ``kt, kq`` of ``theta`` (see :mod:`sim.rotors`)."""
+    """Mixer ``M`` (4, 4) with ``wrench = M n^2``, from ``kt, kq`` of ``theta`` (see :mod:`sim.vehicles.rotors`)."""
     return torch.stack([torch.stack(list(row)) for row in mixer(theta[4], theta[5], p.d / math.sqrt(2.0))])
 
 
@@ -227,7 +227,8 @@ def rotor_command_torch(u: torch.Tensor, theta: torch.Tensor, consts: dict):
     """Rotor speeds (..., 4, RU) the rotor layer commands for the wrench ``u`` (..., 4), and where they are unclipped.
 
     ``n_i^2`` of the allocation ``M(kt, kq)^-1 u`` clipped to ``[1e-9 n_max_sq, n_max_sq]``, as
-    :func:`sim.dynamics_casadi.rotor_command_casadi`. ``consts``: ``mixer_unit`` (the mixer with ``kt = kq = 1``)
+    :func:`sim.equations.dynamics_casadi.rotor_command_casadi`. ``consts``: ``mixer_unit`` (the mixer with ``kt = kq =
+    1``)
     and its inverse ``mixer_unit_inv``, and ``n_max_sq``, tensors of ``u``'s dtype.
     """
     S0_inv, n_max_sq = consts["mixer_unit_inv"], consts["n_max_sq"]
@@ -246,7 +247,8 @@ def lagged_rotor_increment(x: torch.Tensor, n: torch.Tensor, u: torch.Tensor, th
     The rotor speeds ``n`` follow the rotor command ``c = sqrt(M(kt, kq)^-1 u)`` (each ``n_i^2`` clipped to the
     rotor limits, as the plant does) through a first-order lag of time constant ``tau``, solved exactly over the
     period with the command held: ``n(t) = c + (n - c) exp(-t / tau)``. The rigid body is integrated by RK4 with
-    the wrench ``M(kt, kq) n(t)^2`` at each stage's time. Equal to :func:`sim.motor_lag.rotor_trajectory` for the
+    the wrench ``M(kt, kq) n(t)^2`` at each stage's time. Equal to
+    :func:`sim.identification.motor_lag.rotor_trajectory` for the
     rotors (``tests/test_pinn.py``).
 
     Parameters

@@ -169,7 +169,7 @@ def dataset_params(ds) -> QuadParams:
     the stated values as the prior of theta-hat."""
     if "params" in ds.meta:
         return QuadParams(**ds.meta["params"])
-    from sim.vehicle import Vehicle
+    from sim.vehicles.vehicle import Vehicle
 
     return Vehicle(**ds.meta["vehicle"]).params
 
@@ -319,8 +319,9 @@ def validation_loss(model, ds, stats) -> float:
 
 def model_rotor_speeds(model, u: np.ndarray) -> np.ndarray:
     """Rotor speeds (F, K, 4) at the start of each period that a motor-lag model gives along commands ``u`` (F, K, 4),
-    from the first command's speed, with its own theta-hat and tau-hat (:func:`sim.motor_lag.rotor_trajectory`)."""
-    from sim.motor_lag import rotor_trajectory
+    from the first command's speed, with its own theta-hat and tau-hat
+    (:func:`sim.identification.motor_lag.rotor_trajectory`)."""
+    from sim.identification.motor_lag import rotor_trajectory
 
     theta7 = np.r_[model.theta.detach().double().numpy(), float(model.tau.detach())]
     p = QuadParams(n_max=float(np.sqrt(float(model.rotor[0]))), d=float(model.rotor[1]) * math.sqrt(2.0))
@@ -484,7 +485,7 @@ def _lag_step_losses(model, states, us, ns, p_ss, colloc, scales, gen) -> dict:
 
 def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | None = None,
           checkpoints=()) -> TrainResult:
-    """Train one model on a :class:`sim.excitation.Dataset`.
+    """Train one model on a :class:`sim.identification.excitation.Dataset`.
 
     Parameters
     ----------

@@ -129,7 +129,7 @@ def run_command(run: ZooRun, out: Path) -> str:
 
 
 def _dataset(spec: dict):
-    from sim.excitation import make_dataset
+    from sim.identification.excitation import make_dataset
     from sim.params import NoiseModel
 
     base = NoiseModel()
@@ -141,7 +141,7 @@ def train_run(run: ZooRun, out: Path, test_ds=None, threads: int = 1, progress: 
     """Train one zoo run, export each kept checkpoint and return their manifest entries ``{name: entry}``."""
     import torch
 
-    from mpc.contract import config_hash
+    from mpc.prediction.contract import config_hash
     from sim.params import THETA_NAMES
 
     from .metrics import test_metrics
@@ -183,9 +183,9 @@ def train_run(run: ZooRun, out: Path, test_ds=None, threads: int = 1, progress: 
 
 def flight_check(path) -> str | None:
     """None when every controller can fly the model at ``path``, else the reason none can: the check of
-    ``pinnmpc check-model`` (:func:`mpc.readiness.readiness`, the LQR about the model's hover trim)."""
-    from mpc.models import load_model
-    from mpc.readiness import readiness
+    ``pinnmpc check-model`` (:func:`mpc.controllers.readiness.readiness`, the LQR about the model's hover trim)."""
+    from mpc.prediction.models import load_model
+    from mpc.controllers.readiness import readiness
 
     why = [r.reason for r in readiness(load_model(str(path))).values() if not r.flies]
     return why[0] if why else None

@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter  # noqa: E402
 
-from scenarios.metrics import position_errors  # noqa: E402
+from scenarios.closed_loop.metrics import position_errors  # noqa: E402
 
 from .headline import Headline  # noqa: E402
 from .labels import (BASE_SCENARIOS, DT_S, ORACLE, base_scenario, controller_key,  # noqa: E402

@@ -7,7 +7,7 @@ from those numbers.
 
 from __future__ import annotations
 
-from scenarios.stats import summarize
+from scenarios.studies.stats import summarize
 
 from .tables import MISSING, RMSE_FORMAT, THETA_NAMES, crash_text, fmt, md_table
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from scenarios.versus import WIN_FRACTION
+from scenarios.studies.versus import WIN_FRACTION
 
 from .figures import STYLE, FigureOut, _save
 from .tables import MISSING, fmt, md_table

@@ -13,7 +13,7 @@ def realdata_section(realdata: dict | None) -> str:
     """Markdown: the study's tables (the published rows beside ours) with their headings one level down."""
     if realdata is None:
         return NO_REALDATA
-    from scenarios.realdata import realdata_markdown
+    from scenarios.studies.realdata import realdata_markdown
 
     lines = realdata_markdown(realdata).splitlines()
     body = [("#" + line if line.startswith("## ") else line) for line in lines if not line.startswith("# ")]

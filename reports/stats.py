@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from scenarios.stats import rankdata, spearman  # noqa: F401  (the report's correlations)
+from scenarios.studies.stats import rankdata, spearman  # noqa: F401  (the report's correlations)
 
 
 def median_or_none(values) -> float | None:

@@ -373,8 +373,8 @@ def hover_table(runs: list[dict]) -> str:
             return fmt(None if v is None else 1e3 * v, ".2f")
         rows.append([controller_label(r["controller"]), r["model"], mm("settled_error_m"), mm("gust_peak_error_m"),
                      fmt(r.get("recovery_time_s"), ".2f"), mm("rmse_position_m"), crash_text(r)])
-    from scenarios.library import get_scenario
-    from scenarios.metrics import RECOVERY_BAND_M, SETTLE_WINDOW_S
+    from scenarios.closed_loop.library import get_scenario
+    from scenarios.closed_loop.metrics import RECOVERY_BAND_M, SETTLE_WINDOW_S
 
     gust = get_scenario("hover").impulse
     text = (f"The hover starts a few cm and degrees off the set point and takes a gust impulse at {gust.start_s:g} s. "
@@ -387,8 +387,8 @@ def hover_table(runs: list[dict]) -> str:
 
 def ladder_table(runs: list[dict]) -> str:
     """Maximum trackable speed of each model with each controller, from the figure-8 speed ladder."""
-    from scenarios.library import ladder_names, ladder_speeds
-    from scenarios.metrics import LADDER_RMSE_BOUND_M, max_trackable_speed
+    from scenarios.closed_loop.library import ladder_names, ladder_speeds
+    from scenarios.closed_loop.metrics import LADDER_RMSE_BOUND_M, max_trackable_speed
 
     ladder, speeds = ladder_names(), ladder_speeds()
     sel = [r for r in runs if r.get("scenario") in ladder]
@@ -420,7 +420,7 @@ def ladder_table(runs: list[dict]) -> str:
 
 def realtime_table(runs: list[dict]) -> str:
     """Each controller x model flown with both timings: RMSE ideal against real time, and what the time cost."""
-    from mpc.sqp import SQPSettings
+    from mpc.controllers.sqp import SQPSettings
 
     budget_ms = 1e3 * SQPSettings().time_budget_s
     rt = [r for r in runs if r.get("timing") == "realtime"]
@@ -460,13 +460,13 @@ def realtime_table(runs: list[dict]) -> str:
 
 def ensemble_table(runs: list[dict]) -> str:
     """Each ensemble's crash probability (Wilson 95 %) and median RMSE (bootstrap 95 %), one row per case."""
-    from scenarios.library import ENSEMBLE_X0_SIGMA
-    from scenarios.stats import summarize
+    from scenarios.closed_loop.library import ENSEMBLE_X0_SIGMA
+    from scenarios.studies.stats import summarize
 
     members = [r for r in runs if r.get("member") is not None]
     if not members:
         return ("No ensemble in this results folder. `pinnmpc run --full` flies one for every model with the "
-                "LTV-MPC and the SQP on `figure8-fast`; `python -m scenarios.ensemble` flies one case.")
+                "LTV-MPC and the SQP on `figure8-fast`; `python -m scenarios.studies.ensemble` flies one case.")
     groups: dict[tuple, list[dict]] = {}
     for r in members:
         groups.setdefault((r["scenario"], r["controller"], r["model"], r.get("timing", "ideal")), []).append(r)

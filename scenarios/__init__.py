@@ -2,6 +2,6 @@
 
 import sim  # noqa: F401  (first: it pins the BLAS kernel before numpy loads)
 
-from .library import Scenario, get_scenario, scenario_names
+from .closed_loop.library import Scenario, get_scenario, scenario_names
 
 __all__ = ["Scenario", "get_scenario", "scenario_names"]

@@ -9,7 +9,7 @@ from pathlib import Path
 from sim.cli import add_plant_options
 from sim.files import check_writable, write_json, write_npz, write_text
 
-from .engines import ENGINES
+from .sweeps.engines import ENGINES
 
 #: Fields printed by ``pinnmpc fly``, in order (names other tools rely on).
 FLY_FIELDS = ("scenario", "controller", "qp", "model", "plant", "vehicle", "timing", "estimator", "rmse_position_m", "max_position_error_m", "crashed",
@@ -23,7 +23,7 @@ DENSE_INSTALL = 'python -m pip install -e ".[dense]"'
 
 def _qp_option(p, what: str) -> None:
     """``--qp``: the QP solver of every LTV-MPC and SQP the command builds (``what`` says which those are)."""
-    from mpc.dense_qp import QP_SOLVERS
+    from mpc.controllers.dense_qp import QP_SOLVERS
 
     p.add_argument("--qp", choices=QP_SOLVERS, default="osqp",
                    help=f"QP solver of {what}: osqp (sparse, the default) or daqp (the QP condensed onto the "
@@ -36,7 +36,7 @@ def _check_qp(qp: str) -> None:
     """``--qp daqp`` without DAQP installed: a user-input error naming the option and the install command, raised
     before anything is loaded, written or flown."""
     if qp == "daqp":
-        from mpc.dense_qp import daqp_installed
+        from mpc.controllers.dense_qp import daqp_installed
 
         if not daqp_installed():
             raise ValueError(f"--qp daqp needs DAQP, which is not installed (the optional extra dense): "
@@ -54,8 +54,8 @@ def _sweep_options(p, published: str, where: str) -> None:
 
 def register(sub) -> None:
     """Add this package's subcommands to the ``pinnmpc`` parser."""
-    from .library import scenario_names
-    from .runner import CONTROLLERS, ESTIMATORS, HORIZON, MAX_HORIZON, TIMINGS
+    from .closed_loop.library import scenario_names
+    from .closed_loop.runner import CONTROLLERS, ESTIMATORS, HORIZON, MAX_HORIZON, TIMINGS
 
     names = scenario_names()
     p = sub.add_parser("realdata", help="the real-data study on a copy of the nano-drone benchmark",
@@ -190,8 +190,8 @@ def register(sub) -> None:
     _qp_option(p, "every SQP run")
     p.set_defaults(handler=cmd_versus)
 
-    from .learn import LEARN_PLANTS, LearnSettings, upper_flights
-    from .training_refs import references_per_iteration
+    from .studies.learn import LEARN_PLANTS, LearnSettings, upper_flights
+    from .studies.training_refs import references_per_iteration
 
     per_level = LearnSettings.per_level
     p = sub.add_parser("learn", help="learn from the flights it flies: fly, train on the flights, fly the new model",
@@ -237,12 +237,13 @@ def register(sub) -> None:
     p.set_defaults(handler=cmd_learn)
 
     p = sub.add_parser("bounds", help="write the CI bounds file from the results of pinnmpc run",
-                       description="Write the closed-loop CI bounds (scenarios/bounds.toml) from a results folder of "
-                                   "pinnmpc run: the oracle's cases bounded by its measured error, every shipped "
-                                   "model's cases by its measured excess over the oracle, crashed cases as known "
-                                   "failures. Nothing is flown.")
+                       description="Write the closed-loop CI bounds (scenarios/studies/bounds.toml) from a results "
+                                   "folder of pinnmpc run: the oracle's cases bounded by its measured error, every "
+                                   "shipped model's cases by its measured excess over the oracle, crashed cases as "
+                                   "known failures. Nothing is flown.")
     p.add_argument("dir", metavar="DIR", type=Path, help="results folder of pinnmpc run")
-    p.add_argument("--out", type=Path, default=None, help="bounds file to write (default: scenarios/bounds.toml)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="bounds file to write (default: scenarios/studies/bounds.toml)")
     p.add_argument("--models", type=Path, default=Path("models"),
                    help="folder of the shipped models that get bounds (default models)")
     p.set_defaults(handler=cmd_bounds)
@@ -264,7 +265,7 @@ def _fmt(v) -> str:
 
 def _horizon_arg(text: str) -> int:
     """``--horizon``, checked when the command line is read (before anything is loaded or flown)."""
-    from .runner import check_horizon
+    from .closed_loop.runner import check_horizon
 
     try:
         value = int(text)
@@ -278,9 +279,9 @@ def _horizon_arg(text: str) -> int:
 
 def cmd_realdata(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc realdata``."""
-    from .realdata import run_realdata, summary_lines
+    from .studies.realdata import run_realdata, summary_lines
 
-    from sim.plants import PLANTS
+    from sim.plants.named import PLANTS
 
     check_writable(args.out, "--out", folder=True)
     plants = () if args.plants == "none" else tuple(p.strip() for p in args.plants.split(",") if p.strip())
@@ -293,7 +294,7 @@ def cmd_realdata(args: argparse.Namespace) -> int:
         if importlib.util.find_spec("torch") is None:
             raise ValueError(f"--learn {args.learn}: training the learned models needs torch "
                              f"(pip install -e '.[train]'); --learn none evaluates the physics models only")
-    from .realdata import VALIDATION
+    from .studies.realdata import VALIDATION
 
     test, val = ([x.strip() for x in v.split(",") if x.strip()] for v in (args.test, args.val or ",".join(VALIDATION)))
     r = run_realdata(args.logs, args.out, args.vehicle, plants=plants, learn=args.learn, fmt=args.format,
@@ -306,8 +307,8 @@ def cmd_realdata(args: argparse.Namespace) -> int:
 
 def cmd_fly(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc fly``."""
-    from .metrics import SETTLE_WINDOW_S
-    from .runner import DEFAULT_QP, QP_CONTROLLERS, RunSpec, fly
+    from .closed_loop.metrics import SETTLE_WINDOW_S
+    from .closed_loop.runner import DEFAULT_QP, QP_CONTROLLERS, RunSpec, fly
 
     _check_qp(args.qp)
     if args.qp != DEFAULT_QP and args.controller not in QP_CONTROLLERS:
@@ -319,9 +320,9 @@ def cmd_fly(args: argparse.Namespace) -> int:
     for name in ("json", "trace", "plot"):      # before the flight, not after it
         if getattr(args, name) is not None:
             check_writable(getattr(args, name), f"--{name}")
-    from mpc.readiness import require
+    from mpc.controllers.readiness import require
 
-    from .runner import load_run_model
+    from .closed_loop.runner import load_run_model
 
     spec = RunSpec(args.scenario, args.controller, args.model, args.seed, args.horizon, args.timing,
                    plant=args.plant, vehicle=args.vehicle, estimator=args.estimator, qp=args.qp)
@@ -360,7 +361,7 @@ def cmd_fly(args: argparse.Namespace) -> int:
 def _check_vehicle(vehicle) -> None:
     """A sweep's --vehicle is read (and refused, naming the file and key) before anything is written or flown."""
     if vehicle is not None:
-        from sim.vehicle import load_vehicle
+        from sim.vehicles.vehicle import load_vehicle
 
         load_vehicle(vehicle)
 
@@ -369,7 +370,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc run``."""
     from reports import build_report
 
-    from .campaign import run_main_job
+    from .studies.campaign import run_main_job
 
     _check_qp(args.qp)
     if args.jobs is not None and args.jobs < 1:
@@ -397,7 +398,7 @@ def cmd_study(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc study``."""
     import os
 
-    from .zoo import format_study, rescore_study, run_study
+    from .studies.zoo import format_study, rescore_study, run_study
 
     if args.score_only:
         if args.estimator != "none" or args.select is not None:
@@ -416,7 +417,7 @@ def cmd_study(args: argparse.Namespace) -> int:
     if (args.plant != "sim" or args.vehicle is not None) and not args.no_publish and args.models == Path("models/zoo"):
         raise ValueError("a study on another plant or vehicle would replace the shipped zoo's study.json; give "
                          "--no-publish (or another --models folder)")
-    from .zoo import study_file
+    from .studies.zoo import study_file
 
     _check_vehicle(args.vehicle)
     check_writable(args.out, "--out", folder=True)
@@ -441,7 +442,7 @@ def cmd_versus(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc versus``."""
     import os
 
-    from .versus import format_versus, parse_plants, run_versus
+    from .studies.versus import format_versus, parse_plants, run_versus
 
     _check_qp(args.qp)
     jobs = args.jobs if args.jobs is not None else (os.cpu_count() or 1)
@@ -464,15 +465,15 @@ def cmd_learn(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc learn``."""
     import os
 
-    from .learn import LearnSettings, format_learn, publish_learn, run_learn
+    from .studies.learn import LearnSettings, format_learn, publish_learn, run_learn
 
     jobs = args.jobs if args.jobs is not None else (os.cpu_count() or 1)
     if jobs < 1:
         raise ValueError(f"--jobs must be >= 1; found {jobs}")
-    from .learn import LEARN_PLANTS
+    from .studies.learn import LEARN_PLANTS
 
     if LEARN_PLANTS[args.plant].plant == "rotorpy":
-        from sim.plants import rotorpy_available
+        from sim.plants.named import rotorpy_available
 
         if not rotorpy_available():
             raise ValueError(f"plant {args.plant} needs RotorPy: python -m pip install -e '.[rotorpy]'")
@@ -503,8 +504,8 @@ def cmd_bounds(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc bounds``."""
     import json
 
-    from .bounds import BOUNDS_FILE, generate, load_bounds
-    from .campaign import shipped_models
+    from .studies.bounds import BOUNDS_FILE, generate, load_bounds
+    from .studies.campaign import shipped_models
     from .errors import BoundsError
 
     results = args.dir / "results.json"

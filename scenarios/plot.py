@@ -18,7 +18,7 @@ def plot_run(result: dict, trace: dict, path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .metrics import position_errors
+    from .closed_loop.metrics import position_errors
 
     path = Path(path)
     t, x, r = trace["t"], trace["x"], trace["x_ref"]

@@ -20,13 +20,13 @@ if _platform.machine().lower() in ("x86_64", "amd64"):
     _os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
 
 from ._version import __version__  # noqa: E402, F401
-from .dynamics import dynamics, rk4_step  # noqa: E402
+from .equations.dynamics import dynamics, rk4_step  # noqa: E402
 from .errors import DatasetError, SimInputError  # noqa: E402
 from .params import (  # noqa: E402
     DT, HIGH_FIDELITY, INPUT_NAMES, NOMINAL, STATE_NAMES, SUBSTEPS, THETA_NAMES,
     Fidelity, NoiseModel, QuadParams,
 )
-from .simulator import Simulator, StepResult  # noqa: E402
+from .equations.simulator import Simulator, StepResult  # noqa: E402
 
 __all__ = [
     "DT", "HIGH_FIDELITY", "INPUT_NAMES", "NOMINAL", "STATE_NAMES", "SUBSTEPS", "THETA_NAMES",
@@ -38,6 +38,6 @@ __all__ = [
 def __getattr__(name):
     # The data generator pulls in python-control; import it on first use only.
     if name in ("make_dataset", "load_dataset", "Dataset"):
-        from . import excitation
+        from .identification import excitation
         return getattr(excitation, name)
     raise AttributeError(f"module 'sim' has no attribute {name!r}")

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from . import HIGH_FIDELITY, NOMINAL, QuadParams, Simulator, __version__
-from .excitation import make_dataset
+from .identification.excitation import make_dataset
 from .files import write_json
 
 DATASET_TARGET_S = 10.0

@@ -12,8 +12,8 @@ from .params import FIDELITIES, INPUT_LOGS, THETA_NAMES
 
 def add_plant_options(p, plant_help: str = "") -> None:
     """``--plant`` and ``--vehicle``, as every command that flies or simulates has them."""
-    from .plants import PLANTS
-    from .vehicle import vehicle_names
+    from .plants.named import PLANTS
+    from .vehicles.vehicle import vehicle_names
 
     p.add_argument("--plant", choices=PLANTS, default="sim",
                    help="what flies: sim, this project's simulator (default); rotorpy, RotorPy with the vehicle's "
@@ -79,9 +79,9 @@ def register(sub) -> None:
 
 def cmd_data(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc data``."""
-    from .excitation import make_dataset
+    from .identification.excitation import make_dataset
     from .params import NoiseModel
-    from .vehicle import load_vehicle
+    from .vehicles.vehicle import load_vehicle
 
     if args.out.suffix != ".npz":
         raise ValueError(f"--out must end in .npz; found {str(args.out)!r}")
@@ -122,9 +122,9 @@ def cmd_import(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc import``: every log is read and checked before anything is written."""
     import dataclasses
 
-    from .flightlog import assign_splits, flights_to_dataset, read_flight
-    from .logformat import load_format
-    from .vehicle import load_vehicle
+    from .flightlogs.flightlog import assign_splits, flights_to_dataset, read_flight
+    from .flightlogs.logformat import load_format
+    from .vehicles.vehicle import load_vehicle
 
     if args.out.suffix != ".npz":
         raise ValueError(f"--out must end in .npz; found {str(args.out)!r}")
@@ -174,7 +174,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 
 def format_fisher_table(table: dict) -> str:
-    """Human-readable form of :func:`sim.fisher.fisher_table`."""
+    """Human-readable form of :func:`sim.identification.fisher.fisher_table`."""
     st = table["settings"]
     n = st["noise"]
     lines = [
@@ -205,7 +205,7 @@ def format_fisher_table(table: dict) -> str:
 
 def cmd_fisher(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc fisher``."""
-    from .fisher import fisher_table
+    from .identification.fisher import fisher_table
 
     table = fisher_table(args.n_traj, args.duration, args.seed, progress=sys.stderr.isatty())
     print(format_fisher_table(table))

@@ -134,7 +134,7 @@ FIDELITIES = {"nominal": NOMINAL, "high": HIGH_FIDELITY,
               "rotor-drag": Fidelity(rotor_drag=HIGH_FIDELITY.rotor_drag),
               "rotor-gyro": Fidelity(rotor_gyro=HIGH_FIDELITY.rotor_gyro)}
 #: What a dataset's ``u`` can log: the wrench command, or the wrench the rotors realized
-#: (``sim.excitation.make_dataset(inputs=...)``).
+#: (``sim.identification.excitation.make_dataset(inputs=...)``).
 INPUT_LOGS = ("commanded", "realized")
 
 

@@ -4,9 +4,9 @@ import sim  # noqa: F401  (first: it pins the BLAS kernel before numpy loads, as
 import numpy as np
 import pytest
 
-from mpc.models import PredictionModel
+from mpc.prediction.models import PredictionModel
 from sim import NoiseModel
-from sim.excitation import make_dataset
+from sim.identification.excitation import make_dataset
 
 
 @pytest.fixture(scope="session")

@@ -1,4 +1,4 @@
-"""CI check of closed-loop error bounds (``scenarios/bounds.toml``) and its negative controls.
+"""CI check of closed-loop error bounds (``scenarios/studies/bounds.toml``) and its negative controls.
 
 Flies every case of the bounds file with the oracle beside it, and the true
 equations with wrong parameters on the oracle's cases (two processes, once
@@ -14,12 +14,12 @@ from pathlib import Path
 
 import pytest
 
-from scenarios.bounds import (BOUNDS_FILE, FLOOR, MARGIN, MODEL_CASES, MODEL_FLOOR, ORACLE_CASES, Bound, check,
-                              format_table, generate, load_bounds, specs_to_fly)
-from scenarios.campaign import shipped_models
+from scenarios.studies.bounds import (BOUNDS_FILE, FLOOR, MARGIN, MODEL_CASES, MODEL_FLOOR, ORACLE_CASES, Bound, check,
+                                      format_table, generate, load_bounds, specs_to_fly)
+from scenarios.studies.campaign import shipped_models
 from scenarios.errors import BoundsError
-from scenarios.runner import RunSpec
-from scenarios.sweep import sweep
+from scenarios.closed_loop.runner import RunSpec
+from scenarios.sweeps.sweep import sweep
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -186,4 +186,4 @@ def test_malformed_bounds_files_are_rejected(tmp_path, text, match):
 
 
 def test_the_shipped_bounds_file_is_the_default():
-    assert BOUNDS_FILE == REPO / "scenarios" / "bounds.toml"
+    assert BOUNDS_FILE == REPO / "scenarios" / "studies" / "bounds.toml"

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from scenarios.cli import main
-from sim.excitation import load_dataset, make_dataset
+from sim.identification.excitation import load_dataset, make_dataset
 
 
 def test_data_command_writes_dataset_and_summary(tmp_path, capsys):
@@ -99,8 +99,8 @@ def test_evaluate_rejects_an_empty_folder(tmp_path, capsys):
 @pytest.mark.slow
 def test_data_from_another_plant_and_vehicle_trains_unchanged(tmp_path, capsys):
     """`pinnmpc data --plant rotorpy-ideal --vehicle hummingbird` writes the usual format; `pinnmpc train` takes it."""
-    from sim.plant import SimPlant
-    from sim.vehicle import load_vehicle
+    from sim.plants.plant import SimPlant
+    from sim.vehicles.vehicle import load_vehicle
 
     pytest.importorskip("rotorpy")
     out = tmp_path / "hb.npz"
@@ -120,6 +120,6 @@ def test_data_from_another_plant_and_vehicle_trains_unchanged(tmp_path, capsys):
     assert main(["train", "--arch", "baseline", "--profile", "quick", "--data", str(out), "--out", str(m)]) == 0
     assert main(["check-model", str(m / "baseline.onnx")]) == 0
     # The prior is the data's vehicle biased, not the Rolling Spider: theta-hat is of the Hummingbird's size.
-    from mpc.contract import check_model
+    from mpc.prediction.contract import check_model
     assert 0.3 < check_model(m / "baseline.onnx").theta["m"] < 0.8
     capsys.readouterr()

@@ -1,11 +1,11 @@
-"""CasADi functions compiled to C (sim.compiled): the same numbers as CasADi's virtual machine, a cache per
+"""CasADi functions compiled to C (sim.equations.compiled): the same numbers as CasADi's virtual machine, a cache per
 machine, compilation ahead of time, and a fallback without a compiler."""
 
 import casadi as ca
 import numpy as np
 import pytest
 
-import sim.compiled as sc
+import sim.equations.compiled as sc
 
 TOL = {
     "compiled_vs_vm": 1e-13,   # the same operations in C; only the compiler's reassociation may differ
@@ -62,7 +62,7 @@ def test_without_a_compiler_the_function_itself_is_used_with_a_warning(cache, mo
 
 
 def test_sensitivities_refuse_a_sparse_output():
-    from sim.fisher import _map_eval
+    from sim.identification.fisher import _map_eval
 
     x = ca.SX.sym("x", 12)
     u, th = ca.SX.sym("u", 4), ca.SX.sym("theta", 6)

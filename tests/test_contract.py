@@ -1,4 +1,4 @@
-"""The ONNX model contract checker (mpc.contract) and ``pinnmpc check-model``.
+"""The ONNX model contract checker (mpc.prediction.contract) and ``pinnmpc check-model``.
 
 The models are built here with onnx.helper (no torch): a small residual tanh
 network x_next = x + tanh([x, u] W1) W2s and its exact derivative graph
@@ -15,10 +15,8 @@ import onnx
 import pytest
 from onnx import helper, numpy_helper
 
-from mpc.contract import (
-    CONTRACT_VERSION, OPTIONAL_METADATA, REQUIRED_METADATA, ModelInfo, _fd_jacobians, _probe_batch, check_model, config_hash,
-    jacobian_path, open_session,
-)
+from mpc.prediction.contract import (CONTRACT_VERSION, OPTIONAL_METADATA, REQUIRED_METADATA, ModelInfo, _fd_jacobians,
+                                     _probe_batch, check_model, config_hash, jacobian_path, open_session)
 from mpc.errors import ModelContractError
 from scenarios.cli import main
 from sim.params import INPUT_NAMES, STATE_NAMES, THETA_NAMES, QuadParams
@@ -395,8 +393,8 @@ def test_works_without_torch_and_cli_import_stays_light(valid):
         "import sys; sys.modules['torch'] = None\n"
         "import scenarios.cli\n"
         "assert 'onnx' not in sys.modules and 'onnxruntime' not in sys.modules, 'heavy import at CLI load'\n"
-        "import mpc.contract, mpc.cli\n"
-        "info = mpc.contract.check_model(sys.argv[1])\n"
+        "import mpc.prediction.contract, mpc.cli\n"
+        "info = mpc.prediction.contract.check_model(sys.argv[1])\n"
         "assert info.jacobian is not None\n"
         "assert sys.modules['torch'] is None\n"
     )

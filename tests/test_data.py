@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sim import NoiseModel, Simulator
-from sim.excitation import REGIMES, load_dataset, make_dataset
+from sim.identification.excitation import REGIMES, load_dataset, make_dataset
 
 TOL = {
     "noise_std": 0.05,   # sample std of the logged noise vs the stated std (50k samples per state)

@@ -7,7 +7,7 @@ import scipy.sparse as sp
 
 pytest.importorskip("daqp")
 
-from mpc.dense_qp import LTVQP, condense, condense_matrices, kkt_residuals, solve_ltv_qp  # noqa: E402
+from mpc.controllers.dense_qp import LTVQP, condense, condense_matrices, kkt_residuals, solve_ltv_qp  # noqa: E402
 from mpc.errors import ConfigurationError  # noqa: E402
 
 #: Tolerances: KKT residuals of the dense solution (it is exact up to rounding); agreement with OSQP solved to
@@ -147,8 +147,8 @@ def test_the_sqps_own_qp_solved_densely_gives_osqps_inputs(monkeypatch):
     """One QP of the SQP flying figure8-fast with Baseline, captured in flight, against the SQP's own OSQP answer."""
     from pathlib import Path
 
-    import mpc.ltv as ltv
-    from scenarios.runner import RunSpec, fly
+    import mpc.controllers.ltv as ltv
+    from scenarios.closed_loop.runner import RunSpec, fly
 
     captured = []
     real = ltv.LTVMPC._solve_qp
@@ -169,7 +169,7 @@ def test_the_sqps_own_qp_solved_densely_gives_osqps_inputs(monkeypatch):
     monkeypatch.setattr(ltv.LTVMPC, "_solve_qp", capture)
     root = Path(__file__).resolve().parents[1]
     spec = RunSpec("figure8-fast", "sqp", str(root / "models" / "baseline.onnx"))
-    monkeypatch.setattr("scenarios.library.Scenario.steps", property(lambda self: 5), raising=False)
+    monkeypatch.setattr("scenarios.closed_loop.library.Scenario.steps", property(lambda self: 5), raising=False)
     fly(spec)
     assert captured and all(constrained for _, _, constrained in captured)
     for qp, u_osqp, _ in captured:
@@ -187,10 +187,10 @@ ANSWERS = {"oracle_m": 5e-5, "pinn_relative": 0.02}
 def test_a_flight_on_the_dense_qp_path_gives_the_osqp_paths_answer(controller, model, monkeypatch):
     from pathlib import Path
 
-    import scenarios.runner as runner
-    from mpc.ltv import LTVMPC, LTVSettings
-    from mpc.spec import VehicleSpec
-    from scenarios.runner import RunSpec, fly
+    import scenarios.closed_loop.runner as runner
+    from mpc.controllers.ltv import LTVMPC, LTVSettings
+    from mpc.prediction.spec import VehicleSpec
+    from scenarios.closed_loop.runner import RunSpec, fly
 
     root = Path(__file__).resolve().parents[1]
     spec = RunSpec("figure8-fast", controller, model if model == "oracle" else str(root / "models" / f"{model}.onnx"))
@@ -228,12 +228,12 @@ def test_a_dense_flight_reusing_condensed_matrices_equals_one_that_condenses_eve
     figure8-fast the same, bit for bit, whether those QPs reuse the condensed matrices or condense them anew."""
     from pathlib import Path
 
-    from mpc.ltv import LTVMPC
-    from scenarios.runner import RunSpec, fly
+    from mpc.controllers.ltv import LTVMPC
+    from scenarios.closed_loop.runner import RunSpec, fly
 
     root = Path(__file__).resolve().parents[1]
     spec = RunSpec("figure8-fast", "sqp", str(root / "models" / "proposed.onnx"))
-    monkeypatch.setattr("scenarios.library.Scenario.steps", property(lambda self: 40), raising=False)
+    monkeypatch.setattr("scenarios.closed_loop.library.Scenario.steps", property(lambda self: 40), raising=False)
     real = LTVMPC._solve_dense
     reused = []
 
@@ -256,13 +256,13 @@ def test_a_dense_flight_reusing_condensed_matrices_equals_one_that_condenses_eve
 
 
 def spec_steps(spec) -> int:
-    from scenarios.library import get_scenario
+    from scenarios.closed_loop.library import get_scenario
 
     return get_scenario(spec.scenario).steps
 
 
 def test_a_bad_qp_solver_is_refused_by_name():
-    from mpc.ltv import LTVSettings
+    from mpc.controllers.ltv import LTVSettings
 
     with pytest.raises(ConfigurationError, match="qp must be one of osqp, daqp; found 'gurobi'"):
         LTVSettings(qp="gurobi")
@@ -277,9 +277,9 @@ BINDING_OFFSET = np.array([3.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0, 0.0
 
 
 def _binding_controller(kind: str, qp: str, **qp_settings):
-    from mpc.ltv import LTVMPC, LTVSettings
-    from mpc.models import AnalyticModel
-    from mpc.sqp import SQPMPC, SQPSettings
+    from mpc.controllers.ltv import LTVMPC, LTVSettings
+    from mpc.prediction.models import AnalyticModel
+    from mpc.controllers.sqp import SQPMPC, SQPSettings
 
     common = dict(qp=qp, attitude_limit_rad=BINDING_ATTITUDE_RAD, **qp_settings)
     if kind == "ltv":
@@ -295,8 +295,8 @@ def test_the_controllers_dense_constraints_hold_where_they_bind_and_match_osqp(k
     where the rotor limits (both ends) and the attitude limit are active: the dense plan keeps every rotor's
     n^2 within [0, n_max^2] and the attitude within its limit, touches each bound, and is the plan OSQP gives
     for the same controller's sparse QP (solved to 1e-6 and polished)."""
-    import mpc.ltv as ltv
-    from sim.rotors import allocate
+    import mpc.controllers.ltv as ltv
+    from sim.vehicles.rotors import allocate
 
     polished = []
     real = ltv.LTVMPC._solve_qp

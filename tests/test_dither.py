@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from scenarios.dither import DITHER_THRUST, DITHER_TORQUE, Dithered, dither_std
+from scenarios.closed_loop.dither import DITHER_THRUST, DITHER_TORQUE, Dithered, dither_std
 from scenarios.errors import ScenarioError
 from sim.params import QuadParams
 

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from sim import QuadParams, Simulator, dynamics, rk4_step
-from sim.dynamics import rates
-from sim.dynamics_casadi import dynamics_casadi, step_function
+from sim.equations.dynamics import rates
+from sim.equations.dynamics_casadi import dynamics_casadi, step_function
 
 # Tolerances of this module (all relative unless stated).
 TOL = {

@@ -6,11 +6,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import scenarios.runner as runner
+import scenarios.closed_loop.runner as runner
 from scenarios.errors import ScenarioError
-from scenarios.metrics import TIMING_FIELDS, TRACE_TIMING_FIELDS
-from scenarios.runner import RunSpec, cache_key
-from scenarios.sweep import sweep
+from scenarios.closed_loop.metrics import TIMING_FIELDS, TRACE_TIMING_FIELDS
+from scenarios.closed_loop.runner import RunSpec, cache_key
+from scenarios.sweeps.sweep import sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 BASELINE = str(ROOT / "models" / "baseline.onnx")

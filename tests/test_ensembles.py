@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from scenarios.errors import ScenarioError
-from scenarios.library import ENSEMBLE_X0_SIGMA, get_scenario
-from scenarios.runner import RunSpec
-from scenarios.stats import bootstrap_ci, summarize, wilson_interval
+from scenarios.closed_loop.library import ENSEMBLE_X0_SIGMA, get_scenario
+from scenarios.closed_loop.runner import RunSpec
+from scenarios.studies.stats import bootstrap_ci, summarize, wilson_interval
 
 TOL = {
     "wilson_abs": 5e-4,        # against published values given to 4 digits
@@ -74,7 +74,7 @@ def test_summarize_counts_crashes_and_takes_the_metric_over_the_runs_that_flew()
 
 
 def test_an_ensemble_flies_each_member_from_its_own_start(tmp_path):
-    from scenarios.ensemble import fly_ensemble
+    from scenarios.studies.ensemble import fly_ensemble
 
     out = fly_ensemble("hover", "lqr", "oracle", members=3, out_dir=tmp_path, progress=False)
     rm = [r["rmse_position_m"] for r in out["runs"]]

@@ -5,9 +5,9 @@ import pytest
 
 from sim import NoiseModel, QuadParams
 from sim.errors import SimInputError
-from sim.estimate import estimate_theta
-from sim.excitation import make_dataset
-from sim.fisher import fisher_from_dataset
+from sim.identification.estimate import estimate_theta
+from sim.identification.excitation import make_dataset
+from sim.identification.fisher import fisher_from_dataset
 
 TOL = {
     "sigma": 3.0,            # |theta-hat - theta| within this many CRLB standard deviations, every parameter
@@ -52,7 +52,7 @@ def test_the_pilot_stage_reaches_the_direct_fit(small_pair, monkeypatch):
     """A pilot on every 3rd transition, then fixed weights, ends where the fit on all transitions does."""
     noisy, clean = small_pair
     direct = estimate_theta(noisy)
-    import sim.estimate as est_mod
+    import sim.identification.estimate as est_mod
 
     monkeypatch.setattr(est_mod, "PILOT_SIZE", direct.n_transitions // 3)
     piloted = estimate_theta(noisy)

@@ -4,14 +4,14 @@ import numpy as np
 import pytest
 
 from mpc.errors import ConfigurationError
-from mpc.estimator import DisturbanceEKF, EKFConfig, euler_rate_matrix
-from mpc.models import AnalyticModel
+from mpc.estimators.estimator import DisturbanceEKF, EKFConfig, euler_rate_matrix
+from mpc.prediction.models import AnalyticModel
 from scenarios.errors import ScenarioError
-from scenarios.runner import RunSpec, fly
+from scenarios.closed_loop.runner import RunSpec, fly
 from sim.params import DT
-from sim.plant import SimPlant
-from sim.sensors import ImuConfig, MocapConfig, SensedPlant, SensorSuite
-from sim.vehicle import load_vehicle
+from sim.plants.plant import SimPlant
+from sim.plants.sensors import ImuConfig, MocapConfig, SensedPlant, SensorSuite
+from sim.vehicles.vehicle import load_vehicle
 
 #: Tolerances of this module.
 TOL = {
@@ -60,7 +60,7 @@ def test_a_constant_wind_and_the_gyro_bias_are_estimated():
 
 
 def test_the_rotor_speeds_of_a_lagging_motor_are_estimated():
-    from mpc.extended import extra_equilibrium
+    from mpc.prediction.extended import extra_equilibrium
 
     v = load_vehicle(None)
     plant = SimPlant(v, fidelity=v.fidelity)
@@ -104,7 +104,7 @@ def test_a_model_with_actuator_states_flies_on_its_estimate():
 
 
 def test_euler_rate_matrix_against_finite_differences():
-    from sim.dynamics import rotation_matrix
+    from sim.equations.dynamics import rotation_matrix
 
     eta = np.array([0.3, -0.4, 1.2])
     omega = np.array([0.5, -0.2, 0.8])
@@ -131,7 +131,7 @@ def test_bad_estimator_set_ups_get_one_line_errors():
     with pytest.raises(ScenarioError, match="estimator must be one of none, ekf"):
         RunSpec("hover", "lqr", "oracle", estimator="kalman")
     ekf = DisturbanceEKF(AnalyticModel(v.params), MocapConfig(latency_s=0.02), None)
-    from sim.sensors import Readings
+    from sim.plants.sensors import Readings
 
     with pytest.raises(ConfigurationError, match="no motion-capture sample"):
         ekf.step(Readings.empty(), 0.0)

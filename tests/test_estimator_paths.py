@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpc.models import AnalyticModel, PredictionModel
-from mpc.offset_free import disturbance_offset
-from scenarios.library import get_scenario, scenario_names
-from scenarios.loop import IdealClock, RealtimeClock
-from scenarios.runner import RunSpec, fly, load_run_model, make_controller
+from mpc.prediction.models import AnalyticModel, PredictionModel
+from mpc.controllers.offset_free import disturbance_offset
+from scenarios.closed_loop.library import get_scenario, scenario_names
+from scenarios.closed_loop.loop import IdealClock, RealtimeClock
+from scenarios.closed_loop.runner import RunSpec, fly, load_run_model, make_controller
 from sim.params import DT
-from sim.vehicle import load_vehicle
+from sim.vehicles.vehicle import load_vehicle
 
 ROOT = Path(__file__).resolve().parents[1]
 FLAT_TABLE = str(ROOT / "scenarios" / "examples" / "flat-table.toml")

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 
 from pinn.evaluate import EFFECT_SPECS, evaluate_dir, evaluation_key
-from scenarios.campaign import (IDENTIFICATION_DIR, SHIPPED_EVALUATION, SHIPPED_FISHER, fisher_key,
-                                reusable_evaluation, reusable_fisher)
+from scenarios.studies.campaign import (IDENTIFICATION_DIR, SHIPPED_EVALUATION, SHIPPED_FISHER, fisher_key,
+                                        reusable_evaluation, reusable_fisher)
 
 ROOT = Path(__file__).resolve().parents[1]
 MODELS = ROOT / "models"
@@ -98,7 +98,7 @@ def test_a_fisher_table_is_reused_only_with_the_key_of_this_code(tmp_path):
 @pytest.mark.slow
 def test_the_shipped_fisher_table_is_what_the_table_computes_again():
     """The reuse rests on the table being deterministic: computed again (about 12 s), it is the shipped one."""
-    from sim.fisher import fisher_table
+    from sim.identification.fisher import fisher_table
 
     stored = json.loads((MODELS / SHIPPED_FISHER).read_text())
     stored.pop("inputs_sha256")

@@ -24,9 +24,9 @@ import math
 import numpy as np
 import pytest
 
-from mpc.contract import check_model
+from mpc.prediction.contract import check_model
 from mpc.errors import ModelContractError
-from mpc.models import AnalyticModel, OnnxModel, PredictionModel
+from mpc.prediction.models import AnalyticModel, OnnxModel, PredictionModel
 from sim.params import DT, NU, NX, Fidelity, QuadParams
 
 #: Tolerances of this module.
@@ -225,7 +225,7 @@ def test_a_model_whose_extra_states_do_not_match_gets_one_line(tmp_path, case, e
 # ----------------------------------------------------------------------------------------------- the controllers
 
 def _fly(scenario, controller, model_file, model=None):
-    from scenarios.runner import RunSpec, fly
+    from scenarios.closed_loop.runner import RunSpec, fly
 
     return fly(RunSpec(scenario, controller, str(model_file)), model=model)[0]
 
@@ -246,11 +246,11 @@ def test_the_history_model_passes_and_its_register_holds_the_commands_sent(histo
     """A shift register of the last three inputs: the model of a three-period input delay. It passes the checker
     without a derivative graph (central differences), flies figure8-slow+delay with the LTV-MPC, and in flight the
     register the controller plans from holds exactly the last three commands it sent."""
-    from mpc.models import OnnxModel
-    from scenarios.library import get_scenario
-    from scenarios.loop import IdealClock, StateSensor, fly_loop
-    from scenarios.runner import make_controller, plant_reference, RunSpec
-    from sim.plants import make_plant
+    from mpc.prediction.models import OnnxModel
+    from scenarios.closed_loop.library import get_scenario
+    from scenarios.closed_loop.loop import IdealClock, StateSensor, fly_loop
+    from scenarios.closed_loop.runner import make_controller, plant_reference, RunSpec
+    from sim.plants.named import make_plant
 
     info = check_model(history_file)
     assert info.nx == NX + NU * DELAY and info.jacobian is None
@@ -316,8 +316,8 @@ def test_the_high_fidelity_oracle_steps_like_the_simulator():
 
 
 def test_the_oracles_rotors_at_rest_turn_at_the_commanded_speeds():
-    from mpc.extended import extra_equilibrium
-    from sim.rotors import realize
+    from mpc.prediction.extended import extra_equilibrium
+    from sim.vehicles.rotors import realize
 
     p = QuadParams()
     m = AnalyticModel(p, fidelity=Fidelity(motor_tau=LAG_TAU))
@@ -330,10 +330,10 @@ def test_the_oracles_rotors_at_rest_turn_at_the_commanded_speeds():
 def test_the_high_fidelity_flatness_map_is_a_solution_of_the_equations():
     """States, rotor speeds and wrench of :func:`actuated_flat_state` satisfy the continuous high-fidelity equations:
     the states' time derivative (central differences of the map) equals the equations' rates at them."""
-    from mpc.trajectory import actuated_flat_state
-    from scenarios.library import get_scenario
+    from mpc.references.trajectory import actuated_flat_state
+    from scenarios.closed_loop.library import get_scenario
     from sim import Simulator
-    from sim.rotors import wrench_from_rotor_sq
+    from sim.vehicles.rotors import wrench_from_rotor_sq
 
     p, fid = QuadParams(), Fidelity(motor_tau=LAG_TAU, rotor_drag=1.2e-3, rotor_gyro=5e-6)
     traj = get_scenario("figure8-fast").reference()
@@ -343,7 +343,7 @@ def test_the_high_fidelity_flatness_map_is_a_solution_of_the_equations():
     rates = Simulator(p, fid)._rates_hifi(x, wrench_from_rotor_sq(n * n, p), n, None)
     assert np.max(np.abs(rates - dx)) < TOL["flatness_residual"]
     # Without the drag, the map is the nominal one.
-    from mpc.trajectory import flat_state
+    from mpc.references.trajectory import flat_state
     x0, _, _ = actuated_flat_state(traj, t, p, Fidelity(motor_tau=LAG_TAU))
     np.testing.assert_allclose(x0, flat_state(traj.flat(t), p)[0], rtol=0, atol=1e-12)
 
@@ -351,7 +351,7 @@ def test_the_high_fidelity_flatness_map_is_a_solution_of_the_equations():
 @pytest.mark.slow
 def test_the_oracle_flies_figure8_fast_highfi_within_a_millimetre():
     """The plant's true equations, lag included, flown by the SQP (the nominal equations get about 39 mm)."""
-    from scenarios.runner import RunSpec, fly
+    from scenarios.closed_loop.runner import RunSpec, fly
 
     r = fly(RunSpec("figure8-fast+highfi", "sqp", "oracle"))[0]
     assert not r["crashed"] and r["solver_failures"] == 0
@@ -361,7 +361,7 @@ def test_the_oracle_flies_figure8_fast_highfi_within_a_millimetre():
 def test_the_controller_is_told_the_command_sent_averaged_over_the_period_before_the_delay():
     """Under real-time timing a command that arrives 4 ms into a period counts for 6 ms of it; the plant's own
     input delay does not shift what the controller is told (its model's input is the command)."""
-    from scenarios.loop import RealtimeClock
+    from scenarios.closed_loop.loop import RealtimeClock
 
     class Plant:
         def advance(self, u, duration):
@@ -381,7 +381,7 @@ def test_evaluation_refuses_extra_states_it_cannot_rebuild_from_a_flight_log(his
     # A shift register of past inputs is not a motor: `pinnmpc evaluate` cannot rebuild it from the logged data
     # and says so in one line, naming the file.
     from pinn.evaluate import model_extra_states
-    from sim.excitation import make_dataset
+    from sim.identification.excitation import make_dataset
     ds = make_dataset("small", 1, 1.0, 0)
     with pytest.raises(ValueError, match=r"cannot be reconstructed from a flight log") as e:
         model_extra_states(check_model(history_file), ds)

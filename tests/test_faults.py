@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import scenarios.runner as runner
-from scenarios.bounds import ORACLE_CASES, Bound, check, generate
+import scenarios.closed_loop.runner as runner
+from scenarios.studies.bounds import ORACLE_CASES, Bound, check, generate
 from scenarios.cli import main
 from scenarios.errors import BoundsError, ScenarioError
-from scenarios.runner import MAX_HORIZON, RunSpec
+from scenarios.closed_loop.runner import MAX_HORIZON, RunSpec
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -50,9 +50,9 @@ def test_fly_refuses_an_output_it_cannot_write_before_it_flies(tmp_path, capsys,
 
 @pytest.mark.parametrize("command", [["run"], ["study"], ["versus"]])
 def test_sweeps_refuse_an_output_folder_they_cannot_write_before_they_start(tmp_path, capsys, monkeypatch, command):
-    import scenarios.campaign as campaign
-    import scenarios.versus as versus
-    import scenarios.zoo as zoo
+    import scenarios.studies.campaign as campaign
+    import scenarios.studies.versus as versus
+    import scenarios.studies.zoo as zoo
 
     for mod, fn in ((campaign, "run_main_job"), (zoo, "run_study"), (versus, "run_versus")):
         monkeypatch.setattr(mod, fn, lambda *a, **k: pytest.fail("started before checking --out"))
@@ -153,17 +153,17 @@ def test_bounds_refuse_an_output_they_cannot_write_before_reading_the_results(tm
 def test_the_code_version_covers_python_source_not_the_bounds_file(tmp_path, monkeypatch):
     for pkg in ("sim", "mpc", "scenarios"):
         shutil.copytree(ROOT / pkg, tmp_path / pkg, ignore=shutil.ignore_patterns("__pycache__"))
-    monkeypatch.setattr(runner, "__file__", str(tmp_path / "scenarios" / "runner.py"))
+    monkeypatch.setattr(runner, "__file__", str(tmp_path / "scenarios" / "closed_loop" / "runner.py"))
 
     def version():
         monkeypatch.setattr(runner, "_CODE_VERSION", None)
         return runner.code_version()
 
     before = version()
-    with open(tmp_path / "scenarios" / "bounds.toml", "a") as f:
+    with open(tmp_path / "scenarios" / "studies" / "bounds.toml", "a") as f:
         f.write("\n# bounds written again\n")
     assert version() == before
-    with open(tmp_path / "mpc" / "ltv.py", "a") as f:
+    with open(tmp_path / "mpc" / "controllers" / "ltv.py", "a") as f:
         f.write("\n# a change of code\n")
     assert version() != before
 
@@ -179,7 +179,7 @@ def copied_model(tmp_path, name="baseline"):
 
 
 def test_the_cache_key_covers_the_derivative_graph(tmp_path):
-    from scenarios.runner import cache_key
+    from scenarios.closed_loop.runner import cache_key
 
     model = copied_model(tmp_path)
     spec = RunSpec("hover", "lqr", str(model))
@@ -194,8 +194,8 @@ def test_the_cache_key_covers_the_derivative_graph(tmp_path):
 def test_a_model_swapped_mid_sweep_leaves_each_result_with_the_hash_of_what_it_flew(tmp_path):
     """The swap test: after the first run returns, the model file is replaced; every result carries the hash of the
     file it flew (its RMSE is that file's), and once the original is back a resume flies exactly the others."""
-    from scenarios.runner import fly, input_hashes
-    from scenarios.sweep import sweep
+    from scenarios.closed_loop.runner import fly, input_hashes
+    from scenarios.sweeps.sweep import sweep
 
     model = copied_model(tmp_path)
     specs = [RunSpec(sc, "lqr", str(model)) for sc in ("hover", "hover+noise", "figure8-slow")]
@@ -225,7 +225,7 @@ def test_a_model_swapped_mid_sweep_leaves_each_result_with_the_hash_of_what_it_f
 
 
 def test_a_torn_trace_is_flown_again_with_a_line_saying_so(tmp_path, capsys):
-    from scenarios.sweep import sweep
+    from scenarios.sweeps.sweep import sweep
 
     spec = RunSpec("hover", "lqr", "oracle")
     out = tmp_path / "out"
@@ -272,7 +272,7 @@ def fly_or_die(spec):
 @pytest.mark.slow
 def test_a_dead_worker_is_replaced_and_a_run_that_kills_it_twice_is_recorded_not_flown(tmp_path, monkeypatch,
                                                                                         capsys):
-    from scenarios.sweep import sweep
+    from scenarios.sweeps.sweep import sweep
 
     specs = [RunSpec(sc, "lqr", "oracle") for sc in ("hover", "figure8-slow", "hover+noise", "figure8-fast")]
     monkeypatch.setattr(runner, "fly_for_sweep", fly_or_die)
@@ -319,8 +319,8 @@ def alive(pid: int) -> bool:
 
 SLOW_SWEEP = """
 import sys
-from scenarios.runner import RunSpec
-from scenarios.sweep import sweep
+from scenarios.closed_loop.runner import RunSpec
+from scenarios.sweeps.sweep import sweep
 if __name__ == "__main__":
     sweep([RunSpec("figure8-slow", "sqp", "oracle", seed=s) for s in range(6)], sys.argv[1], jobs=2, progress=False)
 """
@@ -373,9 +373,9 @@ def test_a_sweep_survives_three_random_kills_of_its_workers_with_identical_resul
     import threading
     import time
 
-    import scenarios.pool as pool
-    from scenarios.metrics import TIMING_FIELDS
-    from scenarios.sweep import sweep
+    import scenarios.sweeps.pool as pool
+    from scenarios.closed_loop.metrics import TIMING_FIELDS
+    from scenarios.sweeps.sweep import sweep
 
     specs = [RunSpec(sc, c, "oracle", seed=s) for sc in ("hover", "figure8-slow", "figure8-fast")
              for c in ("lqr", "ltv") for s in (0, 1)]
@@ -412,7 +412,7 @@ def test_a_sweep_survives_three_random_kills_of_its_workers_with_identical_resul
 
 HOLD_LOCK = """
 import sys, time
-from scenarios.lock import folder_lock
+from scenarios.sweeps.lock import folder_lock
 with folder_lock(sys.argv[1]):
     print("held", flush=True)
     time.sleep(60)
@@ -423,8 +423,8 @@ def test_a_second_sweep_on_a_folder_in_use_stops_with_a_line_naming_the_holder(t
     import subprocess
     import sys
 
-    from scenarios.lock import FolderInUseError
-    from scenarios.sweep import sweep
+    from scenarios.sweeps.lock import FolderInUseError
+    from scenarios.sweeps.sweep import sweep
 
     out = tmp_path / "out"
     holder = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(out)], stdout=subprocess.PIPE, text=True,
@@ -443,7 +443,7 @@ def test_a_second_sweep_on_a_folder_in_use_stops_with_a_line_naming_the_holder(t
     finally:
         holder.kill()
         holder.wait(10)
-    from scenarios.lock import LOCK_NAME, folder_lock
+    from scenarios.sweeps.lock import LOCK_NAME, folder_lock
 
     assert (out / LOCK_NAME).is_file()
     with folder_lock(out):                          # free again
@@ -486,7 +486,7 @@ def nan_beyond_roll(tmp_path, limit=NAN_BEYOND_ROLL, source="baseline"):
 
 
 def test_check_model_finds_a_model_that_is_not_finite_away_from_hover(tmp_path, capsys):
-    from mpc.contract import ModelContractError, check_model
+    from mpc.prediction.contract import ModelContractError, check_model
 
     broken = nan_beyond_roll(tmp_path)
     with pytest.raises(ModelContractError, match="not finite at .* states across the flight envelope"):
@@ -504,7 +504,7 @@ def test_check_model_and_fly_warn_of_a_float32_model_under_the_nmpc(tmp_path, ca
     import onnx
     from onnx import TensorProto, helper
 
-    from mpc.readiness import FLOAT32_NMPC_WARNING
+    from mpc.controllers.readiness import FLOAT32_NMPC_WARNING
 
     # A float32 model: the float64 baseline between two casts.
     m = onnx.load(str(ROOT / "models" / "baseline.onnx"))
@@ -535,7 +535,7 @@ class NaNEveryFifth:
 
 
 def nan_every_fifth(base):
-    from mpc.models import PredictionModel
+    from mpc.prediction.models import PredictionModel
 
     class Broken(PredictionModel, NaNEveryFifth):
         def __init__(self):
@@ -570,7 +570,7 @@ def test_fly_prints_the_settled_error_and_why_the_solver_failed(capsys, monkeypa
     r, _ = runner.fly(RunSpec("hover", "lqr", "oracle"))
     assert f"settled_error_m       {r['settled_error_m']:.4g}" in out and "failure_causes" not in out
     # A model whose Jacobians turn NaN at every fifth period of the flight: fly names the cause of each failure.
-    import scenarios.loop as loop_module
+    import scenarios.closed_loop.loop as loop_module
 
     real_fly, real_loop, flown = runner.fly, loop_module.fly_loop, []
 
@@ -599,9 +599,9 @@ def test_a_line_search_that_would_end_past_the_budget_is_skipped_for_the_full_st
     QP's full step: bit for bit one full-step iteration; with room for it, the line search runs. (The rest of the
     budget: the evaluation reused, tests/test_evaluation_reuse.py; the slower machine itself,
     python -m mpc.bench --slowdown 2.)"""
-    from mpc.models import OnnxModel
-    from mpc.sqp import SQPMPC, SQPSettings
-    from mpc.trajectory import Figure8
+    from mpc.prediction.models import OnnxModel
+    from mpc.controllers.sqp import SQPMPC, SQPSettings
+    from mpc.references.trajectory import Figure8
 
     model, fig8 = OnnxModel(ROOT / "models" / "proposed.onnx"), Figure8(0.75, 3.0, 1.0)
     budget = 10.0                                   # seconds: no QP here comes near it
@@ -628,7 +628,7 @@ def test_a_line_search_that_would_end_past_the_budget_is_skipped_for_the_full_st
     ("waypoints = [[0, 0, -1], [1, 0, -1]]\npath_duration_s = 900\n", "the reference lasts 900 s"),
 ])
 def test_a_scenario_longer_than_the_limit_is_refused_with_its_reason(tmp_path, capsys, no_flight, text, what):
-    from scenarios.scenario import MAX_DURATION_S
+    from scenarios.closed_loop.scenario import MAX_DURATION_S
 
     f = tmp_path / "long.toml"
     f.write_text(text)
@@ -642,7 +642,7 @@ def test_a_scenario_longer_than_the_limit_is_refused_with_its_reason(tmp_path, c
 def test_the_duration_limit_holds_for_scenarios_made_in_python_too():
     import dataclasses
 
-    from scenarios.scenario import MAX_DURATION_S
+    from scenarios.closed_loop.scenario import MAX_DURATION_S
     from sim.params import DT
 
     with pytest.raises(ScenarioError, match="at most 600 s"):
@@ -653,7 +653,7 @@ def test_the_duration_limit_holds_for_scenarios_made_in_python_too():
 # ----------------------------------------------------------------- datasets a model cannot be trained on
 
 def _dataset(tmp_path):
-    from sim.excitation import make_dataset
+    from sim.identification.excitation import make_dataset
 
     path = tmp_path / "d.npz"
     make_dataset("small", 3, 0.5, 0).save(path)
@@ -672,7 +672,7 @@ def test_train_refuses_a_dataset_it_cannot_use_in_one_line_and_writes_nothing(tm
     import dataclasses
     import zipfile
 
-    from sim.excitation import load_dataset
+    from sim.identification.excitation import load_dataset
 
     good = _dataset(tmp_path)
     bad = tmp_path / "bad.npz"
@@ -721,7 +721,7 @@ def _broken_models(folder: Path) -> None:
 
 
 def test_a_folder_of_models_records_those_that_fail_the_contract_instead_of_stopping(tmp_path):
-    from scenarios.zoo import zoo_models
+    from scenarios.studies.zoo import zoo_models
 
     shutil.copy(ROOT / "models" / "zoo" / "baseline_e8.onnx", tmp_path)
     _broken_models(tmp_path)
@@ -733,7 +733,7 @@ def test_a_folder_of_models_records_those_that_fail_the_contract_instead_of_stop
 
 
 def test_study_exits_non_zero_with_one_line_naming_the_models_it_could_not_study(tmp_path, capsys, monkeypatch):
-    import scenarios.zoo as zoo
+    import scenarios.studies.zoo as zoo
 
     failed = {"corrupt": "not a readable ONNX file", "wrongdt": "metadata 'dt' must equal 0.01; found 0.02"}
     monkeypatch.setattr(zoo, "run_study", lambda *a, **k: {"failed": failed})
@@ -766,12 +766,12 @@ def test_a_study_with_a_corrupt_and_a_wrong_dt_model_flies_the_others_and_record
 # ----------------------------------------------------------------- messages that say what is true
 
 def test_versus_with_one_member_says_why_it_gives_no_verdict():
-    from scenarios.versus import VERSUS_PLANTS, summarize_plant
+    from scenarios.studies.versus import VERSUS_PLANTS, summarize_plant
 
     key = next(iter(VERSUS_PLANTS))
     sc = VERSUS_PLANTS[key].scenario("figure8-fast")
 
-    from scenarios.library import ladder_names, ladder_speeds
+    from scenarios.closed_loop.library import ladder_names, ladder_speeds
 
     def run(model, rmse, rung=None):
         return {"_model": model, "_rung": rung, "rmse_position_m": rmse, "crashed": False, "error": None,

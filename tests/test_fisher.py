@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from sim import NoiseModel, QuadParams, THETA_NAMES, rk4_step
-from sim.dynamics import rates
-from sim.fisher import fisher_from_dataset, fisher_information, rotor_sensitivities, sensitivities
-from sim.rotors import allocate, wrench_from_rotor_sq
+from sim.equations.dynamics import rates
+from sim.identification.fisher import fisher_from_dataset, fisher_information, rotor_sensitivities, sensitivities
+from sim.vehicles.rotors import allocate, wrench_from_rotor_sq
 
 TOL = {
     "fd_relative": 1e-5,     # AD sensitivities vs central differences (column-wise norm)

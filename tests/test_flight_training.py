@@ -9,9 +9,9 @@ import torch
 from pinn.flights import (FlightModel, FlightTrainConfig, HeldRatesPhysics, flight_stats, flight_step, register,
                           train_flight_model)
 from pinn.train import _TrainData, make_config, train, training_stats
-from scenarios.realdata import why_not_flyable
-from sim.excitation import make_dataset
-from sim.logbench import physics_step, prediction_errors
+from scenarios.studies.realdata import why_not_flyable
+from sim.identification.excitation import make_dataset
+from sim.flightlogs.logbench import physics_step, prediction_errors
 from sim.params import QuadParams
 
 torch.set_num_threads(1)
@@ -141,7 +141,7 @@ def test_training_keeps_the_best_validation_epoch_and_reruns_exactly():
         assert torch.equal(va, vb), k
     a = train_flight_model(train_f, val_f, kw, cfg)
     assert a.best_epoch == int(np.argmin(a.scores)) + 1
-    from sim.logbench import goal_score as score
+    from sim.flightlogs.logbench import goal_score as score
     physics = score(prediction_errors(physics_step(**kw), val_f, stride=5).to_dict())
     assert min(a.scores) < LEARNED_GAIN * physics, (a.scores, physics)
     step, start = flight_step(a.model, np.ones(4))
@@ -153,7 +153,7 @@ def test_the_exported_model_is_the_torch_model(tmp_path):
     finds its extra states."""
     import onnxruntime as ort
 
-    from mpc.contract import check_model
+    from mpc.prediction.contract import check_model
     from pinn.flights import export_flight_model
 
     flights = _flights(1)

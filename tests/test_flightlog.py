@@ -17,12 +17,12 @@ import pytest
 from scenarios.cli import main
 from sim import NoiseModel
 from sim.errors import FlightLogError
-from sim.excitation import load_dataset, make_dataset
-from sim.flightlog import read_flight
-from sim.logformat import load_format, parse_format
+from sim.identification.excitation import load_dataset, make_dataset
+from sim.flightlogs.flightlog import read_flight
+from sim.flightlogs.logformat import load_format, parse_format
 from sim.params import DT
-from sim.rotors import mixer_matrix
-from sim.vehicle import load_vehicle
+from sim.vehicles.rotors import mixer_matrix
+from sim.vehicles.vehicle import load_vehicle
 
 from foreign_logs import quat_xyzw, rot_zyx
 
@@ -398,7 +398,7 @@ def test_a_row_of_zeros_in_the_position_is_a_glitch_and_a_fast_smooth_path_is_no
     """A logger's rows of zeros in the position (the real logs have such rows, and height jumps of 0.3-0.5 m in one
     sample) once imported as measured: they are masked and counted as glitches, the rest of the flight is the
     plant's. The plant's own flight, and a fast circle at 3 m/s logged at 100 Hz and at 10 Hz, have none."""
-    from sim.flightlog import _position_glitches
+    from sim.flightlogs.flightlog import _position_glitches
 
     states, rotors, _ = plant_flight
     log = tmp_path / "zeros.csv"
@@ -546,7 +546,7 @@ def test_the_benchmarks_raw_flights_import_as_documented(tmp_path):
 def _flown(fidelity, periods=300, nan_from=None):
     """A flight of our simulator under a varying command: times, states, rotor speeds, commands."""
     from sim.params import Fidelity
-    from sim.plant import SimPlant
+    from sim.plants.plant import SimPlant
 
     v = load_vehicle(None)
     plant = SimPlant(v, Fidelity(**fidelity))
@@ -570,8 +570,8 @@ def _flown(fidelity, periods=300, nan_from=None):
 
 
 def test_a_flown_flight_becomes_a_dataset_sample_for_sample():
-    from sim.flightlog import flights_to_dataset, flown_flight
-    from sim.rotors import wrench_from_rotor_sq
+    from sim.flightlogs.flightlog import flights_to_dataset, flown_flight
+    from sim.vehicles.rotors import wrench_from_rotor_sq
 
     v, t, x, n, u = _flown({"motor_tau": 0.03})
     f = flown_flight("lagged", t, x, n, v, command=u, reference=x)
@@ -594,7 +594,7 @@ def test_a_flown_flight_becomes_a_dataset_sample_for_sample():
 
 
 def test_a_flown_flight_with_wrong_shapes_or_times_is_refused():
-    from sim.flightlog import flown_flight
+    from sim.flightlogs.flightlog import flown_flight
 
     v, t, x, n, u = _flown({}, periods=120)
     with pytest.raises(FlightLogError, match="bad: x must have shape"):
@@ -608,8 +608,8 @@ def test_a_flown_flight_with_wrong_shapes_or_times_is_refused():
 
 
 def test_a_runs_trace_keeps_the_plants_rotor_speeds_for_its_flight():
-    from scenarios.runner import RunSpec, fly
-    from sim.rotors import realize
+    from scenarios.closed_loop.runner import RunSpec, fly
+    from sim.vehicles.rotors import realize
 
     _, tr = fly(RunSpec("hover", "lqr", "oracle"))
     p = load_vehicle(None).params

@@ -1,4 +1,5 @@
-"""The stated interfaces: every controller the runner builds offers all of :class:`mpc.controller.Controller`, and
+"""The stated interfaces: every controller the runner builds offers all of
+:class:`mpc.controllers.controller.Controller`, and
 the LQR and the MPCs share its hooks by one definition."""
 
 import inspect
@@ -6,13 +7,13 @@ import inspect
 import numpy as np
 import pytest
 
-from mpc.base import MPCBase
-from mpc.controller import Controller, ControllerBase
-from mpc.lqr import LQRController
-from mpc.ltv import LTVMPC
-from mpc.models import AnalyticModel
-from scenarios.library import get_scenario
-from scenarios.runner import make_controller
+from mpc.controllers.base import MPCBase
+from mpc.controllers.controller import Controller, ControllerBase
+from mpc.controllers.lqr import LQRController
+from mpc.controllers.ltv import LTVMPC
+from mpc.prediction.models import AnalyticModel
+from scenarios.closed_loop.library import get_scenario
+from scenarios.closed_loop.runner import make_controller
 
 HOOKS = ("applied", "set_deadline", "set_disturbance")
 

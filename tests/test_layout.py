@@ -124,8 +124,11 @@ def test_the_checks_see_a_planted_three_module_cycle_and_an_upward_import(tmp_pa
 
 
 def test_the_graph_sees_imports_inside_functions_and_package_faces():
-    """The check reads function-level imports and the imports of ``__init__.py``: mpc.base imports mpc.lqr at
-    top level, mpc.lqr imports mpc.controller, and the sim package's face imports sim.simulator."""
+    """The check reads function-level imports and the imports of ``__init__.py``: mpc.controllers.base imports
+    mpc.controllers.lqr at
+    top level, mpc.controllers.lqr imports mpc.controllers.controller, and the sim package's face imports
+    sim.equations.simulator."""
     graph = import_graph(ROOT)
-    assert "mpc.lqr" in graph["mpc.base"] and "mpc.controller" in graph["mpc.lqr"]
-    assert "sim.simulator" in graph["sim"]
+    assert "mpc.controllers.lqr" in graph["mpc.controllers.base"]
+    assert "mpc.controllers.controller" in graph["mpc.controllers.lqr"]
+    assert "sim.equations.simulator" in graph["sim"]

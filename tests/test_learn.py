@@ -1,4 +1,4 @@
-"""Learning from flown flights (scenarios.learn): held-out references, the flights' dataset, resume."""
+"""Learning from flown flights (scenarios.studies.learn): held-out references, the flights' dataset, resume."""
 
 from __future__ import annotations
 
@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scenarios import learn
+from scenarios.studies import learn
 from scenarios.errors import ScenarioError
-from scenarios.learn import FlightJob, LearnSettings, flights_dataset, load_flights, save_flights
-from scenarios.library import get_scenario
-from scenarios.training_refs import reference_positions
+from scenarios.studies.learn import FlightJob, LearnSettings, flights_dataset, load_flights, save_flights
+from scenarios.closed_loop.library import get_scenario
+from scenarios.studies.training_refs import reference_positions
 from sim.params import DT
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,7 +48,7 @@ FAKE_EVALUATION_RUNS = 4
 def _hover_flight(name: str, n: int, seed: int, ref=None, vehicle=None) -> dict:
     """A synthetic flown flight of ``n`` samples of ``vehicle``: hover with small seeded noise (rotor speeds exactly
     at hover but for 1e-3 of noise), hover thrust commanded."""
-    from sim.vehicle import load_vehicle
+    from sim.vehicles.vehicle import load_vehicle
 
     v = load_vehicle(vehicle)
     rng = np.random.default_rng(seed)
@@ -65,7 +65,7 @@ def _hover_flight(name: str, n: int, seed: int, ref=None, vehicle=None) -> dict:
 
 # ------------------------------------------------------------------ held-out references
 def test_no_training_reference_of_the_default_study_is_an_evaluation_reference():
-    from scenarios.training_refs import check_held_out
+    from scenarios.studies.training_refs import check_held_out
 
     s = LearnSettings()
     refs = {}
@@ -184,7 +184,7 @@ def test_training_data_without_a_validation_or_test_flight_is_refused_by_name(tm
 
 def test_the_crazyflie_study_flies_and_learns_its_own_vehicle():
     """The Crazyflie plant's flights become data with the Crazyflie's constants, and its runs fly the Crazyflie."""
-    from sim.vehicle import load_vehicle
+    from sim.vehicles.vehicle import load_vehicle
 
     cf = load_vehicle("crazyflie")
     p = LearnSettings(plant="crazyflie").spec
@@ -197,7 +197,7 @@ def test_the_crazyflie_study_flies_and_learns_its_own_vehicle():
     assert np.max(np.abs(thrust / (cf.m * cf.params.g) - 1.0)) < TOL["hover_thrust_rel"]
     nominal = learn._load("nominal", p)
     assert nominal.params.m == pytest.approx(cf.m, rel=TOL["mass_rel"])
-    from scenarios.versus import versus_specs
+    from scenarios.studies.versus import versus_specs
 
     runs = versus_specs(p.versus, ["nominal"], members=2, ladder_members=1)
     assert {r.vehicle for r in runs["ensemble"]["nominal"]} == {"crazyflie"}
@@ -277,7 +277,7 @@ class _Fakes:
         self._work("train")
         if self.kill is not None and name.endswith(f"_it{self.kill}"):
             raise KeyboardInterrupt        # the study is killed while it trains this iteration
-        from sim.excitation import load_dataset
+        from sim.identification.excitation import load_dataset
 
         ds = load_dataset(data_path)
         rec = {"name": name, "data": data, "x_sum": float(np.sum(ds.x)), "pieces": int(ds.x.shape[0])}
@@ -290,7 +290,7 @@ class _Fakes:
                 "x_sum": float(sum(np.sum(f["x"]) for f in flights))}
 
     def open_loop(self, regime, n, duration, seed, **kw):
-        """``sim.excitation.make_dataset``'s stand-in: ``n`` hover flights of ``duration`` s."""
+        """``sim.identification.excitation.make_dataset``'s stand-in: ``n`` hover flights of ``duration`` s."""
         self._work("open_loop", n)
         return flights_dataset([_hover_flight(f"open-{k}", int(round(duration / DT)) + 1, seed + k)
                                 for k in range(n)])
@@ -307,13 +307,13 @@ class _Fakes:
         return {"label": "fake", "final": Path(final).stem, "controls": sorted(controls)}
 
     def install(self, monkeypatch):
-        import sim.excitation
+        import sim.identification.excitation
 
         monkeypatch.setattr(learn, "fly_flight", self.fly)
         monkeypatch.setattr(learn, "train_model", self.train)
         monkeypatch.setattr(learn, "_curve_row", self.curve)
         monkeypatch.setattr(learn, "_evaluate", self.evaluate)
-        monkeypatch.setattr(sim.excitation, "make_dataset", self.open_loop)
+        monkeypatch.setattr(sim.identification.excitation, "make_dataset", self.open_loop)
         if self.clock is not None:
             monkeypatch.setattr(learn, "_StageTimes", functools.partial(learn._StageTimes, clock=self.clock))
 
@@ -449,7 +449,7 @@ def test_learn_help_says_how_many_flights_of_figure8_fast_the_upper_bound_adds(t
 def test_the_curve_flies_all_members_for_the_nominal_and_final_models_and_fewer_between(tmp_path, monkeypatch):
     """The first and last rows are the evaluation's own runs (``members``); the rows between fly the first
     ``curve_members`` of those members, so that every row's runs are a prefix of the same ensemble."""
-    import scenarios.sweep
+    import scenarios.sweeps.sweep
 
     flown = {}
 
@@ -458,7 +458,7 @@ def test_the_curve_flies_all_members_for_the_nominal_and_final_models_and_fewer_
         return [{"run_id": str(k), "rmse_position_m": 0.01 * (k + 1), "crashed": False, "error": None,
                  "solve_ms": {"median": 1.0}} for k in range(len(specs))]
 
-    monkeypatch.setattr(scenarios.sweep, "sweep", fake_sweep)
+    monkeypatch.setattr(scenarios.sweeps.sweep, "sweep", fake_sweep)
     s = LearnSettings(iterations=3, members=6, curve_members=4)
     rows = [learn._curve_row(s, tmp_path, i, "nominal", [], 1, None) for i in range(4)]
     assert [flown[i] for i in range(4)] == [list(range(6)), list(range(4)), list(range(4)), list(range(6))]
@@ -563,8 +563,8 @@ SHIPPED_PLANTS = ("highfi", "rotorpy", "crazyflie")
 def test_the_shipped_study_learned_from_training_references_only(plant):
     """Every flight the shipped models learned from has a reference that shares no window with an evaluation one,
     and the summary holds the curve of every iteration."""
-    from mpc.contract import check_model
-    from scenarios.training_refs import check_held_out
+    from mpc.prediction.contract import check_model
+    from scenarios.studies.training_refs import check_held_out
 
     d = SHIPPED / plant
     st = json.loads((d / "learn.json").read_text())

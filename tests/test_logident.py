@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 
 from sim import NoiseModel
-from sim.excitation import make_dataset
+from sim.identification.excitation import make_dataset
 from sim.files import json_ready
-from sim.logbench import HORIZONS, physics_step, prediction_errors, rotation_angle
-from sim.logident import _bounds, fisher_table, identify
+from sim.flightlogs.logbench import HORIZONS, physics_step, prediction_errors, rotation_angle
+from sim.flightlogs.logident import _bounds, fisher_table, identify
 from sim.params import DT
-from sim.rotors import wrench_from_rotor_sq
-from sim.vehicle import load_vehicle
+from sim.vehicles.rotors import wrench_from_rotor_sq
+from sim.vehicles.vehicle import load_vehicle
 
 # tolerances of this module
 EXACT = 1e-9          # the plant's own equations predict its noise-free flight (RK4, same substeps)
@@ -161,7 +161,7 @@ def test_identified_physics_rescales_a_wrench_logged_with_a_wrong_thrust_coeffic
     """The wrench of a log is computed with the vehicle file's kt: when the file's kt is 10 % off, the identified
     model rescales it (``wrench_gain``) and predicts the flight as the true equations do, while the file's kt
     inside the same equations errs by the 10 %."""
-    from sim.logident import identified_model
+    from sim.flightlogs.logident import identified_model
 
     vehicle, flights = crazyflie_flights
     wrong = vehicle.replace(kt=1.1 * vehicle.kt)

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from mpc.errors import ConfigurationError
-from mpc.lqr import LQRController, hover_point
-from mpc.ltv import LTVMPC, LTVSettings
-from mpc.models import AnalyticModel, LinearModel, OnnxModel
+from mpc.controllers.lqr import LQRController, hover_point
+from mpc.controllers.ltv import LTVMPC, LTVSettings
+from mpc.prediction.models import AnalyticModel, LinearModel, OnnxModel
 from sim import QuadParams, Simulator
-from sim.rotors import allocate
+from sim.vehicles.rotors import allocate
 
 ROOT = Path(__file__).resolve().parents[1]
 P = QuadParams()
@@ -121,7 +121,7 @@ def test_bad_model_and_state_are_clear_errors():
 
 
 def test_a_model_returning_nan_is_a_counted_failure_not_an_exception(nan_jacobians_after):
-    from mpc.lqr import hover_linearization
+    from mpc.controllers.lqr import hover_linearization
     model = nan_jacobians_after(LinearModel(*hover_linearization(), *hover_point()), 2)   # the linear hover model
     mpc = LTVMPC(AnalyticModel())
     mpc.model = model            # the LQR fallback keeps the analytic gain; only the prediction breaks

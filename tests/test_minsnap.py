@@ -1,4 +1,4 @@
-"""Minimum-snap waypoint references (mpc.minsnap)."""
+"""Minimum-snap waypoint references (mpc.references.minsnap)."""
 
 import json
 
@@ -7,7 +7,7 @@ import pytest
 import scipy.linalg
 
 from mpc.errors import ConfigurationError
-from mpc.minsnap import MinSnap, random_minsnap
+from mpc.references.minsnap import MinSnap, random_minsnap
 
 TOL = {
     "closed_form": 1e-12,     # single segment vs closed form, relative to the derivative's peak

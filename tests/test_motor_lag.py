@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.excitation import make_dataset
-from sim.motor_lag import estimate_with_lag, lag_fisher, rotor_trajectory, true_theta7
+from sim.identification.excitation import make_dataset
+from sim.identification.motor_lag import estimate_with_lag, lag_fisher, rotor_trajectory, true_theta7
 from sim.params import HIGH_FIDELITY, Fidelity, QuadParams
 
 #: Tolerances of this module.
@@ -71,7 +71,7 @@ def test_the_lag_aware_estimator_identifies_all_seven_parameters_within_three_si
 
 def test_without_the_lag_the_same_flights_give_inertias_tens_of_percent_off(data):
     """The contrast: the nominal six-parameter fit of the same high-fidelity flights absorbs the lag."""
-    from sim.estimate import estimate_theta
+    from sim.identification.estimate import estimate_theta
 
     ds, _ = data["high"]
     est = estimate_theta(ds)

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from mpc.errors import ConfigurationError, ModelContractError
-from mpc.lqr import LQRController, default_weights, hover_point
-from mpc.models import AnalyticModel, OnnxModel, load_model
+from mpc.controllers.lqr import LQRController, default_weights, hover_point
+from mpc.prediction.models import AnalyticModel, OnnxModel, load_model
 from sim import QuadParams, Simulator
-from sim.rotors import allocate
+from sim.vehicles.rotors import allocate
 
 ROOT = Path(__file__).resolve().parents[1]
 BASELINE = ROOT / "models" / "baseline.onnx"
@@ -102,7 +102,7 @@ def test_single_precision_jacobians_agree_with_the_derivative_graph_and_the_step
 def test_a_float32_copy_that_disagrees_is_not_used(tmp_path, monkeypatch):
     from test_contract import build_jacobian, build_model
 
-    import mpc.contract as contract
+    import mpc.prediction.contract as contract
 
     good = build_model(tmp_path / "toy.onnx")
     build_jacobian(good)
@@ -141,7 +141,7 @@ def test_onnx_model_without_derivative_graph_uses_central_differences(tmp_path):
 
 def test_analytic_model_with_identified_parameters():
     m = AnalyticModel.from_onnx_theta(BASELINE)
-    from mpc.contract import check_model
+    from mpc.prediction.contract import check_model
     theta = check_model(BASELINE).theta
     assert m.params.m == theta["m"] and m.params.Jzz == theta["Jzz"] and m.params.g == P.g
     assert load_model("oracle").name == "oracle"
@@ -161,7 +161,7 @@ def test_lqr_refuses_a_pair_that_is_not_stabilizable():
     # The true hover linearization with the yaw torque removed from B: the yaw rate's integrator (eigenvalue 1)
     # cannot be moved. python-control may return a Riccati solution for it without an error; lqr must not.
     from mpc.errors import ConfigurationError
-    from mpc.lqr import lqr
+    from mpc.controllers.lqr import lqr
 
     x, u = hover_point(P)
     fA, fB = central_jacobians(Simulator(P).step, x[None], u[None], h=1e-7)
@@ -202,7 +202,8 @@ def test_bad_configuration_and_state_are_clear_errors():
 
 
 def test_mpc_imports_without_torch():
-    code = "import sys; sys.modules['torch'] = None; import mpc, mpc.models, mpc.lqr, mpc.controller, mpc.contract"
+    code = ("import sys; sys.modules['torch'] = None; import mpc, mpc.prediction.models, mpc.controllers.lqr, "
+            "mpc.controllers.controller, mpc.prediction.contract")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 0, r.stderr
 
@@ -211,8 +212,8 @@ def test_mpc_imports_without_torch():
 def test_the_casadi_rebuild_of_a_dense_pinn_equals_onnxruntime_and_its_derivative_graph(name):
     import casadi as ca
 
-    from mpc.contract import _probe_batch
-    from mpc.symbolic import casadi_step
+    from mpc.prediction.contract import _probe_batch
+    from mpc.prediction.symbolic import casadi_step
 
     model = OnnxModel(ROOT / "models" / f"{name}.onnx")
     F = casadi_step(model.path)
@@ -232,8 +233,8 @@ def test_the_casadi_rebuild_of_a_dense_pinn_equals_onnxruntime_and_its_derivativ
 def test_the_casadi_rebuild_gives_the_second_derivatives_of_the_derivative_graph():
     import casadi as ca
 
-    from mpc.contract import _probe_batch
-    from mpc.symbolic import casadi_step
+    from mpc.prediction.contract import _probe_batch
+    from mpc.prediction.symbolic import casadi_step
 
     model = OnnxModel(ROOT / "models" / "proposed.onnx")
     xs, us, ys = ca.MX.sym("x", 12), ca.MX.sym("u", 4), ca.MX.sym("y", 12)
@@ -257,7 +258,7 @@ def test_the_casadi_rebuild_gives_the_second_derivatives_of_the_derivative_graph
 @pytest.mark.parametrize("name,reason", [("fourier", "Concat with axis=2 not supported"),
                                          ("modular", "Unsupported operation 'GatherND'")])
 def test_a_graph_casadi_cannot_rebuild_is_refused_with_its_reason(name, reason):
-    from mpc.symbolic import casadi_step
+    from mpc.prediction.symbolic import casadi_step
 
     with pytest.raises(ModelContractError, match=f"cannot rebuild this graph as an expression \\({reason}"):
         casadi_step(ROOT / "models" / f"{name}.onnx")

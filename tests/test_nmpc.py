@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from mpc.errors import ConfigurationError, ModelContractError
-from mpc.models import AnalyticModel, OnnxModel
-from mpc.nmpc import NMPC, NMPCSettings
-from mpc.sqp import SQPMPC, SQPSettings
+from mpc.prediction.models import AnalyticModel, OnnxModel
+from mpc.controllers.nmpc import NMPC, NMPCSettings
+from mpc.controllers.sqp import SQPMPC, SQPSettings
 from sim import QuadParams, Simulator
-from sim.rotors import allocate
+from sim.vehicles.rotors import allocate
 
 ROOT = Path(__file__).resolve().parents[1]
 P = QuadParams()

@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpc.models import load_model
+from mpc.prediction.models import load_model
 from scenarios import get_scenario
-from scenarios.runner import make_controller
+from scenarios.closed_loop.runner import make_controller
 from sim import QuadParams, Simulator
 
 ROOT = Path(__file__).resolve().parents[1]

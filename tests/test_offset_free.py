@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 
 from mpc.errors import ConfigurationError
-from mpc.models import AnalyticModel
-from mpc.offset_free import (TARGET_FIXED, DisturbedModel, ShiftedTrajectory, disturbance_matrix, disturbance_offset,
-                              steady_target)
-from mpc.trajectory import Figure8, Hover
-from scenarios.runner import RunSpec, fly, make_controller
+from mpc.prediction.models import AnalyticModel
+from mpc.controllers.offset_free import (TARGET_FIXED, DisturbedModel, ShiftedTrajectory, disturbance_matrix,
+                                         disturbance_offset, steady_target)
+from mpc.references.trajectory import Figure8, Hover
+from scenarios.closed_loop.runner import RunSpec, fly, make_controller
 from sim.params import DT
-from sim.vehicle import load_vehicle
+from sim.vehicles.vehicle import load_vehicle
 
 #: Tolerances of this module.
 TOL = {
@@ -97,7 +97,7 @@ def test_a_bad_disturbance_gets_one_line():
 
 def test_a_steady_wind_leaves_no_offset_with_the_estimator():
     """hover+steadywind (0.4 m/s^2, no gusts): the estimated disturbance cancels it."""
-    from scenarios.library import get_scenario
+    from scenarios.closed_loop.library import get_scenario
 
     sc = get_scenario("hover+steadywind")
     np.testing.assert_array_equal(sc.wind(2.0), [0.4, 0.0, 0.0])
@@ -125,7 +125,7 @@ def test_the_steady_target_holds_a_drifting_model_still():
     """A model that drifts 0.2 mm per period north at rest (as a learned model's kinematics may): its steady state at
     the reference moves south at exactly 0.2 mm / dt. With a roll drift of 0.1 mrad per period as well, the roll rate
     turns against it. Position and yaw stay where they were; the residual is Newton's."""
-    from mpc.lqr import DEFAULT_STATE_SCALE
+    from mpc.controllers.lqr import DEFAULT_STATE_SCALE
 
     p = load_vehicle(None).params
     x0 = np.array([0.3, -0.2, -1.0, 0, 0, 0.4, 0, 0, 0, 0, 0, 0])

@@ -1,4 +1,5 @@
-"""The timing rules of a control period (mpc.timing.PeriodClock) on a fake clock: no test here reads the machine's.
+"""The timing rules of a control period (mpc.controllers.timing.PeriodClock) on a fake clock: no test here reads the
+machine's.
 
 The controllers ask the clock every question that depends on the wall clock; these tests give it a clock that
 moves only when told, so each rule is checked at known times on either side of its threshold.
@@ -7,8 +8,8 @@ moves only when told, so each rule is checked at known times on either side of i
 import numpy as np
 import pytest
 
-from mpc.timing import (MIN_QP_TIME_S, MIN_TIME_LIMIT_S, NO_TIME_LIMIT, OPTIONAL, RECENT_PERIODS, RECORDED,
-                        PeriodClock)
+from mpc.controllers.timing import (MIN_QP_TIME_S, MIN_TIME_LIMIT_S, NO_TIME_LIMIT, OPTIONAL, RECENT_PERIODS, RECORDED,
+                                    PeriodClock)
 
 #: Tolerance of the times compared here (s): the fake clock adds exactly, so only float rounding.
 TOL = {"seconds": 1e-12,
@@ -217,9 +218,9 @@ def test_a_bad_history_length_is_refused(bad):
 def test_the_sqp_asks_its_clock_a_deadline_it_cannot_meet_and_sends_the_shifted_plan():
     """The controller's own use of the rules, on the fake clock: a deadline already past at the period's start
     makes no derivatives and sends the shifted plan; one far away changes nothing."""
-    from mpc.models import AnalyticModel
-    from mpc.sqp import SQPMPC, SQPSettings
-    from mpc.trajectory import Figure8
+    from mpc.prediction.models import AnalyticModel
+    from mpc.controllers.sqp import SQPMPC, SQPSettings
+    from mpc.references.trajectory import Figure8
 
     fig8 = Figure8(0.75, 3.0, 1.0)
     ideal = SQPSettings(time_budget_s=None, cold_start_budget_s=None)
@@ -240,7 +241,7 @@ def test_the_sqp_asks_its_clock_a_deadline_it_cannot_meet_and_sends_the_shifted_
 
 
 def test_the_expected_time_is_numpys_median_to_the_last_bit():
-    from mpc.timing import _median
+    from mpc.controllers.timing import _median
 
     rng = np.random.default_rng(7)
     for n in range(1, 2 * RECENT_PERIODS):
@@ -255,7 +256,7 @@ def test_a_slowed_model_multiplies_its_typical_cpu_time_not_the_hosts_stalls():
     ten calls of 1 ms, one that takes 3 ms of CPU time (the host made it slower; 5 ms of wall time) takes 5 + 4 * 1
     ms: the median of the recent calls is multiplied, not the odd one."""
     from mpc.bench import SlowedModel
-    from mpc.models import AnalyticModel
+    from mpc.prediction.models import AnalyticModel
 
     fake = {"wall": 0.0, "cpu": 0.0}
 

@@ -11,7 +11,7 @@ from pinn.physics import (dynamics_torch, mechanical_energy, power_balance, rk4_
 from pinn.train import (CURRICULUM_HORIZONS, SS_MAX, curriculum_horizon, make_config, physics_residual,
                         sampling_probability, train, training_stats)
 from sim import NoiseModel, QuadParams, Simulator, dynamics
-from sim.rotors import allocate
+from sim.vehicles.rotors import allocate
 
 TOL = {
     "backend": 1e-12,          # torch (float64) vs numpy dynamics, relative to column scale
@@ -34,13 +34,13 @@ torch.set_num_threads(1)
 
 @pytest.fixture(scope="module")
 def small_ds():
-    from sim.excitation import make_dataset
+    from sim.identification.excitation import make_dataset
     return make_dataset("small", 20, 10.0, 0)
 
 
 @pytest.fixture(scope="module")
 def small_ds_highfi():
-    from sim.excitation import make_dataset
+    from sim.identification.excitation import make_dataset
     from sim.params import FIDELITIES
     return make_dataset("small", 20, 10.0, 0, fidelity=FIDELITIES["high"])
 
@@ -140,7 +140,7 @@ def test_rk4_increment_is_the_simulator_step():
     u[:, 0] = 0.6
     u[:, 1:] *= 1e-3
     inc = rk4_increment(x, u, torch.tensor(P.theta), P).numpy()
-    from sim.dynamics import rates, rk4_step
+    from sim.equations.dynamics import rates, rk4_step
     ref = rk4_step(lambda s: rates(s, u.numpy(), P), x.numpy(), 1e-3, 10) - x.numpy()
     np.testing.assert_allclose(inc, ref, rtol=1e-12, atol=1e-15)
 
@@ -258,7 +258,7 @@ def lag_stats():
 
 def lag_inputs(n, seed=0, spread=0.05):
     """Rigid-body states, rotor speeds off their commands by ``spread`` (relative), and hover-like wrenches."""
-    from sim.rotors import allocate
+    from sim.vehicles.rotors import allocate
     rng = np.random.default_rng(seed)
     x = rng.normal(size=(n, 12)) * 0.3
     u = np.tile([P.m * P.g, 0, 0, 0], (n, 1)) + rng.normal(size=(n, 4)) * [0.05, 2e-4, 2e-4, 1e-4]
@@ -281,11 +281,12 @@ def test_lag_model_jacobian_equals_autograd():
 
 
 def test_lag_physics_is_the_lag_aware_estimators_model():
-    # The same equations as sim.motor_lag's CasADi model (RK4 of the rigid body and the rotors, 10 x 1 ms): the
+    # The same equations as sim.identification.motor_lag's CasADi model (RK4 of the rigid body and the rotors, 10 x 1
+    # ms): the
     # rotors here are solved exactly, the rigid body by RK4 at the rotors' speeds at each stage's time.
     from pinn.physics import lagged_rotor_increment
-    from sim.motor_lag import lag_sensitivity_function
-    from sim.rotors import mixer
+    from sim.identification.motor_lag import lag_sensitivity_function
+    from sim.vehicles.rotors import mixer
     z, u = lag_inputs(6, seed=2)
     f64 = torch.float64
     consts = {"g": torch.tensor(P.g, dtype=f64), "c_d": torch.tensor(P.c_d, dtype=f64),
@@ -303,8 +304,8 @@ def test_lag_physics_is_the_lag_aware_estimators_model():
 
 
 def test_lag_model_rotor_speeds_follow_the_commands_as_the_estimators():
-    from sim.excitation import make_dataset
-    from sim.motor_lag import rotor_trajectory
+    from sim.identification.excitation import make_dataset
+    from sim.identification.motor_lag import rotor_trajectory
     from sim.params import FIDELITIES
     ds = make_dataset("small", 2, 2.0, 0, fidelity=FIDELITIES["high"])
     m = build_model("hybrid_lag", training_stats(ds), P.theta).double()
@@ -393,7 +394,7 @@ def test_training_stats_come_from_the_training_split(small_ds):
 
 # ------------------------------------------------------------------ metrics
 def test_metrics_of_the_exact_model_are_the_noise_floor():
-    from sim.excitation import make_dataset
+    from sim.identification.excitation import make_dataset
     ds = make_dataset("small", 10, 3.0, 1, noise=NoiseModel.none())
     sim = Simulator(P)
     one = one_step_mae(sim.step, ds)
@@ -403,7 +404,7 @@ def test_metrics_of_the_exact_model_are_the_noise_floor():
 
 
 def test_diverging_rollouts_are_counted_not_dropped():
-    from sim.excitation import make_dataset
+    from sim.identification.excitation import make_dataset
     ds = make_dataset("small", 10, 3.0, 1, noise=NoiseModel.none())
 
     def blows_up(x, u):

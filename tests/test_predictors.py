@@ -6,10 +6,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpc.models import AnalyticModel, OnnxModel, load_model
+from mpc.prediction.models import AnalyticModel, OnnxModel, load_model
 from scenarios.errors import ScenarioError
-from scenarios.predictors import (bootstrap_score_ci, chordal_distance, hover_chordal_distance, jacobian_error,
-                                 predictors_of, roc_auc, score_candidates)
+from scenarios.studies.predictors import (bootstrap_score_ci, chordal_distance, hover_chordal_distance, jacobian_error,
+                                          predictors_of, roc_auc, score_candidates)
 
 ROOT = Path(__file__).resolve().parents[1]
 TOL = {"exact": 1e-12,   # the oracle's Jacobian error against itself

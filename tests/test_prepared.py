@@ -1,7 +1,7 @@
 """A run that takes its feed-forward from the previous run of its process flies bit for bit as one that fits it.
 
 An ensemble's members differ only in their start and seed, so a process flying them one after another fits the
-feed-forward once (:meth:`mpc.feedforward.FeedForward.adopt`); everything flown must stay exactly equal.
+feed-forward once (:meth:`mpc.references.feedforward.FeedForward.adopt`); everything flown must stay exactly equal.
 """
 
 from pathlib import Path
@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import scenarios.runner as runner
-from mpc.feedforward import FeedForward
+import scenarios.closed_loop.runner as runner
+from mpc.references.feedforward import FeedForward
 from mpc.errors import ConfigurationError
-from scenarios.metrics import TIMING_FIELDS, TRACE_TIMING_FIELDS
-from scenarios.runner import RunSpec, fly
+from scenarios.closed_loop.metrics import TIMING_FIELDS, TRACE_TIMING_FIELDS
+from scenarios.closed_loop.runner import RunSpec, fly
 
 ROOT = Path(__file__).resolve().parents[1]
 BASELINE = str(ROOT / "models" / "baseline.onnx")
@@ -73,7 +73,7 @@ def test_a_run_of_another_model_or_scenario_fits_its_own(monkeypatch):
 
 
 def test_adopt_is_refused_once_something_was_computed():
-    from scenarios.runner import load_run_model, make_controller
+    from scenarios.closed_loop.runner import load_run_model, make_controller
 
     spec = RunSpec("hover", "lqr", "nominal")
     ctrl = make_controller("lqr", load_run_model(spec), None)

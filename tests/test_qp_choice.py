@@ -25,13 +25,13 @@ needs_daqp = pytest.mark.skipif(not HAVE_DAQP, reason='DAQP is not installed (py
 @pytest.fixture
 def short(monkeypatch):
     """Every scenario lasts :data:`STEPS` periods."""
-    monkeypatch.setattr("scenarios.library.Scenario.steps", property(lambda self: STEPS), raising=False)
+    monkeypatch.setattr("scenarios.closed_loop.library.Scenario.steps", property(lambda self: STEPS), raising=False)
 
 
 @pytest.fixture
 def dense_calls(monkeypatch):
     """A list that grows by one with every QP the controllers solve by the dense path (DAQP)."""
-    from mpc.ltv import LTVMPC
+    from mpc.controllers.ltv import LTVMPC
 
     calls = []
     real = LTVMPC._solve_dense
@@ -99,14 +99,14 @@ def test_qp_daqp_without_daqp_ends_in_one_line_naming_the_option_and_the_install
     def no_work(*args, **kwargs):
         raise AssertionError("work started before --qp was checked")
 
-    import scenarios.campaign
-    import scenarios.runner
-    import scenarios.versus
-    import scenarios.zoo
+    import scenarios.studies.campaign
+    import scenarios.closed_loop.runner
+    import scenarios.studies.versus
+    import scenarios.studies.zoo
 
-    for module, name in ((scenarios.runner, "fly"), (scenarios.runner, "load_run_model"),
-                         (scenarios.campaign, "run_main_job"), (scenarios.zoo, "run_study"),
-                         (scenarios.versus, "run_versus")):
+    for module, name in ((scenarios.closed_loop.runner, "fly"), (scenarios.closed_loop.runner, "load_run_model"),
+                         (scenarios.studies.campaign, "run_main_job"), (scenarios.studies.zoo, "run_study"),
+                         (scenarios.studies.versus, "run_versus")):
         monkeypatch.setattr(module, name, no_work)
     out = tmp_path / "out"
     argv = {"fly": ["fly", "--model", "oracle", "--controller", "sqp", "--scenario", "hover",
@@ -119,9 +119,9 @@ def test_qp_daqp_without_daqp_ends_in_one_line_naming_the_option_and_the_install
 
 
 # ------------------------------------------------------------------ carried to every run a sweep command builds
-@pytest.mark.parametrize("command,target", [("run", "scenarios.campaign.run_main_job"),
-                                            ("study", "scenarios.zoo.run_study"),
-                                            ("versus", "scenarios.versus.run_versus")])
+@pytest.mark.parametrize("command,target", [("run", "scenarios.studies.campaign.run_main_job"),
+                                            ("study", "scenarios.studies.zoo.run_study"),
+                                            ("versus", "scenarios.studies.versus.run_versus")])
 @pytest.mark.parametrize("qp", ["osqp", "daqp"])
 def test_the_sweep_commands_hand_their_qp_solver_on(command, target, qp, tmp_path, monkeypatch):
     if qp == "daqp" and not HAVE_DAQP:
@@ -145,10 +145,10 @@ def test_the_sweep_commands_hand_their_qp_solver_on(command, target, qp, tmp_pat
 def test_every_ltv_and_sqp_run_of_the_plans_takes_the_qp_solver():
     """The main job's plan (with and without the estimator), the study's and the versus study's: every LTV-MPC and
     SQP run flies the solver asked for; the NMPC's and the LQR's runs keep their name and identity."""
-    from scenarios.campaign import main_plan
-    from scenarios.runner import QP_CONTROLLERS, cache_key
-    from scenarios.versus import versus_specs
-    from scenarios.zoo import study_specs
+    from scenarios.studies.campaign import main_plan
+    from scenarios.closed_loop.runner import QP_CONTROLLERS, cache_key
+    from scenarios.studies.versus import versus_specs
+    from scenarios.studies.zoo import study_specs
 
     for estimator in (None, "ekf"):
         plain = main_plan(scenarios=["hover", "figure8-fast"], estimator=estimator)
@@ -172,9 +172,9 @@ def test_every_ltv_and_sqp_run_of_the_plans_takes_the_qp_solver():
 # ------------------------------------------------------------------ the sweep's cache
 @needs_daqp
 def test_a_saved_run_is_reused_only_by_the_solver_it_was_flown_with(short, dense_calls, tmp_path, monkeypatch):
-    import scenarios.runner as runner
-    from scenarios.runner import RunSpec, cache_key
-    from scenarios.sweep import sweep
+    import scenarios.closed_loop.runner as runner
+    from scenarios.closed_loop.runner import RunSpec, cache_key
+    from scenarios.sweeps.sweep import sweep
 
     flown = []
     real = runner.fly

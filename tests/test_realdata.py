@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from scenarios.cli import main
-from scenarios.realdata import RAW_DIR, benchmark_filter, logs_commit
+from scenarios.studies.realdata import RAW_DIR, benchmark_filter, logs_commit
 from sim import NoiseModel
-from sim.excitation import make_dataset
-from sim.vehicle import load_vehicle
+from sim.identification.excitation import make_dataset
+from sim.vehicles.vehicle import load_vehicle
 
 from foreign_logs import write_nanodrone_parquet
 
@@ -153,9 +153,9 @@ def test_the_study_on_the_real_benchmark(tmp_path):
 def test_a_model_that_holds_its_rates_is_refused_by_every_controller_with_the_reason():
     """The benchmark's Physics model (omega-dot = 0) as a prediction model: check-model's readiness says no controller
     can fly it, because no input changes the body rates."""
-    from mpc.lqr import LQRController
-    from mpc.models import AnalyticModel, LinearModel
-    from mpc.readiness import CONTROLLERS, readiness
+    from mpc.controllers.lqr import LQRController
+    from mpc.prediction.models import AnalyticModel, LinearModel
+    from mpc.controllers.readiness import CONTROLLERS, readiness
 
     oracle = AnalyticModel()
     lq = LQRController(None, oracle)
@@ -177,7 +177,7 @@ def test_the_reference_scenario_passes_through_the_logged_reference(tmp_path):
     from types import SimpleNamespace
 
     from scenarios import get_scenario
-    from scenarios.realdata import MELON_SAMPLE_S, reference_scenario
+    from scenarios.studies.realdata import MELON_SAMPLE_S, reference_scenario
 
     t = 0.37 + 0.01 * np.arange(801)
     ref = np.c_[np.sin(0.5 * t), 0.3 * np.cos(0.7 * t), -1.0 - 0.2 * np.sin(t)]

@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 from mpc.errors import ConfigurationError
-from mpc.feedforward import FeedForward
-from mpc.lqr import DEFAULT_STATE_SCALE, input_scale
-from mpc.ltv import LTVMPC
-from mpc.minsnap import random_minsnap
-from mpc.models import AnalyticModel, LinearModel, OnnxModel, load_model
-from mpc.spec import VehicleSpec, datasheet
-from mpc.trajectory import Figure8, Hover, YawTurn, flat_state, held_wrench
+from mpc.references.feedforward import FeedForward
+from mpc.controllers.lqr import DEFAULT_STATE_SCALE, input_scale
+from mpc.controllers.ltv import LTVMPC
+from mpc.references.minsnap import random_minsnap
+from mpc.prediction.models import AnalyticModel, LinearModel, OnnxModel, load_model
+from mpc.prediction.spec import VehicleSpec, datasheet
+from mpc.references.trajectory import Figure8, Hover, YawTurn, flat_state, held_wrench
 from scenarios import get_scenario
-from scenarios.library import LADDER
+from scenarios.closed_loop.library import LADDER
 from sim import QuadParams, Simulator, dynamics
 from sim.params import DT
 
@@ -75,7 +75,7 @@ def test_hover_maps_to_level_attitude_and_the_weight():
 
 
 def test_the_speed_ladder_reaches_the_rotor_limit_but_stays_inside_it():
-    from sim.rotors import allocate
+    from sim.vehicles.rotors import allocate
 
     peaks = []
     for name, period in [("figure8-fast", 3.0), *LADDER.items()]:
@@ -183,7 +183,7 @@ def test_bad_analytic_model_names_are_clear_errors(bad, match):
 
 @pytest.mark.slow
 def test_the_oracle_flies_every_rung_of_the_speed_ladder():
-    from scenarios.runner import RunSpec, fly
+    from scenarios.closed_loop.runner import RunSpec, fly
 
     for name in LADDER:
         r, _ = fly(RunSpec(name, "ltv", "oracle"))

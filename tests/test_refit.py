@@ -8,7 +8,7 @@ torch = pytest.importorskip("torch")
 from pinn.physics import rk4_increment  # noqa: E402
 from pinn.refit import _fit  # noqa: E402
 from sim import QuadParams  # noqa: E402
-from sim.excitation import make_dataset  # noqa: E402
+from sim.identification.excitation import make_dataset  # noqa: E402
 
 TOL = {"relative": 1e-6}   # refit parameters against the ones that made the target
 

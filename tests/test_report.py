@@ -188,7 +188,7 @@ def results_dir(tmp_path):
 
 
 def _study() -> dict:
-    from scenarios.stats import wilson_interval
+    from scenarios.studies.stats import wilson_interval
 
     models = {}
     for name, (mae, ens, speed) in STUDY_MODELS.items():
@@ -326,7 +326,7 @@ def test_missing_required_file_names_it(results_dir, name):
 
 
 def test_ensemble_members_get_their_own_table_and_stay_out_of_the_others(results_dir):
-    from scenarios.stats import wilson_interval
+    from scenarios.studies.stats import wilson_interval
 
     data = json.loads((results_dir / "results.json").read_text())
     rmse = [0.050, 0.052, 0.049, 0.051, None]          # the last member crashed
@@ -376,7 +376,7 @@ def test_the_zoo_study_leads_the_report(results_dir):
 
 @pytest.mark.slow
 def test_the_threshold_with_the_estimator_sits_beside_the_one_without(results_dir):
-    from scenarios.stats import wilson_interval
+    from scenarios.studies.stats import wilson_interval
 
     heading = "Dose-response with the state estimator"
     md = build_report(results_dir).read_text(encoding="utf-8")

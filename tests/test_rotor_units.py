@@ -1,6 +1,7 @@
 """Rotor units: a vehicle described in rad/s or RPM flies exactly as the same vehicle in normalized units.
 
-The rotor-limit constraints of the MPCs are written as rotor loads ``n^2 / n_max^2`` (``sim.rotors.load_matrix``),
+The rotor-limit constraints of the MPCs are written as rotor loads ``n^2 / n_max^2``
+(``sim.vehicles.rotors.load_matrix``),
 so the QP a controller solves does not depend on the unit its vehicle file gives rotor speeds in. Written as
 ``M^-1 u <= n_max^2`` they reached 1e7 beside dynamics rows of order one, and the SQP took ten times as long on
 RotorPy's Crazyflie (2500 rad/s) as on the same vehicle with n_max = 1.
@@ -13,11 +14,11 @@ import numpy as np
 import pytest
 
 from scenarios.cli import main
-from scenarios.library import get_scenario
-from scenarios.runner import RunSpec, fly
+from scenarios.closed_loop.library import get_scenario
+from scenarios.closed_loop.runner import RunSpec, fly
 from sim.params import GRAVITY
-from sim.rotors import load_matrix, mixer_matrix
-from sim.vehicle import MIN_THRUST_TO_WEIGHT, Vehicle, load_vehicle
+from sim.vehicles.rotors import load_matrix, mixer_matrix
+from sim.vehicles.vehicle import MIN_THRUST_TO_WEIGHT, Vehicle, load_vehicle
 
 TOL = {
     "load_rel": 1e-12,          # L M n^2 = n^2 / n_max^2, relative to the largest load
@@ -115,9 +116,9 @@ WEAK = "m = 1.0\nkt = 1e-6\nn_max = 500\n"
     ["study", "--out", "{out}/study", "--no-publish"],
 ])
 def test_every_command_refuses_a_vehicle_that_cannot_hover_and_writes_nothing(tmp_path, capsys, monkeypatch, command):
-    import scenarios.campaign as campaign
-    import scenarios.runner as runner
-    import scenarios.zoo as zoo
+    import scenarios.studies.campaign as campaign
+    import scenarios.closed_loop.runner as runner
+    import scenarios.studies.zoo as zoo
 
     for mod, fn in ((campaign, "run_main_job"), (zoo, "run_study"), (runner, "fly")):
         monkeypatch.setattr(mod, fn, lambda *a, **k: pytest.fail("started before reading the vehicle"))

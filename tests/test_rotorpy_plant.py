@@ -8,22 +8,15 @@ import pytest
 
 pytest.importorskip("rotorpy")
 
-from sim import rotorpy_plant
+from sim.plants import rotorpy_plant
 from sim.errors import PlantUnavailableError, SimInputError
 from sim.params import DT, Fidelity
-from sim.plant import SimPlant
-from sim.plants import make_plant
-from sim.rotorpy_plant import (
-    FLIP,
-    INTEGRATORS,
-    ROTORPY_INDEX,
-    RotorPyPlant,
-    from_rotorpy_state,
-    rotorpy_params,
-    to_rotorpy_state,
-)
-from sim.rotors import ROTOR_X, ROTOR_Y, SPIN, mixer_matrix
-from sim.vehicle import load_vehicle
+from sim.plants.plant import SimPlant
+from sim.plants.named import make_plant
+from sim.plants.rotorpy_plant import (FLIP, INTEGRATORS, ROTORPY_INDEX, RotorPyPlant, from_rotorpy_state,
+                                      rotorpy_params, to_rotorpy_state)
+from sim.vehicles.rotors import ROTOR_X, ROTOR_Y, SPIN, mixer_matrix
+from sim.vehicles.vehicle import load_vehicle
 
 TOL = {
     # Ideal set-up vs the reference simulator (RK4 at 1 ms), one 10 ms period from 240 random states; measured
@@ -373,7 +366,7 @@ def test_missing_rotorpy_is_a_one_line_error(monkeypatch):
     assert isinstance(e.value, ValueError)
     assert str(e.value) == "plant 'rotorpy' needs RotorPy: pip install -e '.[rotorpy]'"
     # The main job then leaves its RotorPy runs out instead of failing them.
-    from scenarios import campaign
+    from scenarios.studies import campaign
     monkeypatch.setattr(campaign, "rotorpy_available", lambda: False)
     plan = campaign.main_plan(Path(__file__).resolve().parents[1] / "models")
     assert campaign.plant_plan() == [] and {s.plant for s in plan} == {"sim"}
@@ -386,7 +379,7 @@ def test_flying_rotorpy_does_not_import_torch():
     import sys
 
     code = ("import sys, numpy as np\n"
-            "from sim.plants import make_plant\n"
+            "from sim.plants.named import make_plant\n"
             "p = make_plant('rotorpy')\n"
             "x0 = np.zeros(12); x0[2] = -1.0\n"
             "p.reset(x0); p.step(p.hover_input)\n"
@@ -428,7 +421,7 @@ def test_rotorpy_with_aerodynamics_has_no_oracle_and_says_so(capsys):
 
 def test_a_rotorpy_dataset_flown_in_two_processes_equals_one_flown_in_one():
     """Each trajectory has its own random stream and plant: slicing them over processes changes no bit."""
-    from sim.excitation import make_dataset
+    from sim.identification.excitation import make_dataset
 
     one = make_dataset("small", 3, 0.5, 4, plant="rotorpy", vehicle="crazyflie")
     two = make_dataset("small", 3, 0.5, 4, plant="rotorpy", vehicle="crazyflie", workers=2)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sim import Fidelity, NoiseModel, QuadParams, Simulator
-from sim.rotors import allocate, mixer_matrix, realize
+from sim.vehicles.rotors import allocate, mixer_matrix, realize
 
 TOL = {
     "realized_equals_command": 1e-12,   # relative to the wrench scale, below saturation

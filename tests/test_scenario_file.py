@@ -1,4 +1,4 @@
-"""Scenarios as TOML files (scenarios.scenario_file, get_scenario("path.toml"))."""
+"""Scenarios as TOML files (scenarios.closed_loop.scenario_file, get_scenario("path.toml"))."""
 
 from __future__ import annotations
 
@@ -9,14 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpc.minsnap import FlatTable, minsnap_through
-from mpc.trajectory import Hover
+from mpc.references.minsnap import FlatTable, minsnap_through
+from mpc.references.trajectory import Hover
 from scenarios import get_scenario, scenario_names
 from scenarios.errors import ScenarioError
-from scenarios.library import (HOVER_START_ATTITUDE_DEG, HOVER_START_OFFSET_M, NOISE, GustImpulse, Scenario,
-                               WindGusts)
-from scenarios.runner import RunSpec, fly
-from scenarios.scenario_file import load_scenario_file, rotor_load
+from scenarios.closed_loop.library import (HOVER_START_ATTITUDE_DEG, HOVER_START_OFFSET_M, NOISE, GustImpulse, Scenario,
+                                           WindGusts)
+from scenarios.closed_loop.runner import RunSpec, fly
+from scenarios.closed_loop.scenario_file import load_scenario_file, rotor_load
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLES = REPO / "scenarios" / "examples"

@@ -10,15 +10,15 @@ import onnx
 import pytest
 from onnx import helper, numpy_helper
 
-from mpc.contract import jacobian_path
+from mpc.prediction.contract import jacobian_path
 from scenarios import get_scenario, scenario_names
 from scenarios.errors import ScenarioError
-from scenarios.library import VARIANTS
-from scenarios.library import DELAY_STEPS, NOISE, PAYLOAD_FRACTION, GustImpulse, WindGusts
-from scenarios.metrics import (LADDER_RMSE_BOUND_M, TIMING_FIELDS, TRACE_TIMING_FIELDS, closed_loop_metrics,
-                               crash_reason, max_trackable_speed)
-from scenarios.runner import RunSpec, fly
-from scenarios.sweep import sweep
+from scenarios.closed_loop.library import VARIANTS
+from scenarios.closed_loop.library import DELAY_STEPS, NOISE, PAYLOAD_FRACTION, GustImpulse, WindGusts
+from scenarios.closed_loop.metrics import (LADDER_RMSE_BOUND_M, TIMING_FIELDS, TRACE_TIMING_FIELDS, closed_loop_metrics,
+                                           crash_reason, max_trackable_speed)
+from scenarios.closed_loop.runner import RunSpec, fly
+from scenarios.sweeps.sweep import sweep
 from sim.params import DT, NX, QuadParams
 
 REPO = Path(__file__).resolve().parents[1]
@@ -351,7 +351,7 @@ def test_fly_bad_input_is_a_one_line_error(tmp_path, capsys):
 
 
 def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
-    from scenarios.campaign import main_plan
+    from scenarios.studies.campaign import main_plan
     from scenarios.cli import main
 
     assert main(["report", str(tmp_path / "nothing")]) == 2
@@ -366,7 +366,7 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     specs = [s for s in specs if s.plant == "sim" and s.vehicle is None]
     highfi = [s for s in specs if s.scenario.endswith("+highfi")]
     specs = [s for s in specs if not s.scenario.endswith("+highfi")]
-    from scenarios.campaign import ESTIMATOR_VARIANTS, OFFSET_FREE_SCENARIOS
+    from scenarios.studies.campaign import ESTIMATOR_VARIANTS, OFFSET_FREE_SCENARIOS
 
     n_sim = len(specs)
     estimated = [s for s in specs if s.estimator != "none"]
@@ -382,8 +382,8 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     assert {s.scenario for s in main_plan(MODELS, full=True) if s.controller == "sqp"} == set(scenario_names())
     models = {m for _, m in sqp}
     assert len(models) == 1 + len(list(MODELS.glob("*.jac.onnx")))
-    from scenarios.campaign import (EVERY_MODEL_SCENARIOS, LTV_EVERY_MODEL_SCENARIOS, LTV_SCENARIOS, SUBSET_MODELS,
-                                    SUBSET_SCENARIOS)
+    from scenarios.studies.campaign import (EVERY_MODEL_SCENARIOS, LTV_EVERY_MODEL_SCENARIOS, LTV_SCENARIOS,
+                                            SUBSET_MODELS, SUBSET_SCENARIOS)
 
     # Every model on the cases the report compares models on, the oracle and the paper's Baseline and Proposed on
     # the disturbances, the oracle alone on the others (all with --full).
@@ -394,7 +394,7 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     ltv = {(s.scenario, s.model_name) for s in ideal if s.controller == "ltv"}
     assert ltv == {(sc, m) for sc in LTV_SCENARIOS
                    for m in (models if sc in LTV_EVERY_MODEL_SCENARIOS else {"oracle"})}
-    from scenarios.bounds import load_bounds
+    from scenarios.studies.bounds import load_bounds
 
     flown = {(s.scenario, s.controller, s.model_name) for s in ideal} | {(s.scenario, "lqr", "oracle") for s in ideal}
     assert {(b.scenario, b.controller, b.model) for b in load_bounds()[1]} <= flown  # every CI bound case is flown
@@ -411,7 +411,7 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     # it, and the offset-free hover cases with the oracle, both ways.
     cases = {(s.scenario, s.model_name) for s in estimated}
     variants = {sc for sc, _ in sqp if "+" in sc and sc.split("+", 1)[1] in ESTIMATOR_VARIANTS}
-    from scenarios.campaign import ESTIMATOR_VARIANTS_SUBSET
+    from scenarios.studies.campaign import ESTIMATOR_VARIANTS_SUBSET
 
     every = {sc for sc in variants if sc.split("+", 1)[1] in ESTIMATOR_VARIANTS_SUBSET}
     assert every and cases == ({(sc, m) for sc in every for m in pair}
@@ -428,7 +428,7 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
         main_plan(MODELS, estimator="kalman")
     # The high-fidelity plant: the oracle (its true equations), the nominal equations, the nominal-trained twins and
     # the models trained on its own data, with ensemble members where the scenario has them, and no run twice.
-    from scenarios.campaign import HIGHFI_DEFAULT_MEMBERS, HIGHFI_MODELS, HIGHFI_SCENARIOS, learned_models
+    from scenarios.studies.campaign import HIGHFI_DEFAULT_MEMBERS, HIGHFI_MODELS, HIGHFI_SCENARIOS, learned_models
 
     # ... and the shipped learning study's final model (models/learn/highfi)
     learned = tuple(learned_models(MODELS, "highfi"))
@@ -449,7 +449,7 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     # Other plants (RotorPy is installed with the test extra): figure8-fast with the SQP, the oracle and every shipped
     # model on the ideal set-up, the nominal equations and every model with motor lag and aerodynamics, and the
     # nominal equations flying RotorPy's two presets on both our simulator and RotorPy.
-    from scenarios.campaign import PLANT_DEFAULT_MODELS
+    from scenarios.studies.campaign import PLANT_DEFAULT_MODELS
 
     # ... and, with motor lag and aerodynamics, the final model of the shipped learning study on RotorPy
     learned_rp = {Path(m).stem for m in learned_models(MODELS, "rotorpy")}
@@ -477,7 +477,7 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
 
 
 def test_perturbed_starts_of_a_well_posed_case_agree():
-    from scenarios.sensitivity import perturbed_rmse
+    from scenarios.studies.sensitivity import perturbed_rmse
 
     rows = perturbed_rmse(RunSpec("figure8-fast", "lqr", "oracle"), trials=3, step_m=1e-9)
     assert [r["offset_m"] for r in rows] == [0.0, 1e-9, 2e-9]

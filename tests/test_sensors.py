@@ -7,10 +7,10 @@ import pytest
 
 from sim.errors import SimInputError
 from sim.params import DT
-from sim.plant import Plant, SimPlant
-from sim.plants import make_plant
-from sim.sensors import ImuConfig, MocapConfig, SensedPlant, SensorSuite, specific_force, wrap_angle
-from sim.vehicle import load_vehicle
+from sim.plants.plant import Plant, SimPlant
+from sim.plants.named import make_plant
+from sim.plants.sensors import ImuConfig, MocapConfig, SensedPlant, SensorSuite, specific_force, wrap_angle
+from sim.vehicles.vehicle import load_vehicle
 
 #: Tolerances of this module.
 TOL = {
@@ -51,7 +51,7 @@ def test_accelerometer_reads_minus_g_along_body_z_at_hover(name, tol):
 
 
 def test_accelerometer_in_free_fall_reads_zero_and_under_thrust_reads_thrust_over_mass():
-    from sim.vehicle import load_vehicle
+    from sim.vehicles.vehicle import load_vehicle
 
     v = load_vehicle(None)
     v = dataclasses.replace(v, c_d=0.0)
@@ -299,7 +299,7 @@ class _OwnPlant(Plant):
 
 
 class _DuckPlant:
-    """A plant that is not a :class:`sim.plant.Plant`, only shaped like one."""
+    """A plant that is not a :class:`sim.plants.plant.Plant`, only shaped like one."""
 
     def __init__(self):
         self._inner = _OwnPlant()

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpc.contract import check_model, jacobian_path, open_session
+from mpc.prediction.contract import check_model, jacobian_path, open_session
 
 ROOT = Path(__file__).resolve().parents[1]
 MODELS = ROOT / "models"
@@ -57,7 +57,7 @@ def envelope_inputs(n, seed=0):
 def model_inputs(path, n, seed=0):
     """Envelope states and inputs for a shipped model: a model with extra states gets them at rest for each input
     (held state and input), then moved 5 % off it, so that they are exercised away from equilibrium."""
-    from mpc.contract import _with_extra_at_rest
+    from mpc.prediction.contract import _with_extra_at_rest
     x, u = envelope_inputs(n, seed)
     info = check_model(path)
     if not info.extra_states:

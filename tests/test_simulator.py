@@ -120,7 +120,7 @@ def test_one_vehicle_steps_like_a_batch_of_one_with_high_fidelity(fidelity, payl
     # The high-fidelity effects too: one state goes through their CasADi form, a batch through numpy; with motor
     # lag the rotors start away from the command (as they do between periods) and must end where numpy's end.
     from sim.params import FIDELITIES
-    from sim.rotors import realize
+    from sim.vehicles.rotors import realize
 
     rng = np.random.default_rng(7)
     sim = Simulator(fidelity=FIDELITIES[fidelity], payload_kg=payload, wind=wind)

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from mpc.errors import ConfigurationError
-from mpc.lqr import hover_point
-from mpc.ltv import LTVMPC
-from mpc.models import AnalyticModel, OnnxModel
-from mpc.nmpc import NMPC, NMPCSettings
-from mpc.sqp import SQPMPC, SQPSettings
-from mpc.trajectory import Figure8
+from mpc.controllers.lqr import hover_point
+from mpc.controllers.ltv import LTVMPC
+from mpc.prediction.models import AnalyticModel, OnnxModel
+from mpc.controllers.nmpc import NMPC, NMPCSettings
+from mpc.controllers.sqp import SQPMPC, SQPSettings
+from mpc.references.trajectory import Figure8
 from sim import QuadParams, Simulator
 from sim.params import NU, NX
 
@@ -447,8 +447,8 @@ def test_a_line_search_shortens_its_step_only_while_another_trial_fits_the_budge
     """A full step that raises the merit, no correction: without a clock the step is halved up to four times (five
     model steps); on a fake clock whose budget is spent it stops after the first trial and takes the best one tried;
     with a budget for three and a half trials of the fake clock's length it makes three."""
-    from mpc.sqp import MAX_BACKTRACKS
-    from mpc.timing import PeriodClock
+    from mpc.controllers.sqp import MAX_BACKTRACKS
+    from mpc.controllers.timing import PeriodClock
 
     class Counted(AnalyticModel):
         calls = 0
@@ -511,7 +511,7 @@ def test_a_period_that_cannot_plan_before_its_deadline_sends_the_shifted_plan_at
 def prepared_on_a_still_clock(model, cold_start_s: float):
     """An ideal-timing SQP on ``model`` whose clock stands still at 0, prepared at the start of figure8-fast, with a
     cold start's time to its first plan of ``cold_start_s`` recorded; ``(sqp, x0)``."""
-    from mpc.timing import PeriodClock
+    from mpc.controllers.timing import PeriodClock
 
     sqp = SQPMPC(model, FIG8_FAST, SQPSettings(time_budget_s=None, cold_start_budget_s=None))
     sqp.clock = PeriodClock(lambda: 0.0)
@@ -603,7 +603,7 @@ def test_bad_settings_are_clear_errors(kwargs, match):
 
 
 def test_ltv_settings_are_refused_and_guesses_must_have_the_horizons_shape():
-    from mpc.ltv import LTVSettings
+    from mpc.controllers.ltv import LTVSettings
     with pytest.raises(ConfigurationError, match="SQPSettings"):
         SQPMPC(AnalyticModel(), settings=LTVSettings())
     sqp = SQPMPC(AnalyticModel())

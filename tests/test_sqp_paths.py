@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from mpc.errors import ConfigurationError
-from mpc.models import AnalyticModel, OnnxModel
-from mpc.sqp import SQPMPC, SQPSettings
-from mpc.timing import PeriodClock
-from mpc.trajectory import Figure8
+from mpc.prediction.models import AnalyticModel, OnnxModel
+from mpc.controllers.sqp import SQPMPC, SQPSettings
+from mpc.controllers.timing import PeriodClock
+from mpc.references.trajectory import Figure8
 from sim import Simulator
 from sim.params import DT
 

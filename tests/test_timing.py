@@ -6,14 +6,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpc.controller import ControlInfo
+from mpc.controllers.controller import ControlInfo
 from scenarios.errors import ScenarioError
-from scenarios.library import get_scenario
-from scenarios.loop import DEADLINE_MARGIN_S, IdealClock, RealtimeClock, StateSensor, fly_loop
-from scenarios.runner import RunSpec, fly
-from scenarios.sweep import sweep_batches
+from scenarios.closed_loop.library import get_scenario
+from scenarios.closed_loop.loop import DEADLINE_MARGIN_S, IdealClock, RealtimeClock, StateSensor, fly_loop
+from scenarios.closed_loop.runner import RunSpec, fly
+from scenarios.sweeps.sweep import sweep_batches
 from sim import QuadParams, Simulator
-from sim.plant import SimPlant
+from sim.plants.plant import SimPlant
 from sim.params import DT
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -141,7 +141,7 @@ def test_a_realtime_sqp_run_plans_before_take_off_and_leaves_the_garbage_collect
 
 
 def test_two_ideal_sqp_runs_give_identical_results_but_for_their_timing_fields():
-    from scenarios.metrics import TIMING_FIELDS, TRACE_TIMING_FIELDS
+    from scenarios.closed_loop.metrics import TIMING_FIELDS, TRACE_TIMING_FIELDS
 
     spec = RunSpec("hover", "sqp", "oracle")
     (r1, t1), (r2, t2) = fly(spec), fly(spec)

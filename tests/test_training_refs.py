@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 from scenarios.errors import ScenarioError
-from scenarios.training_refs import (SPEED_LEVELS_MS, WINDOW, accel_limit, check_held_out, evaluation_references,
-                                     fingerprints, reference_positions, training_references)
+from scenarios.studies.training_refs import (SPEED_LEVELS_MS, WINDOW, accel_limit, check_held_out,
+                                             evaluation_references, fingerprints, reference_positions,
+                                             training_references)
 
 #: Tolerances: the peaks of a reference against its level, relative (the min-snap limits hold on the path's own
 #: peak grid, checked here on a finer one).
@@ -79,7 +80,7 @@ def test_bad_arguments_are_named(kwargs, match):
 
 
 def test_a_perturbed_reference_is_the_path_plus_an_offset_with_exact_derivatives():
-    from scenarios.training_refs import PERTURB_M, Perturbed
+    from scenarios.studies.training_refs import PERTURB_M, Perturbed
 
     ref = training_references(0)[1]
     p = Perturbed(ref.trajectory, PERTURB_M, seed=4)

@@ -5,11 +5,11 @@ import math
 import numpy as np
 import pytest
 
-from scenarios.runner import RunSpec, fly
+from scenarios.closed_loop.runner import RunSpec, fly
 from sim import QuadParams
 from sim.errors import SimInputError
 from sim.params import HIGH_FIDELITY
-from sim.vehicle import VEHICLE_KEYS, Vehicle, load_vehicle, vehicle_names
+from sim.vehicles.vehicle import VEHICLE_KEYS, Vehicle, load_vehicle, vehicle_names
 
 TOL = {
     # The nominal equations on their own plant track to rounding and solver tolerance; the acceptance bound is 1 mm.
@@ -113,14 +113,14 @@ def test_a_vehicle_file_round_trips_through_its_description(user_file):
 def without_the_default_vehicle(monkeypatch):
     """Make every read of the default vehicle's numbers an error: QuadParams() with its defaults, the default
     vehicle file, and the datasheet behind VehicleSpec()."""
-    import sim.vehicle
+    import sim.vehicles.vehicle
 
     defaults = QuadParams.__init__.__defaults__
     names = [f for f in ("m", "Jxx", "Jyy", "Jzz", "kt", "kq", "d", "g", "c_d", "n_max")]
     assert len(defaults) == len(names)
     poisoned = tuple(v if n in ("g", "n_max") else math.nan for n, v in zip(names, defaults))
     monkeypatch.setattr(QuadParams.__init__, "__defaults__", poisoned)
-    monkeypatch.setattr(sim.vehicle, "DEFAULT_VEHICLE", "no-such-vehicle-the-default-was-read")
+    monkeypatch.setattr(sim.vehicles.vehicle, "DEFAULT_VEHICLE", "no-such-vehicle-the-default-was-read")
     with pytest.raises(ValueError):
         QuadParams()
     with pytest.raises(ValueError):

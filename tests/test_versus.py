@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from scenarios.errors import ScenarioError
-from scenarios.library import get_scenario, ladder_names, ladder_speeds
-from scenarios.stats import improvement
-from scenarios.versus import (VERSUS_PLANTS, VERSUS_SCENARIO, WIN_FRACTION, parse_plants, summarize_plant,
-                              versus_specs)
+from scenarios.closed_loop.library import get_scenario, ladder_names, ladder_speeds
+from scenarios.studies.stats import improvement
+from scenarios.studies.versus import (VERSUS_PLANTS, VERSUS_SCENARIO, WIN_FRACTION, parse_plants, summarize_plant,
+                                      versus_specs)
 
 TOL = {
     "exact": 1e-12,            # arithmetic on constant samples
@@ -118,7 +118,7 @@ def test_plant_rows_and_verdict_from_known_results(tmp_path):
     for name in ("a", "b", "c"):                 # RunSpec wants the files to exist; the facts are stubbed
         (tmp_path / f"{name}.onnx").write_bytes(b"")
     table = {(m if m == "nominal" else str(tmp_path / m)): t for m, t in table.items()}
-    import scenarios.versus as v
+    import scenarios.studies.versus as v
 
     facts = v._model_facts
     v._model_facts = lambda spec: {"architecture": "test", "extra_states": []}

@@ -15,10 +15,10 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from mpc.contract import _envelope_batch, check_model, jacobian_path
+from mpc.prediction.contract import _envelope_batch, check_model, jacobian_path
 from mpc.errors import ModelContractError
-from mpc.models import DERIVATIVE_PATHS, OnnxModel
-from mpc.readiness import CONTROLLERS, readiness
+from mpc.prediction.models import DERIVATIVE_PATHS, OnnxModel
+from mpc.controllers.readiness import CONTROLLERS, readiness
 from scenarios.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
@@ -137,7 +137,7 @@ def _fly_fields(out: str) -> dict:
 
 # ---- the page's model ---------------------------------------------------------------------------------
 def test_the_pages_linear_model_passes_the_minimal_contract_and_is_the_hover_linearization(linear):
-    from mpc.lqr import hover_linearization
+    from mpc.controllers.lqr import hover_linearization
 
     info = check_model(linear)
     assert info.theta is None and info.jacobian is None and info.architecture == "linear"
@@ -183,8 +183,8 @@ EXPECTED = {"valid": (0, CONTROLLERS, None), "no_derivative_graph": (0, CONTROLL
 
 
 def test_check_model_and_fly_agree_on_every_file(tmp_path, capsys):
-    from scenarios.library import get_scenario
-    from scenarios.runner import make_controller
+    from scenarios.closed_loop.library import get_scenario
+    from scenarios.closed_loop.runner import make_controller
 
     files = _file_set(tmp_path)
     assert set(files) == set(EXPECTED)
@@ -200,7 +200,7 @@ def test_check_model_and_fly_agree_on_every_file(tmp_path, capsys):
         for c in CONTROLLERS:
             if c in flying:
                 # what fly does before the first period: load, build, plan, one call
-                from mpc.models import load_model
+                from mpc.prediction.models import load_model
                 model = load_model(str(path))
                 ctrl = make_controller(c, model, sc.reference())
                 ctrl.prepare(0.5, x0=np.array(sc.x0, dtype=float))
@@ -252,7 +252,7 @@ def test_central_differences_agree_with_the_derivative_graph(name, tmp_path):
 
 
 def _rmse_pair(name, controller, scenario, tmp_path):
-    from scenarios.runner import RunSpec, fly
+    from scenarios.closed_loop.runner import RunSpec, fly
 
     shutil.copy(MODELS / f"{name}.onnx", tmp_path / f"{name}.onnx")
     bare = fly(RunSpec(scenario, controller, str(tmp_path / f"{name}.onnx")))[0]
@@ -294,8 +294,8 @@ def test_a_derivative_graph_wrong_only_beyond_the_hover_probes_is_caught(tmp_pat
 
 def test_readiness_of_the_oracle_and_a_bad_controller_name():
     from mpc.errors import ConfigurationError
-    from mpc.models import AnalyticModel
-    from mpc.readiness import require
+    from mpc.prediction.models import AnalyticModel
+    from mpc.controllers.readiness import require
 
     r = readiness(AnalyticModel())
     assert all(v.flies and v.derivatives.startswith("exact") for v in r.values())
@@ -357,8 +357,8 @@ def test_the_zoo_refuses_what_check_model_refuses(linear, tmp_path):
     import json
     import shutil
 
-    from mpc.models import load_model
-    from mpc.readiness import readiness
+    from mpc.prediction.models import load_model
+    from mpc.controllers.readiness import readiness
     from pinn.zoo import sort_refused
 
     shutil.copyfile(linear, tmp_path / "flies.onnx")

@@ -80,7 +80,7 @@ def test_variant_settings_stay_out_of_the_shipped_configs():
 
 
 def test_checkpoints_are_the_model_after_that_many_epochs():
-    from sim.excitation import make_dataset
+    from sim.identification.excitation import make_dataset
     ds = make_dataset("small", 6, 3.0, 0)
     cfg = make_config("baseline", "quick", 0, epochs=3, steps_per_epoch=4, batch=64, n_colloc=16, hidden=16, layers=2)
     full = train(ds, cfg, checkpoints=(1, 3))
@@ -96,7 +96,7 @@ def test_checkpoints_are_the_model_after_that_many_epochs():
 
 
 def test_envelope_exits_are_counted():
-    from sim.excitation import make_dataset
+    from sim.identification.excitation import make_dataset
     ds = make_dataset("small", 10, 3.0, 1, noise=NoiseModel.none())
 
     from sim import Simulator
@@ -124,8 +124,8 @@ def test_zoo_definition():
 
 
 def test_closed_loop_kstep_error_of_the_true_model_is_zero():
-    from mpc.models import AnalyticModel
-    from scenarios.zoo import closed_loop_kstep_error
+    from mpc.prediction.models import AnalyticModel
+    from scenarios.studies.zoo import closed_loop_kstep_error
     from sim import Simulator
 
     sim = Simulator(P)
@@ -144,7 +144,7 @@ def test_closed_loop_kstep_error_of_the_true_model_is_zero():
 
 @pytest.mark.skipif(not (ZOO_DIR / "manifest.json").is_file(), reason="the zoo is not trained here")
 def test_shipped_zoo_spans_the_required_range_and_passes_the_contract():
-    from mpc.contract import check_model
+    from mpc.prediction.contract import check_model
 
     manifest = json.loads((ZOO_DIR / "manifest.json").read_text())
     refused = json.loads((ZOO_DIR / "refused.json").read_text()) if (ZOO_DIR / "refused.json").is_file() else {}
@@ -168,9 +168,9 @@ CONTROLLERS = ("lqr", "ltv", "sqp", "nmpc")
 
 
 def _first_inputs(name: str) -> dict:
-    from mpc.models import load_model
-    from scenarios.library import get_scenario
-    from scenarios.runner import make_controller
+    from mpc.prediction.models import load_model
+    from scenarios.closed_loop.library import get_scenario
+    from scenarios.closed_loop.runner import make_controller
 
     sc = get_scenario("figure8-fast")
     model = load_model(str(ZOO_DIR / f"{name}.onnx"))
@@ -202,7 +202,7 @@ def test_study_of_a_two_model_zoo(tmp_path):
     """The most and one of the least accurate zoo models, 2 members, LTV-MPC: outcomes, scores, rescoring, resume."""
     import shutil
 
-    from scenarios.zoo import CANDIDATES, rescore_study, run_study
+    from scenarios.studies.zoo import CANDIDATES, rescore_study, run_study
 
     manifest = json.loads((ZOO_DIR / "manifest.json").read_text())
     zoo = tmp_path / "zoo"
@@ -229,7 +229,7 @@ def test_study_of_a_two_model_zoo(tmp_path):
 
 def test_the_study_flies_on_the_plant_and_vehicle_it_is_given(tmp_path, capsys):
     from scenarios.cli import main
-    from scenarios.zoo import study_specs
+    from scenarios.studies.zoo import study_specs
 
     models = {"a": {"path": str(Path(__file__).resolve().parents[1] / "models" / "baseline.onnx")}}
     ref, ens, ladder = study_specs(models, 2, ("sqp",), plant="rotorpy", vehicle="hummingbird")
@@ -244,7 +244,7 @@ def test_the_study_flies_on_the_plant_and_vehicle_it_is_given(tmp_path, capsys):
 
 def test_the_study_with_the_estimator_flies_its_ensembles_with_it_and_selects_models(tmp_path, capsys):
     from scenarios.cli import main
-    from scenarios.zoo import select_models, study_file, study_specs
+    from scenarios.studies.zoo import select_models, study_file, study_specs
 
     path = str(Path(__file__).resolve().parents[1] / "models" / "baseline.onnx")
     models = {"a": {"path": path}, "b": {"path": path}, "c": {"path": path}}
@@ -268,7 +268,7 @@ def test_a_folder_without_a_manifest_is_studied_from_its_model_files(tmp_path, c
     recorded from the training run's torch model (onnxruntime on the exported file)."""
     import shutil
 
-    from scenarios.zoo import zoo_models
+    from scenarios.studies.zoo import zoo_models
 
     manifest = json.loads((ZOO_DIR / "manifest.json").read_text())
     names = list(manifest)[:2]

@@ -1,0 +1,1 @@
+"""State estimation: an extended Kalman filter with disturbance states."""

@@ -1,0 +1,1 @@
+"""Prediction models: the ONNX contract, the models behind one interface, what a controller knows of the vehicle."""

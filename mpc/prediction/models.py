@@ -1,0 +1,432 @@
+"""Prediction models behind one small interface.
+
+A prediction model maps one control period, batched over samples::
+
+    x_next = model.step(x, u)                 # (N, nx), (N, 4) -> (N, nx)
+    x_next, A, B = model.linearize(x, u)      # A (N, nx, nx) = dx_next/dx, B (N, nx, 4) = dx_next/du
+
+``nx`` is 12 (the rigid-body state) plus the model's extra states
+(:attr:`PredictionModel.extra_names`): actuator states such as rotor speeds,
+or a window of past states and inputs. The controllers plan over all ``nx``
+and carry the extra states from period to period (:mod:`mpc.prediction.extended`).
+
+Implementations:
+
+* :class:`AnalyticModel`: the nominal equations of :mod:`sim` (CasADi, RK4
+  over 10 x 1 ms), with the reference parameters ("oracle") or with the
+  parameters identified by a PINN (:meth:`AnalyticModel.from_onnx_theta`);
+  given a :class:`sim.params.Fidelity`, the high-fidelity simulator's
+  equations instead, with the rotor speeds as extra states when the motors lag;
+* :class:`OnnxModel`: any ONNX file that passes the model contract and has
+  its derivative graph beside it, evaluated by onnxruntime (one session per
+  file, thread count set). No torch anywhere.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim._validate import as_batch, broadcast_batch
+from sim.params import NU, NX, THETA_NAMES, QuadParams
+
+from ..errors import ModelContractError
+
+
+def _batch(x, u, nx: int = NX) -> tuple[np.ndarray, np.ndarray]:
+    """Validated float64 arrays (N, nx), (N, 4) with broadcast batch axes."""
+    x, u = broadcast_batch(as_batch(x, "x", nx), as_batch(u, "u", NU))
+    return np.ascontiguousarray(x.reshape(-1, nx)), np.ascontiguousarray(u.reshape(-1, NU))
+
+
+class PredictionModel:
+    """Interface of a one-period prediction model (see the module docstring)."""
+
+    #: Short name used in results (``oracle``, ``baseline``, ...).
+    name: str = "model"
+    #: Parameters the model stands for, ``(m, Jxx, Jyy, Jzz, kt, kq)``, if known.
+    theta: np.ndarray | None = None
+    #: Names of the states beyond the 12 rigid-body ones, in the order they follow them (empty: none).
+    extra_names: tuple[str, ...] = ()
+    #: Acceptable deviations of the extra states (n_extra,), in their own units, or None to derive them from the
+    #: model's hover equilibrium (:func:`mpc.prediction.extended.extra_scale`). They measure steps and defects only.
+    extra_scale: np.ndarray | None = None
+
+    @property
+    def n_extra(self) -> int:
+        """Number of extra (actuator or history) states."""
+        return len(self.extra_names)
+
+    @property
+    def nx(self) -> int:
+        """Length of the model's state: 12 plus its extra states."""
+        return NX + len(self.extra_names)
+
+    def step(self, x, u) -> np.ndarray:  # pragma: no cover - interface
+        """Next states (N, nx) for states (N, nx) and wrenches (N, 4)."""
+        raise NotImplementedError
+
+    def linearize(self, x, u):  # pragma: no cover - interface
+        """``(x_next (N, nx), A (N, nx, nx), B (N, nx, 4))``, exact derivatives."""
+        raise NotImplementedError
+
+    def reference_states(self, trajectory, times) -> np.ndarray | None:
+        """The model's own reference states (K, nx) along a flat trajectory, or None (the default: the controllers'
+        flatness map gives the rigid-body states, and the extra states are the model's own along them)."""
+        return None
+
+    def linearize_single(self, x, u):
+        """As :meth:`linearize`, but ``A`` and ``B`` may be computed in single precision.
+
+        ``x_next`` stays exact. The QP-based controllers use this (their
+        Jacobians need about 7 significant digits); models without a faster
+        path return :meth:`linearize`.
+        """
+        return self.linearize(x, u)
+
+    def jacobians(self, x, u):
+        """``(A (N, nx, nx), B (N, nx, 4))`` as :meth:`linearize_single` gives them, without the model's step (for
+        a controller that has the step already); models without a faster path drop it from
+        :meth:`linearize_single`."""
+        return self.linearize_single(x, u)[1:]
+
+
+class AnalyticModel(PredictionModel):
+    """The simulator's equations in CasADi, RK4 over one control period.
+
+    Parameters
+    ----------
+    params : QuadParams, optional
+        Parameters (reference values, the "oracle", when omitted).
+    name : str
+        Name used in results.
+    fidelity : sim.params.Fidelity, optional
+        The high-fidelity simulator's effects to include (motor lag, rotor
+        drag, gyroscopic torque). None or nominal: the nominal rigid-body
+        equations. With a motor lag the model has four extra states, the
+        rotor speeds ``n1 .. n4`` (RU), and its input is still the wrench
+        command, turned into rotor commands as the plant does.
+    """
+
+    def __init__(self, params: QuadParams | None = None, name: str = "oracle", fidelity=None):
+        import casadi as ca
+
+        from sim.equations.dynamics_casadi import actuated_step_function, step_function
+        from sim.params import Fidelity
+
+        self.params = QuadParams() if params is None else params
+        if not isinstance(self.params, QuadParams):
+            raise ModelContractError(f"params must be a QuadParams; found {type(params).__name__}")
+        if fidelity is not None and not isinstance(fidelity, Fidelity):
+            raise ModelContractError(f"fidelity must be a sim.params.Fidelity or None; found {type(fidelity).__name__}")
+        self.fidelity = None if fidelity is None or fidelity.is_nominal else fidelity
+        self.name = name
+        self.theta = self.params.theta
+        if self.fidelity is not None and self.fidelity.motor_tau > 0.0:
+            self.extra_names = ROTOR_STATE_NAMES
+            self.extra_scale = np.full(4, 0.1 * self.params.n_hover)
+        #: CasADi function ``F(x, u) -> x_next`` (column vectors), for symbolic use (NMPC).
+        self.casadi_step = step_function(self.params) if self.fidelity is None else \
+            actuated_step_function(self.params, self.fidelity)
+        self._theta = ca.DM(self.params.theta)
+        self._step, self._lin = _numeric_functions(self.params, self.fidelity)
+        self._maps: dict = {}
+
+    def reference_states(self, trajectory, times) -> np.ndarray | None:
+        """The model's own reference (K, nx) along a flat ``trajectory`` at ``times`` (K,), or None.
+
+        With high-fidelity effects, the flatness map of these equations
+        (:func:`mpc.references.trajectory.actuated_flat_state`: rotor drag tilts the
+        thrust, the gyroscopic torque adds to the torques) and the rotor speeds
+        that make the wrench; the controllers then follow a reference their
+        model can fly exactly. None for the nominal equations (the
+        controllers' own flatness map is theirs).
+        """
+        if self.fidelity is None:
+            return None
+        from ..references.trajectory import actuated_flat_state
+
+        x, n, _ = actuated_flat_state(trajectory, times, self.params, self.fidelity)
+        return np.hstack([x, n]) if self.n_extra else x
+
+    @classmethod
+    def from_onnx_theta(cls, path) -> "AnalyticModel":
+        """The analytic model with the parameters identified in an ONNX model's metadata."""
+        from .contract import check_model
+
+        info = check_model(path)
+        if info.theta is None:
+            raise ModelContractError(f"{path}: declares no identified parameters (metadata 'theta'); the analytic "
+                                     f"model needs them")
+        params = QuadParams().with_theta([info.theta[n] for n in THETA_NAMES])
+        return cls(params, name=f"analytic[{info.architecture}]")
+
+    def _mapped(self, fn: str, n: int):
+        key = (fn, n)
+        if key not in self._maps:
+            base = self._step if fn == "step" else self._lin
+            self._maps[key] = base.map(n, "serial")
+        return self._maps[key]
+
+    def step(self, x, u) -> np.ndarray:
+        """Next states (N, nx)."""
+        x, u = _batch(x, u, self.nx)
+        n = len(x)
+        return np.asarray(self._mapped("step", n)(x.T, u.T, self._theta)).T   # theta broadcast over the map
+
+    def linearize(self, x, u):
+        """``(x_next, A, B)`` by CasADi's automatic differentiation (compiled, see :mod:`sim.equations.compiled`)."""
+        nx = self.nx
+        x, u = _batch(x, u, nx)
+        n = len(x)
+        xn, A, B = self._mapped("lin", n)(x.T, u.T, self._theta)
+        A = np.asarray(A).reshape(nx, n, nx).transpose(1, 0, 2)
+        B = np.asarray(B).reshape(nx, n, NU).transpose(1, 0, 2)
+        return np.asarray(xn).T, A, B
+
+
+#: Names of the rotor-speed states of an analytic model with motor lag (RU), rotors in the order of
+#: :mod:`sim.vehicles.rotors`.
+ROTOR_STATE_NAMES = ("n1", "n2", "n3", "n4")
+
+_NUMERIC: dict = {}
+
+
+def _numeric_functions(params: QuadParams, fidelity=None):
+    """Compiled ``step(x, u, theta)`` and ``lin(x, u, theta) -> (x_next, A, B)`` of the equations.
+
+    ``theta`` is an input, so one compiled library serves every parameter
+    set that differs only in ``(m, Jxx, Jyy, Jzz, kt, kq)``; ``fidelity`` (a
+    non-nominal :class:`sim.params.Fidelity`) selects the high-fidelity equations.
+    """
+    from sim.equations.compiled import compiled
+
+    key = tuple(getattr(params, n) for n in ("g", "c_d", "d"))
+    if fidelity is not None:
+        key += (params.n_max_sq, fidelity.motor_tau, fidelity.rotor_drag, fidelity.rotor_gyro)
+    if key not in _NUMERIC:
+        step, lin = numeric_sources(params, fidelity)
+        _NUMERIC[key] = (compiled(step), compiled(lin))
+    return _NUMERIC[key]
+
+
+def numeric_sources(params: QuadParams, fidelity=None):
+    """The CasADi ``step`` and ``lin`` of :func:`_numeric_functions` before compilation (to precompile them)."""
+    import casadi as ca
+
+    from sim.equations.dynamics_casadi import actuated_step_function, step_function
+
+    sym = ca.SX
+    if fidelity is None or fidelity.is_nominal:
+        F, name = step_function(params, symbolic_theta=True), "pinnmpc"
+    else:
+        # Composed of substep calls: the expanded form's Jacobian is 3 MB of C and takes about 50 s to compile; this
+        # one 0.7 MB and 4 s, and a 30-stage linearization takes 3.8 ms instead of 2.9 (one run, this machine).
+        F, name = actuated_step_function(params, fidelity, symbolic_theta=True, composed=True), "pinnmpc_actuated"
+        sym = ca.MX
+    nx = F.size1_in(0)
+    xs, us, th = sym.sym("x", nx), sym.sym("u", NU), sym.sym("theta", len(THETA_NAMES))
+    xn = F(xs, us, th)
+    step = ca.Function(f"{name}_step", [xs, us, th], [xn])
+    lin = ca.Function(f"{name}_lin", [xs, us, th], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, us)])
+    return step, lin
+
+
+#: How an ONNX model's A and B are obtained: its derivative graph, or central differences of the model.
+DERIVATIVE_PATHS = ("derivative graph", "central differences")
+
+
+class OnnxModel(PredictionModel):
+    """An ONNX dynamics model through onnxruntime, with its derivative graph or central differences.
+
+    Parameters
+    ----------
+    path : path
+        Model file; it must pass :func:`mpc.prediction.contract.check_model`. With a
+        derivative graph ``<stem>.jac.onnx`` beside it, A and B come from that
+        graph; without one, from batched central differences of the model
+        (:func:`mpc.prediction.contract.central_differences`: one onnxruntime call per
+        linearization, 33 model evaluations per point).
+    threads : int
+        onnxruntime intra-op threads per session (default 1).
+
+    Attributes
+    ----------
+    derivatives : str
+        One of :data:`DERIVATIVE_PATHS`.
+    theta : ndarray (6,) or None
+        The model's declared ``(m, Jxx, Jyy, Jzz, kt, kq)``, None when the file gives none (the vehicle spec
+        then uses the datasheet).
+
+    Raises
+    ------
+    ModelContractError
+        If the file violates the contract.
+    """
+
+    def __init__(self, path, threads: int = 1):
+        from .contract import check_model, open_session
+
+        self.info = check_model(path)
+        self.path = self.info.path
+        self.name = self.path.stem
+        self.theta = None if self.info.theta is None else np.array([self.info.theta[n] for n in THETA_NAMES])
+        self.extra_names = tuple(self.info.extra_states)
+        self.extra_scale = None if self.info.extra_scale is None else np.array(self.info.extra_scale)
+        self.dtype = self.info.dtype
+        self._model = open_session(self.path, threads)
+        if self.info.jacobian is None:
+            self.derivatives = DERIVATIVE_PATHS[1]
+            self._jac = self._jac_single = None
+        else:
+            self.derivatives = DERIVATIVE_PATHS[0]
+            self._jac = open_session(self.info.jacobian, threads)
+            self._jac_single = self._single_precision_session(threads)
+
+    def step(self, x, u) -> np.ndarray:
+        """Next states (N, nx)."""
+        x, u = _batch(x, u, self.nx)
+        out = self._model.run(["x_next"], {"x": x.astype(self.dtype), "u": u.astype(self.dtype)})[0]
+        return out.astype(float)
+
+    def linearize(self, x, u):
+        """``(x_next, A, B)`` from the derivative graph (or central differences), one onnxruntime call for the batch."""
+        x, u = _batch(x, u, self.nx)
+        if self._jac is None:
+            from .contract import central_differences
+
+            def run(xx, uu):
+                return self._model.run(["x_next"], {"x": xx, "u": uu})[0]
+            return central_differences(run, x, u, self.dtype)
+        xn, A, B = self._jac.run(["x_next", "A", "B"], {"x": x.astype(self.dtype), "u": u.astype(self.dtype)})
+        return xn.astype(float), A.astype(float), B.astype(float)
+
+    def linearize_single(self, x, u):
+        """``(x_next, A, B)``: ``x_next`` from the model as exported, ``A``, ``B`` from a float32 copy of its derivative graph.
+
+        Two onnxruntime calls for the whole batch. For a float64 model the
+        float32 derivative graph is 1.5-2.3x faster than the float64 one
+        (5x128 networks, 30 stages, one thread) and agrees with it to about
+        1e-6 relative (:data:`SINGLE_PRECISION_RTOL` is checked when the model
+        is loaded, else the float64 graph is used).
+        """
+        if self._jac_single is None:
+            return self.linearize(x, u)     # float32 model, no derivative graph, or a float32 copy that disagrees
+        x, u = _batch(x, u, self.nx)
+        xn = self._model.run(["x_next"], {"x": x.astype(self.dtype), "u": u.astype(self.dtype)})[0]
+        A, B = self._jac_single.run(["A", "B"], {"x": x.astype(np.float32), "u": u.astype(np.float32)})
+        return xn.astype(float), A.astype(float), B.astype(float)
+
+    def jacobians(self, x, u):
+        """``(A, B)`` from the float32 derivative graph (or the float64 one, or central differences, as
+        :meth:`linearize_single`), one onnxruntime call, no step of the model."""
+        if self._jac_single is None:
+            return self.linearize_single(x, u)[1:]
+        x, u = _batch(x, u, self.nx)
+        A, B = self._jac_single.run(["A", "B"], {"x": x.astype(np.float32), "u": u.astype(np.float32)})
+        return A.astype(float), B.astype(float)
+
+    def _single_precision_session(self, threads: int):
+        """A float32 session of the derivative graph, or None (float32 model, or the copy disagrees)."""
+        import warnings
+
+        from .contract import _probe_batch, _with_extra_at_rest, open_session, single_precision
+
+        if self.dtype == np.float32:
+            return None   # the derivative graph is float32 already
+        try:
+            session = open_session(self.info.jacobian, threads, graph=single_precision(self.info.jacobian))
+            x, u = _probe_batch(8, np.float64, seed=1)
+            x = _with_extra_at_rest(self._model, x, u, self.extra_names, str(self.path), "hover-like")
+            _, A, B = self._jac.run(["x_next", "A", "B"], {"x": x, "u": u})
+            A1, B1 = session.run(["A", "B"], {"x": x.astype(np.float32), "u": u.astype(np.float32)})
+        except ModelContractError as e:
+            warnings.warn(f"{self.path}: no float32 derivative graph, the QP controllers use the float64 one ({e})",
+                          stacklevel=3)
+            return None
+        err = max(float(np.max(np.abs(A1 - A))) / max(float(np.max(np.abs(A))), 1e-300),
+                  float(np.max(np.abs(B1 - B))) / max(float(np.max(np.abs(B))), 1e-300))
+        if not err <= SINGLE_PRECISION_RTOL:
+            warnings.warn(f"{self.info.jacobian}: its float32 copy differs from it by {err:.1e} (relative, more than "
+                          f"{SINGLE_PRECISION_RTOL:g}); the QP controllers use the float64 graph", stacklevel=3)
+            return None
+        return session
+
+
+#: Largest relative difference (max |error| over max |entry|) of the float32 derivative graph's A and B from the
+#: float64 one, on hover-like probe states, for :meth:`OnnxModel.linearize_single` to use it. The shipped models
+#: agree to 5e-8 .. 7e-7.
+SINGLE_PRECISION_RTOL = 1e-5
+
+
+def parse_analytic(spec: str) -> dict[str, float]:
+    """Scale factors of ``"analytic:NAME*F,NAME*F,..."`` (NAME one of m, Jxx, Jyy, Jzz, kt, kq; F > 0).
+
+    ``"analytic:Jxx*1.3,Jyy*1.3,Jzz*1.3"`` is the nominal equations with every
+    inertia 30 % too high: a deliberately wrong prediction model.
+    """
+    import re
+
+    body = spec[len("analytic:"):]
+    factors: dict[str, float] = {}
+    for part in body.split(","):
+        m = re.fullmatch(r"\s*(m|Jxx|Jyy|Jzz|kt|kq)\s*\*\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*", part)
+        if m is None:
+            raise ModelContractError(f"model {spec!r}: each part must be NAME*FACTOR with NAME in {', '.join(THETA_NAMES)} "
+                                     f"and FACTOR > 0; found {part!r}")
+        name, f = m.group(1), float(m.group(2))
+        if not f > 0 or name in factors:
+            raise ModelContractError(f"model {spec!r}: {name} needs one factor > 0; found {part!r}")
+        factors[name] = f
+    return factors
+
+
+def analytic_name(factors: dict[str, float]) -> str:
+    """File-name-safe name of a scaled analytic model, e.g. ``analytic-Jxx1.3-Jyy1.3``."""
+    return "analytic-" + "-".join(f"{k}{v:g}" for k, v in factors.items())
+
+
+def load_model(spec: str, threads: int = 1) -> PredictionModel:
+    """A prediction model from its name.
+
+    ``"oracle"``: the nominal equations with the reference parameters;
+    ``"analytic:NAME*F,..."``: the nominal equations with parameters scaled
+    (:func:`parse_analytic`); anything else: the path of an ONNX file.
+    """
+    if spec == "oracle":
+        return AnalyticModel()
+    if spec.startswith("analytic:"):
+        factors = parse_analytic(spec)
+        p = QuadParams()
+        theta = [getattr(p, n) * factors.get(n, 1.0) for n in THETA_NAMES]
+        return AnalyticModel(p.with_theta(theta), name=analytic_name(factors))
+    return OnnxModel(spec, threads)
+
+
+class LinearModel(PredictionModel):
+    """Affine model ``x_next = x0 + A (x - x0) + B (u - u0)`` (for example the hover linearization).
+
+    Parameters
+    ----------
+    A : array_like, shape (12, 12)
+    B : array_like, shape (12, 4)
+    x0 : array_like, shape (12,)
+    u0 : array_like, shape (4,)
+    """
+
+    def __init__(self, A, B, x0, u0, name: str = "linear"):
+        self.A, self.B = np.asarray(A, dtype=float), np.asarray(B, dtype=float)
+        self.x0, self.u0 = np.asarray(x0, dtype=float), np.asarray(u0, dtype=float)
+        if self.A.shape != (NX, NX) or self.B.shape != (NX, NU):
+            raise ModelContractError(f"A must be (12, 12) and B (12, 4); found {self.A.shape} and {self.B.shape}")
+        self.name = name
+
+    def step(self, x, u) -> np.ndarray:
+        """Next states (N, 12)."""
+        x, u = _batch(x, u)
+        return self.x0 + (x - self.x0) @ self.A.T + (u - self.u0) @ self.B.T
+
+    def linearize(self, x, u):
+        """``(x_next, A, B)`` with the constant matrices repeated over the batch."""
+        x, u = _batch(x, u)
+        n = len(x)
+        return self.step(x, u), np.repeat(self.A[None], n, 0), np.repeat(self.B[None], n, 0)

@@ -1,0 +1,1 @@
+"""References: flat trajectories, minimum-snap paths and the model's own feed-forward."""

@@ -1,0 +1,1 @@
+"""One closed-loop run: scenarios, the loop, the runner and its metrics."""

@@ -1,0 +1,1 @@
+"""The studies built on sweeps: the main job, the zoo, versus, learning, real data, bounds."""

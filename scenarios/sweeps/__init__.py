@@ -1,0 +1,1 @@
+"""Many runs: resumable sweeps on a process pool or on Ray, one per results folder."""

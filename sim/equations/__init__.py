@@ -1,0 +1,1 @@
+"""The equations of motion, one function per backend (numpy, CasADi, compiled), and the simulator."""

@@ -1,0 +1,1 @@
+"""Real flight logs: format files (``formats/``), the import, identification and prediction."""

@@ -1,0 +1,1 @@
+"""Identification in simulation: excitation data, Fisher information, classical estimators."""

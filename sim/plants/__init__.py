@@ -1,0 +1,1 @@
+"""Plants, what a closed loop flies (our simulator, RotorPy), and the sensors that read them."""

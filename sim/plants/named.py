@@ -1,0 +1,56 @@
+"""The named plants: ``make_plant(NAME, vehicle)`` for every name of :data:`PLANTS` (see :mod:`sim.plants.plant`)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from ..errors import SimInputError
+from ..params import NOMINAL, QuadParams
+from .plant import Plant, SimPlant, WindFn
+from ..vehicles.vehicle import load_vehicle
+
+#: Plant names, the default first.
+PLANTS = ("sim", "rotorpy", "rotorpy-ideal")
+#: Plants whose equations this project knows (they have an oracle): our simulator's nominal set-up, and RotorPy
+#: without motor lag and aerodynamics (the same rigid body, no drag). RotorPy's aerodynamics have no such form here.
+KNOWN_EQUATIONS = ("sim", "rotorpy-ideal")
+
+
+def rotorpy_available() -> bool:
+    """True when RotorPy (the optional external plant) can be imported."""
+    import importlib.util
+
+    return importlib.util.find_spec("rotorpy") is not None
+
+
+def known_equations(name: str, params: QuadParams) -> QuadParams | None:
+    """The parameters of the rigid-body equations plant ``name`` integrates for a vehicle of ``params``, or None.
+
+    ``sim``: ``params`` (its nominal set-up); ``rotorpy-ideal``: ``params`` without drag; ``rotorpy``: None (its
+    motor lag and aerodynamics are not in the nominal equations).
+    """
+    if name not in PLANTS:
+        raise SimInputError(f"plant must be one of {', '.join(PLANTS)}; found {name!r}")
+    if name not in KNOWN_EQUATIONS:
+        return None
+    return dataclasses.replace(params, c_d=0.0) if name == "rotorpy-ideal" else params
+
+
+def make_plant(name: str = "sim", vehicle=None, *, high_fidelity: bool = False, payload_kg: float = 0.0,
+               wind: WindFn | None = None) -> Plant:
+    """The plant called ``name`` (one of :data:`PLANTS`) flying ``vehicle`` (a :class:`Vehicle`, name or file).
+
+    ``high_fidelity`` switches on the vehicle's motor lag, rotor drag and gyroscopic torque in the reference
+    simulator (the ``+highfi`` scenarios); RotorPy's plants have their own set-ups and refuse it.
+    """
+    vehicle = load_vehicle(vehicle)
+    if name == "sim":
+        return SimPlant(vehicle, vehicle.fidelity if high_fidelity else NOMINAL, payload_kg=payload_kg, wind=wind)
+    if name in ("rotorpy", "rotorpy-ideal"):
+        if high_fidelity:
+            raise SimInputError(f"high fidelity is a set-up of the reference simulator (plant 'sim'); plant {name!r} "
+                                f"has its own (use --plant rotorpy for RotorPy's motor lag and aerodynamics)")
+        from .rotorpy_plant import RotorPyPlant
+        full = name == "rotorpy"
+        return RotorPyPlant(vehicle, motor_lag=full, aero=full, payload_kg=payload_kg, wind=wind)
+    raise SimInputError(f"plant must be one of {', '.join(PLANTS)}; found {name!r}")
