@@ -8,16 +8,16 @@ from .figures import (FIG_DIR, FigureOut, fisher_figure, headline_figure, model_
                       solve_time_figure, trajectory_figures)
 from .headline import correlation_text, headline_data
 from .html import markdown_to_html
-from .identification import highfi_table, table_six
-from .plants import plants_section, split_by_plant, where_sentence
-from .realflights import realdata_section
+from .sections.identification import highfi_table, table_six
+from .sections.plants import plants_section, split_by_plant, where_sentence
+from .sections.realflights import realdata_section
 from .inputs import load_inputs
-from .summary import summary_text
-from .learn import learn_section
-from .versus import versus_section
-from .estimation import estimation_section, split_by_estimator
-from .zoo import (NO_STUDY, answer_text, dose_response_figure, estimator_threshold_section, max_speed_figure,
-                  predictor_table, provenance_text, zoo_table)
+from .sections.summary import summary_text
+from .sections.learn import learn_section
+from .sections.versus import versus_section
+from .sections.estimation import estimation_section, split_by_estimator
+from .sections.zoo import (NO_STUDY, answer_text, dose_response_figure, estimator_threshold_section, max_speed_figure,
+                           predictor_table, provenance_text, zoo_table)
 from .tables import (closed_loop_table, ensemble_table, fisher_table, hover_table, ladder_table, provenance_section,
                      realtime_table, solve_time_table, table_one, table_three, table_two)
 

@@ -4,7 +4,7 @@ import re
 
 import pytest
 
-from reports.identification import NO_DATASETS, highfi_table, mismatch_text, table_six
+from reports.sections.identification import NO_DATASETS, highfi_table, mismatch_text, table_six
 
 TRUTH = {"m": 0.068, "Jxx": 6.86e-5, "Jyy": 9.2e-5, "Jzz": 1.366e-4, "kt": 0.01, "kq": 7.83e-4}
 
@@ -107,7 +107,7 @@ def test_highfi_table_without_runs():
 
 
 def test_physics_form_sentence_reports_each_models_worst_sigma_and_the_miss(evaluation):
-    from reports.identification import physics_form_text
+    from reports.sections.identification import physics_form_text
     assert physics_form_text(evaluation) == ""          # no physics-plus-network model: no sentence
     lag = _model("hybrid_lag_highfi", "hybrid_lag", "small", "high", "commanded", zero(m=-0.4, Jyy=0.1))
     lag["theta_err_pct"]["tau_m"] = 0.12

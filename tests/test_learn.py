@@ -539,7 +539,7 @@ def _study(final_mm: float, apart: bool) -> dict:
 
 def test_the_report_section_states_the_goal_with_its_numbers(tmp_path):
     from reports.build import _figure_md
-    from reports.learn import learn_section
+    from reports.sections.learn import learn_section
 
     met = learn_section({"highfi": _study(18.0, True)}, tmp_path, _figure_md)
     assert "18.0 mm against 40.0 mm, 55 % better" in met and "20.0 mm with the intervals apart, is met" in met
@@ -587,6 +587,6 @@ def test_the_shipped_study_fits_its_size_budget(plant):
 
 
 def test_the_goal_line_is_half_the_nominal_rmse_in_mm():
-    from reports.learn import goal_mm
+    from reports.sections.learn import goal_mm
 
     assert goal_mm(_study(18.0, True)) == pytest.approx(20.0, rel=1e-12)

@@ -202,7 +202,7 @@ def test_the_reference_scenario_passes_through_the_logged_reference(tmp_path):
 
 
 def test_the_report_section_shows_every_model_beside_the_published_rows(bench):
-    from reports.realflights import NO_REALDATA, realdata_section
+    from reports.sections.realflights import NO_REALDATA, realdata_section
 
     r, _ = bench
     sec = realdata_section(r)

@@ -453,7 +453,7 @@ def test_learned_against_nominal_section_reads_versus_json(results_dir):
 
 
 def test_runs_on_other_plants_have_their_own_section_and_stay_out_of_the_others():
-    from reports.plants import NO_RUNS, plants_section, split_by_plant
+    from reports.sections.plants import NO_RUNS, plants_section, split_by_plant
 
     def run(model, rmse, plant=None, vehicle=None, crashed=False):
         r = _result("figure8-fast", "sqp", model, rmse, crashed, None)
@@ -495,7 +495,7 @@ def test_runs_on_other_plants_have_their_own_section_and_stay_out_of_the_others(
 
 
 def test_runs_with_the_estimator_have_their_own_section_beside_their_twins():
-    from reports.estimation import NO_ESTIMATOR_RUNS, estimation_section, split_by_estimator
+    from reports.sections.estimation import NO_ESTIMATOR_RUNS, estimation_section, split_by_estimator
 
     def run(scenario, model, rmse, settled, estimator=None, crashed=False):
         r = _result(scenario, "sqp", model, rmse, crashed, None)

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .figures import DPI, STYLE, FigureOut, _save, controller_color, log_ticks, plt  # noqa: F401
-from .labels import controller_label
-from .tables import MISSING, fmt, md_table
+from ..figures import DPI, STYLE, FigureOut, _save, controller_color, log_ticks, plt  # noqa: F401
+from ..labels import controller_label
+from ..tables import MISSING, fmt, md_table
 
 #: What the sections say when the results folder has no study.
 NO_STUDY = ("The zoo study has not been run for this results folder. Train the zoo with `pinnmpc zoo` "

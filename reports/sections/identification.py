@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from scenarios.studies.stats import summarize
 
-from .tables import MISSING, RMSE_FORMAT, THETA_NAMES, crash_text, fmt, md_table
+from ..tables import MISSING, RMSE_FORMAT, THETA_NAMES, crash_text, fmt, md_table
 
 #: Order of the data cells in Table VI: (regime, fidelity, inputs).
 CELL_ORDER = (("small", "nominal", "commanded"), ("small", "high", "commanded"),

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from .labels import controller_label
-from .tables import MISSING, crash_text, fmt, md_table
+from ..labels import controller_label
+from ..tables import MISSING, crash_text, fmt, md_table
 
 #: Shown when the results folder has no run with the estimator.
 NO_ESTIMATOR_RUNS = ("No run of this folder flew with the state estimator (`pinnmpc run` flies the disturbance and "

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from .labels import controller_key, controller_label, model_key, scenario_key, sorted_unique
-from .stats import median_or_none
-from .tables import RMSE_FORMAT, fmt
+from ..labels import controller_key, controller_label, model_key, scenario_key, sorted_unique
+from ..stats import median_or_none
+from ..tables import RMSE_FORMAT, fmt
 
 
 def _names(xs) -> str:

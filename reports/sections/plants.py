@@ -7,7 +7,7 @@ same case. Every sentence is computed from the runs.
 
 from __future__ import annotations
 
-from .tables import MISSING, crash_text, fmt, md_table
+from ..tables import MISSING, crash_text, fmt, md_table
 
 #: The plant and vehicle of a result that predates them.
 DEFAULT_PLANT = "sim"

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .tables import MISSING, fmt, md_table
+from ..tables import MISSING, fmt, md_table
 
 #: Shown when the results folder has no versus.json.
 NO_VERSUS = ("No `versus.json` in this folder: `pinnmpc versus` flies the models trained on plants with unmodelled "

@@ -6,8 +6,8 @@ from pathlib import Path
 
 from scenarios.studies.versus import WIN_FRACTION
 
-from .figures import STYLE, FigureOut, _save
-from .tables import MISSING, fmt, md_table
+from ..figures import STYLE, FigureOut, _save
+from ..tables import MISSING, fmt, md_table
 from .versus import mm_ci, pct_ci
 
 #: Shown when the results folder has no learning study.
