@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.files import write_text
+
 STORED = Path(__file__).with_name("answers.json")
 TIMING_KEYS = frozenset({"solve_ms", "preflight_ms", "deadline_misses", "seconds", "wall_time_s",
                          "estimator_ms"})
@@ -102,11 +104,16 @@ def main(argv=None) -> int:
         print(f"answers: {args.folder} holds no results.json (run pinnmpc run first)", file=sys.stderr)
         return 2
     found = digests(args.folder)
-    if args.write:
-        args.stored.write_text(json.dumps(found, indent=1, sort_keys=True) + "\n")
-        print(f"stored {len(found)} digests in {args.stored}")
-        return 0
-    lines = compare(found, json.loads(args.stored.read_text()))
+    try:
+        if args.write:
+            write_text(args.stored, json.dumps(found, indent=1, sort_keys=True) + "\n")
+            print(f"stored {len(found)} digests in {args.stored}")
+            return 0
+        stored = json.loads(args.stored.read_text())
+    except (OSError, ValueError) as e:
+        print(f"answers: {args.stored}: {e}", file=sys.stderr)
+        return 2
+    lines = compare(found, stored)
     print("\n".join(lines) if lines else f"same answers: {len(found)} files")
     return 1 if lines else 0
 

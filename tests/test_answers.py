@@ -55,3 +55,10 @@ def test_the_command_says_which_files_differ_and_exits_1(tmp_path, capsys):
     assert main([str(ref), "--stored", str(stored)]) == 1
     assert capsys.readouterr().out.splitlines() == ["missing: runs/a.json", "missing: traces/a.npz"]
     assert main([str(tmp_path / "none")]) == 2
+    assert main([str(ref), "--stored", str(tmp_path / "missing.json")]) == 2
+    (tmp_path / "bad.json").write_text("{not json")
+    assert main([str(ref), "--stored", str(tmp_path / "bad.json")]) == 2
+    assert main([str(ref), "--write", "--stored", str(tmp_path / "no" / "such" / "dir" / "x.json")]) == 0
+    assert main([str(ref), "--write", "--stored", "/proc/answers.json"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 4 and all(line.startswith("answers: ") for line in err.splitlines())   # with "none"
