@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from scenarios.closed_loop.record import RunRecord
+
 from .errors import ReportError
 from .labels import run_key
 
@@ -46,14 +48,15 @@ def _read_json(path: Path, required: bool):
         raise ReportError(f"cannot read {path.name!r} in {str(path.parent)!r}: {e}") from e
 
 
-def _runs(results, path: Path) -> list[dict]:
+def _runs(results, path: Path) -> list[RunRecord]:
+    """The run records of ``results`` (the object of ``results.json``), sorted by :func:`run_key`."""
     runs = results.get("runs") if isinstance(results, dict) else None
     if not isinstance(runs, list):
         raise ReportError(f"{path.name!r}: expected an object with a list 'runs'")
     for i, r in enumerate(runs):
         if not isinstance(r, dict) or any(k not in r for k in RUN_KEYS):
             raise ReportError(f"{path.name!r}: run {i} lacks one of the keys {', '.join(RUN_KEYS)}")
-    return sorted(runs, key=run_key)
+    return sorted((RunRecord.from_dict(r) for r in runs), key=run_key)
 
 
 def _read_trace(path: Path, rel: str) -> tuple[dict | None, str | None]:

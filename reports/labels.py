@@ -9,8 +9,8 @@ oracle first, then alphabetically).
 
 from __future__ import annotations
 
+from mpc.controllers.factory import CONTROLLERS
 from scenarios.closed_loop.library import BASE, VARIANTS, scenario_names  # noqa: F401  (VARIANTS: the variant order)
-from scenarios.closed_loop.runner import CONTROLLERS
 from sim.params import DT
 
 #: Scenarios without a variant in report order: the bases, the speed ladder, the random paths, the yaw turn.

@@ -54,8 +54,10 @@ def _sweep_options(p, published: str, where: str) -> None:
 
 def register(sub) -> None:
     """Add this package's subcommands to the ``pinnmpc`` parser."""
+    from mpc.controllers.factory import CONTROLLERS, HORIZON
+
     from .closed_loop.library import scenario_names
-    from .closed_loop.runner import CONTROLLERS, ESTIMATORS, HORIZON, MAX_HORIZON, TIMINGS
+    from .closed_loop.runner import ESTIMATORS, MAX_HORIZON, TIMINGS
 
     names = scenario_names()
     p = sub.add_parser("realdata", help="the real-data study on a copy of the nano-drone benchmark",
@@ -308,7 +310,9 @@ def cmd_realdata(args: argparse.Namespace) -> int:
 def cmd_fly(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc fly``."""
     from .closed_loop.metrics import SETTLE_WINDOW_S
-    from .closed_loop.runner import DEFAULT_QP, QP_CONTROLLERS, RunSpec, fly
+    from mpc.controllers.factory import DEFAULT_QP, QP_CONTROLLERS
+
+    from .closed_loop.runner import RunSpec, fly
 
     _check_qp(args.qp)
     if args.qp != DEFAULT_QP and args.controller not in QP_CONTROLLERS:

@@ -6,6 +6,7 @@ import json
 import math
 import os
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
 
 from .errors import SimInputError
@@ -65,7 +66,7 @@ def json_ready(obj):
     tuples: strict JSON, which has no NaN, holds ``null`` for a value that does not exist."""
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
+    if isinstance(obj, Mapping):                # a dict, or a read-only record that reads like one
         return {k: json_ready(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [json_ready(v) for v in obj]

@@ -6,10 +6,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import scenarios.closed_loop.record as record
 import scenarios.closed_loop.runner as runner
 from scenarios.errors import ScenarioError
 from scenarios.closed_loop.metrics import TIMING_FIELDS, TRACE_TIMING_FIELDS
-from scenarios.closed_loop.runner import RunSpec, cache_key
+from scenarios.closed_loop.record import cache_key
+from scenarios.closed_loop.runner import RunSpec
 from scenarios.sweeps.sweep import sweep
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -77,7 +79,7 @@ def test_a_run_is_flown_again_when_its_code_or_its_saved_file_changed(tmp_path, 
     sweep([spec], tmp_path, progress=False)
     sweep([spec], tmp_path, progress=False)
     assert len(flown) == 1
-    monkeypatch.setattr(runner, "_CODE_VERSION", "another version")
+    monkeypatch.setattr(record, "_CODE_VERSION", "another version")
     sweep([spec], tmp_path, progress=False)
     assert len(flown) == 2
     path = tmp_path / "runs" / f"{spec.run_id}.json"
@@ -104,7 +106,7 @@ def test_the_cache_key_follows_seed_model_content_and_code(tmp_path, monkeypatch
     assert RunSpec("hover", "ltv", BASELINE, seed=3).run_id == "hover__ltv__baseline__s3"
     assert RunSpec("hover", "ltv", BASELINE).run_id == "hover__ltv__baseline"
     before = cache_key(a)
-    monkeypatch.setattr(runner, "_CODE_VERSION", "another version")
+    monkeypatch.setattr(record, "_CODE_VERSION", "another version")
     assert cache_key(a) != before
 
 

@@ -14,7 +14,8 @@ from mpc.prediction.models import AnalyticModel, PredictionModel
 from mpc.controllers.offset_free import disturbance_offset
 from scenarios.closed_loop.library import get_scenario, scenario_names
 from scenarios.closed_loop.loop import IdealClock, RealtimeClock
-from scenarios.closed_loop.runner import RunSpec, fly, load_run_model, make_controller
+from scenarios.closed_loop.runner import RunSpec, fly, load_run_model
+from mpc.controllers.factory import make_controller
 from sim.params import DT
 from sim.vehicles.vehicle import load_vehicle
 

@@ -249,7 +249,8 @@ def test_the_history_model_passes_and_its_register_holds_the_commands_sent(histo
     from mpc.prediction.models import OnnxModel
     from scenarios.closed_loop.library import get_scenario
     from scenarios.closed_loop.loop import IdealClock, StateSensor, fly_loop
-    from scenarios.closed_loop.runner import make_controller, plant_reference, RunSpec
+    from mpc.controllers.factory import make_controller
+    from scenarios.closed_loop.runner import RunSpec, plant_reference
     from sim.plants.named import make_plant
 
     info = check_model(history_file)

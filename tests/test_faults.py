@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import scenarios.closed_loop.record as record
 import scenarios.closed_loop.runner as runner
 from scenarios.studies.bounds import ORACLE_CASES, Bound, check, generate
 from scenarios.cli import main
@@ -153,11 +154,11 @@ def test_bounds_refuse_an_output_they_cannot_write_before_reading_the_results(tm
 def test_the_code_version_covers_python_source_not_the_bounds_file(tmp_path, monkeypatch):
     for pkg in ("sim", "mpc", "scenarios"):
         shutil.copytree(ROOT / pkg, tmp_path / pkg, ignore=shutil.ignore_patterns("__pycache__"))
-    monkeypatch.setattr(runner, "__file__", str(tmp_path / "scenarios" / "closed_loop" / "runner.py"))
+    monkeypatch.setattr(record, "__file__", str(tmp_path / "scenarios" / "closed_loop" / "record.py"))
 
     def version():
-        monkeypatch.setattr(runner, "_CODE_VERSION", None)
-        return runner.code_version()
+        monkeypatch.setattr(record, "_CODE_VERSION", None)
+        return record.code_version()
 
     before = version()
     with open(tmp_path / "scenarios" / "studies" / "bounds.toml", "a") as f:
@@ -179,7 +180,7 @@ def copied_model(tmp_path, name="baseline"):
 
 
 def test_the_cache_key_covers_the_derivative_graph(tmp_path):
-    from scenarios.closed_loop.runner import cache_key
+    from scenarios.closed_loop.record import cache_key
 
     model = copied_model(tmp_path)
     spec = RunSpec("hover", "lqr", str(model))
@@ -194,7 +195,8 @@ def test_the_cache_key_covers_the_derivative_graph(tmp_path):
 def test_a_model_swapped_mid_sweep_leaves_each_result_with_the_hash_of_what_it_flew(tmp_path):
     """The swap test: after the first run returns, the model file is replaced; every result carries the hash of the
     file it flew (its RMSE is that file's), and once the original is back a resume flies exactly the others."""
-    from scenarios.closed_loop.runner import fly, input_hashes
+    from scenarios.closed_loop.runner import fly
+    from scenarios.closed_loop.record import input_hashes
     from scenarios.sweeps.sweep import sweep
 
     model = copied_model(tmp_path)

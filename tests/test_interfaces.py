@@ -13,7 +13,7 @@ from mpc.controllers.lqr import LQRController
 from mpc.controllers.ltv import LTVMPC
 from mpc.prediction.models import AnalyticModel
 from scenarios.closed_loop.library import get_scenario
-from scenarios.closed_loop.runner import make_controller
+from mpc.controllers.factory import make_controller
 
 HOOKS = ("applied", "set_deadline", "set_disturbance")
 

@@ -19,7 +19,7 @@ import pytest
 
 from mpc.prediction.models import load_model
 from scenarios import get_scenario
-from scenarios.closed_loop.runner import make_controller
+from mpc.controllers.factory import make_controller
 from sim import QuadParams, Simulator
 
 ROOT = Path(__file__).resolve().parents[1]

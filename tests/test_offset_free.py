@@ -8,7 +8,8 @@ from mpc.prediction.models import AnalyticModel
 from mpc.controllers.offset_free import (TARGET_FIXED, DisturbedModel, ShiftedTrajectory, disturbance_matrix,
                                          disturbance_offset, steady_target)
 from mpc.references.trajectory import Figure8, Hover
-from scenarios.closed_loop.runner import RunSpec, fly, make_controller
+from scenarios.closed_loop.runner import RunSpec, fly
+from mpc.controllers.factory import make_controller
 from sim.params import DT
 from sim.vehicles.vehicle import load_vehicle
 

@@ -73,7 +73,8 @@ def test_a_run_of_another_model_or_scenario_fits_its_own(monkeypatch):
 
 
 def test_adopt_is_refused_once_something_was_computed():
-    from scenarios.closed_loop.runner import load_run_model, make_controller
+    from scenarios.closed_loop.runner import load_run_model
+    from mpc.controllers.factory import make_controller
 
     spec = RunSpec("hover", "lqr", "nominal")
     ctrl = make_controller("lqr", load_run_model(spec), None)

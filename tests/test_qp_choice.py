@@ -146,7 +146,8 @@ def test_every_ltv_and_sqp_run_of_the_plans_takes_the_qp_solver():
     """The main job's plan (with and without the estimator), the study's and the versus study's: every LTV-MPC and
     SQP run flies the solver asked for; the NMPC's and the LQR's runs keep their name and identity."""
     from scenarios.studies.campaign import main_plan
-    from scenarios.closed_loop.runner import QP_CONTROLLERS, cache_key
+    from mpc.controllers.factory import QP_CONTROLLERS
+    from scenarios.closed_loop.record import cache_key
     from scenarios.studies.versus import versus_specs
     from scenarios.studies.zoo import study_specs
 
@@ -173,7 +174,8 @@ def test_every_ltv_and_sqp_run_of_the_plans_takes_the_qp_solver():
 @needs_daqp
 def test_a_saved_run_is_reused_only_by_the_solver_it_was_flown_with(short, dense_calls, tmp_path, monkeypatch):
     import scenarios.closed_loop.runner as runner
-    from scenarios.closed_loop.runner import RunSpec, cache_key
+    from scenarios.closed_loop.runner import RunSpec
+    from scenarios.closed_loop.record import cache_key
     from scenarios.sweeps.sweep import sweep
 
     flown = []

@@ -184,7 +184,7 @@ EXPECTED = {"valid": (0, CONTROLLERS, None), "no_derivative_graph": (0, CONTROLL
 
 def test_check_model_and_fly_agree_on_every_file(tmp_path, capsys):
     from scenarios.closed_loop.library import get_scenario
-    from scenarios.closed_loop.runner import make_controller
+    from mpc.controllers.factory import make_controller
 
     files = _file_set(tmp_path)
     assert set(files) == set(EXPECTED)

@@ -170,7 +170,7 @@ CONTROLLERS = ("lqr", "ltv", "sqp", "nmpc")
 def _first_inputs(name: str) -> dict:
     from mpc.prediction.models import load_model
     from scenarios.closed_loop.library import get_scenario
-    from scenarios.closed_loop.runner import make_controller
+    from mpc.controllers.factory import make_controller
 
     sc = get_scenario("figure8-fast")
     model = load_model(str(ZOO_DIR / f"{name}.onnx"))

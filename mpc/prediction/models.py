@@ -402,6 +402,68 @@ def load_model(spec: str, threads: int = 1) -> PredictionModel:
     return OnnxModel(spec, threads)
 
 
+#: Model names that stand for equations rather than a file: the plant's own equations where they are known
+#: (``oracle``), and the nominal rigid-body equations with the vehicle's values (``nominal``).
+EQUATION_MODELS = ("oracle", "nominal")
+
+
+def is_equation_model(model: str) -> bool:
+    """True when the model name ``model`` stands for equations (:data:`EQUATION_MODELS`, ``analytic:...``) rather
+    than an ONNX file."""
+    return model in EQUATION_MODELS or model.startswith("analytic:")
+
+
+def model_name(model: str) -> str:
+    """The name a model has in results: ``oracle``, ``nominal``, ``analytic-<factors>``, or a file's stem."""
+    from pathlib import Path
+
+    if model.startswith("analytic:"):
+        return analytic_name(parse_analytic(model))
+    return model if model in EQUATION_MODELS else Path(model).stem
+
+
+def model_params(model: str, plant: str, vehicle) -> QuadParams:
+    """The parameters of the equation model ``model`` on ``plant`` (a name of :data:`sim.plants.named.PLANTS`)
+    flying ``vehicle`` (a :class:`sim.vehicles.vehicle.Vehicle`).
+
+    ``oracle``: the plant's own equations: on ``sim``, the equations
+    with the vehicle's values (on a ``+highfi`` scenario with the vehicle's
+    high-fidelity effects too, :func:`flown_model`); on ``rotorpy-ideal``, the same with no drag (that set-up has
+    none); ``rotorpy`` (motor lag and aerodynamics) has no known equations
+    and refuses it. ``nominal`` and ``analytic:...``: the nominal equations
+    with the vehicle's values (scaled).
+    """
+    from sim.plants.named import known_equations
+
+    from ..errors import ConfigurationError
+
+    p = vehicle.params
+    if model == "oracle":
+        own = known_equations(plant, p)
+        if own is None:
+            raise ConfigurationError(f"plant {plant!r} has no known equations, so it has no oracle; fly --model "
+                                     f"nominal (the rigid-body equations with the vehicle's values) or a learned "
+                                     f"model")
+        return own
+    if model == "nominal":
+        return p
+    factors = parse_analytic(model)
+    return p.with_theta([getattr(p, n) * factors.get(n, 1.0) for n in THETA_NAMES])
+
+
+def flown_model(model: str, plant: str, vehicle, high_fidelity: bool = False) -> PredictionModel:
+    """The prediction model ``model`` flown on ``plant`` with ``vehicle``: an equation model
+    (:data:`EQUATION_MODELS`, ``analytic:...``; :func:`model_params`) or the ONNX file ``model``.
+
+    ``high_fidelity``: the equation model is the plant's high-fidelity equations, the vehicle's motor lag (four
+    rotor-speed states), rotor drag and gyroscopic torque with the rigid body.
+    """
+    if is_equation_model(model):
+        return AnalyticModel(model_params(model, plant, vehicle), name=model_name(model),
+                             fidelity=vehicle.fidelity if high_fidelity else None)
+    return load_model(model)
+
+
 class LinearModel(PredictionModel):
     """Affine model ``x_next = x0 + A (x - x0) + B (u - u0)`` (for example the hover linearization).
 

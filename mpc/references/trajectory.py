@@ -376,3 +376,38 @@ def held_wrench(traj: FlatTrajectory, times, spec=None, dt: float = DT) -> np.nd
     tt = (t[:, None] + dt * _GL_NODES[None, :]).ravel()
     _, u = flat_state(traj.flat(tt), spec)
     return np.einsum("kjn,j->kn", u.reshape(t.size, 3, NU), _GL_WEIGHTS)
+
+
+def reference_spec(plant: str, vehicle):
+    """The vehicle numbers of the flatness map that makes a reference feasible on ``plant`` (a name of
+    :data:`sim.plants.named.PLANTS`) flying ``vehicle``: the vehicle's, with the drag of the plant's own equations
+    where they are known (none on ``rotorpy-ideal``)."""
+    import dataclasses
+
+    from sim.plants.named import known_equations
+
+    spec = VehicleSpec.from_vehicle(vehicle)
+    own = known_equations(plant, vehicle.params)
+    return spec if own is None or own.c_d == spec.c_d else dataclasses.replace(spec, c_d=own.c_d)
+
+
+def reference_states(ref, times: np.ndarray, spec) -> np.ndarray:
+    """The reference states (K, 12) of flat trajectory ``ref`` at ``times`` (K,), s, through the flatness map of
+    ``spec`` (its gravity and drag enter the attitude; the positions are the flat outputs themselves)."""
+    return flat_state(ref.flat(times), spec)[0]
+
+
+def flown_reference(ref, times: np.ndarray, plant: str, vehicle,
+                    high_fidelity: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+    """The reference ``ref`` as the plant ``plant`` flying ``vehicle`` can fly it: states (K, 12) at ``times``
+    (K,), s, and its rotor speeds at the first time (4,) where the plant's motors lag (else None).
+
+    ``high_fidelity`` (the reference simulator with the vehicle's high-fidelity effects): the flatness map of the
+    high-fidelity equations (:func:`actuated_flat_state`: rotor drag tilts the thrust); otherwise the flatness map
+    of the plant's own rigid-body equations (:func:`reference_spec`). Positions and yaw are the flat outputs either
+    way.
+    """
+    if high_fidelity:
+        x, n, _ = actuated_flat_state(ref, times, vehicle.params, vehicle.fidelity)
+        return x, (n[0] if vehicle.fidelity.motor_tau > 0.0 else None)
+    return reference_states(ref, times, reference_spec(plant, vehicle)), None

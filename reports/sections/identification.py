@@ -7,6 +7,8 @@ from those numbers.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from scenarios.studies.stats import summarize
 
 from ..tables import MISSING, RMSE_FORMAT, THETA_NAMES, crash_text, fmt, md_table
@@ -239,7 +241,7 @@ def physics_form_text(evaluation: dict) -> str:
 # ------------------------------------------------------------------ closed loop on the high-fidelity plant
 def highfi_table(runs: list[dict], evaluation: dict) -> str:
     """RMSE on the ``+highfi`` scenarios of the oracle and of models trained on nominal or high-fidelity data."""
-    hf = [r for r in runs if isinstance(r, dict) and str(r.get("scenario", "")).endswith("+highfi")]
+    hf = [r for r in runs if isinstance(r, Mapping) and str(r.get("scenario", "")).endswith("+highfi")]
     if not hf:
         return "No run on a `+highfi` scenario in this results folder."
     trained = {m.get("name"): m for m in evaluation.get("models", []) if isinstance(m, dict)}

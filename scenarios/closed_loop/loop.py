@@ -170,6 +170,23 @@ class Estimator:
         return self.last
 
 
+
+def make_estimator(ctrl, model, plant, sensors, guess=None, config=None):
+    """``(sensed plant, Estimator)`` of a run with the state estimator: ``plant`` read through ``sensors`` (a
+    :class:`sim.plants.sensors.SensorSuite`) and an extended Kalman filter on the controller's ``model``, its
+    extra states started as ``ctrl`` starts them.
+
+    ``guess`` (12,): the reference at take-off (the filter's first velocity); ``config``: an
+    :class:`mpc.estimators.estimator.EKFConfig` (None: the default tuning).
+    """
+    from mpc.estimators.estimator import DisturbanceEKF, EKFConfig
+    from sim.plants.sensors import SensedPlant
+
+    start = ctrl.start_extra
+    ekf = DisturbanceEKF(model, sensors.mocap, sensors.imu, config=EKFConfig() if config is None else config,
+                         extra_start=lambda x: start(x, 0.0), g=plant.vehicle.params.g)
+    return SensedPlant(plant, sensors), Estimator(sensors, ekf, guess)
+
 class IdealClock:
     """Each input takes effect at the start of its period (``delay_steps`` periods later with a delay).
 

@@ -21,7 +21,7 @@ from ..errors import ScenarioError
 #: The flatness map through which a scenario's start state ``x0`` is its reference at t = 0 (plus its offsets):
 #: the default vehicle's numbers, taken once when the scenarios are built. A run on a vehicle or plant with other
 #: gravity or drag keeps the offsets and takes the reference part through its own map
-#: (:func:`scenarios.closed_loop.runner.start_state`).
+#: (:meth:`Scenario.start_state`).
 def _start_map():
     from mpc.prediction.spec import VehicleSpec
 
@@ -243,6 +243,58 @@ class Scenario:
         rng = np.random.default_rng([int(k), 0xE45])
         x0 = np.asarray(self.x0, dtype=float) + np.asarray(ENSEMBLE_X0_SIGMA) * rng.standard_normal(NX)
         return dataclasses.replace(sc, x0=tuple(float(v) for v in x0))
+
+    def disturbance(self):
+        """The scenario's wind and gust impulse as one acceleration function of time, or None without either."""
+        parts = [w for w in (self.wind, self.impulse) if w is not None]
+        if not parts:
+            return None
+        if len(parts) == 1:
+            return parts[0]
+        return lambda t: parts[0](t) + parts[1](t)
+
+    def plant(self, name: str, vehicle):
+        """The plant ``name`` (:data:`sim.plants.named.PLANTS`) flying ``vehicle`` with this scenario's
+        high-fidelity set-up, payload and disturbances."""
+        from sim.plants.named import make_plant
+
+        return make_plant(name, vehicle, high_fidelity=self.high_fidelity,
+                          payload_kg=self.payload_fraction * vehicle.m, wind=self.disturbance())
+
+    def start_state(self, spec, x_ref0: np.ndarray | None = None) -> np.ndarray:
+        """The initial state (12,) on the reference the plant flies.
+
+        ``x0`` is the reference at t = 0 (through :data:`START_MAP`, the default vehicle's) plus the scenario's
+        offsets; the offsets are kept and the reference part is replaced by the plant's: ``x_ref0`` (12,) where
+        the plant has a map of its own (the high-fidelity plant's,
+        :func:`mpc.references.trajectory.flown_reference`), else the flatness map of ``spec`` (a
+        :class:`mpc.prediction.spec.VehicleSpec`), so that a vehicle with other drag starts on its own feasible
+        reference. Unchanged for the default vehicle on the nominal plant.
+        """
+        from mpc.references.trajectory import reference_states
+
+        x0 = np.array(self.x0, dtype=float)
+        ref, t0 = self.reference(), np.array([0.0])
+        if x_ref0 is None:
+            if (spec.g, spec.c_d) == (START_MAP.g, START_MAP.c_d):   # the only numbers the map's states depend on
+                return x0
+            x_ref0 = reference_states(ref, t0, spec)[0]
+        return x0 + x_ref0 - reference_states(ref, t0, START_MAP)[0]
+
+    def sensor_suite(self):
+        """The sensors of a run with the state estimator (:class:`sim.plants.sensors.SensorSuite`): the default
+        lab's, with this scenario's noise where it sets one.
+
+        A scenario with measurement noise (``+noise``) sets the motion capture's position and attitude noise and
+        the gyroscope's white noise to its position, attitude and body-rate standard deviations.
+        """
+        from sim.plants.sensors import ImuConfig, MocapConfig, SensorSuite
+
+        mocap, imu = MocapConfig(), ImuConfig()
+        if self.noise is not None:
+            mocap = dataclasses.replace(mocap, position_std=self.noise.position, attitude_std=self.noise.attitude)
+            imu = dataclasses.replace(imu, gyro_std=self.noise.body_rate)
+        return SensorSuite(mocap=mocap, imu=imu, rng=np.random.default_rng([self.seed, 0x5E75]))
 
     def to_dict(self) -> dict:
         """JSON-ready description (stored with every result).

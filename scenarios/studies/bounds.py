@@ -30,11 +30,14 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+from mpc.controllers.factory import CONTROLLERS
+from mpc.prediction.models import model_name
 from sim.vehicles.vehicle import DEFAULT_VEHICLE
 
 from ..errors import BoundsError
 from ..closed_loop.library import get_scenario
-from ..closed_loop.runner import CONTROLLERS, RunSpec, model_name
+from ..closed_loop.record import RunRecord
+from ..closed_loop.runner import RunSpec
 
 BOUNDS_FILE = Path(__file__).with_name("bounds.toml")
 METRICS = ("rmse_position_m", "settled_error_m", "rmse_yaw_rad")
@@ -157,12 +160,17 @@ def specs_to_fly(bounds: list[Bound], models_dir="models") -> list[RunSpec]:
     return out
 
 
-def _key(r: dict) -> tuple:
-    return r["scenario"], r["controller"], r["model"]
+def _key(r: RunRecord) -> tuple:
+    return r.scenario, r.controller, r.model
+
+
+def _records(results) -> list[RunRecord]:
+    return [RunRecord.from_dict(r, f"run {i} of the results") for i, r in enumerate(results)]
 
 
 def check(bounds: list[Bound], results: list[dict]) -> list[dict]:
     """One row per bound: measured value, the bound, crash, and whether it holds (known failures: ``ok`` None)."""
+    results = _records(results)
     # The bounds are of our simulator flying the default vehicle (the cases the tests fly): runs on other plants or
     # vehicles in the same results folder are not theirs.
     by_key = {_key(r): r for r in results if r.get("timing", "ideal") == "ideal"
@@ -226,6 +234,7 @@ def generate(results: list[dict], models: list[str], source: str = "") -> str:
     default vehicle count (a results folder also holds runs on other plants). A case whose run is missing raises a
     :class:`BoundsError` naming it.
     """
+    results = _records(results)
     # The bounds are of our simulator flying the default vehicle (the cases the tests fly): runs on other plants or
     # vehicles in the same results folder are not theirs.
     by_key = {_key(r): r for r in results if r.get("timing", "ideal") == "ideal"

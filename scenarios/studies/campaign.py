@@ -354,9 +354,9 @@ def _git_commit() -> str | None:
 
 def provenance(models_dir) -> dict:
     """Versions, machine, commit, model hashes and the manifest's training seeds."""
-    from ..closed_loop.runner import _sha256
+    from ..closed_loop.record import file_sha256
 
-    models = {Path(m).stem: _sha256(m) for m in shipped_models(models_dir) + identification_models(models_dir)}
+    models = {Path(m).stem: file_sha256(m) for m in shipped_models(models_dir) + identification_models(models_dir)}
     seeds = {}
     for manifest in (Path(models_dir) / "manifest.json", Path(models_dir) / IDENTIFICATION_DIR / "manifest.json"):
         if not manifest.is_file():

@@ -17,10 +17,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from mpc.controllers.factory import CONTROLLERS, HORIZON
 from sim.files import write_json
 
 from ..sweeps.engines import ENGINES
-from ..closed_loop.runner import CONTROLLERS, HORIZON, RunSpec
+from ..closed_loop.runner import RunSpec
 from ..sweeps.sweep import sweep
 from .stats import summarize
 

@@ -225,7 +225,8 @@ def fly_flight(job: FlightJob) -> dict:
 
     from ..closed_loop.dither import Dithered, dither_std
     from ..closed_loop.loop import IdealClock, StateSensor, fly_loop
-    from ..closed_loop.runner import make_controller, reference_spec, reference_states
+    from mpc.controllers.factory import make_controller
+    from mpc.references.trajectory import reference_spec, reference_states
 
     p = job.settings.spec
     name, traj, duration = job.reference()

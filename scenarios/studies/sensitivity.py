@@ -16,9 +16,10 @@ import dataclasses
 import statistics
 from pathlib import Path
 
+from mpc.controllers.factory import CONTROLLERS, HORIZON
 from sim.files import write_json
 
-from ..closed_loop.runner import CONTROLLERS, HORIZON, RunSpec, fly
+from ..closed_loop.runner import RunSpec, fly
 
 
 def _trial(spec: RunSpec, offset_m: float, model=None) -> dict:

@@ -29,13 +29,15 @@ from pathlib import Path
 
 import numpy as np
 
+from mpc.prediction.models import model_name
 from sim.files import write_json
 
 from ..errors import ScenarioError
 from ..sweeps.lock import locks_out_dir
 from ..closed_loop.library import ladder_names, ladder_speeds
 from ..closed_loop.metrics import LADDER_RMSE_BOUND_M, max_trackable_speed
-from ..closed_loop.runner import RunSpec, code_version, model_name
+from ..closed_loop.record import code_version
+from ..closed_loop.runner import RunSpec
 from .stats import improvement, summarize
 from ..sweeps.sweep import sweep
 

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mpc.controllers.factory import HORIZON
 from sim.files import write_json
 
 from ..errors import ScenarioError
@@ -35,7 +36,8 @@ from ..sweeps.lock import locks_out_dir
 from ..closed_loop.library import ladder_names, ladder_speeds
 from ..closed_loop.metrics import LADDER_RMSE_BOUND_M, max_trackable_speed
 from .predictors import hover_chordal_distance, jacobian_error, score_candidates
-from ..closed_loop.runner import HORIZON, RunSpec, code_version
+from ..closed_loop.record import code_version
+from ..closed_loop.runner import RunSpec
 from ..sweeps.sweep import sweep
 from .stats import summarize
 

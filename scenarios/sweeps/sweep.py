@@ -14,11 +14,12 @@ from .engines import ENGINES, run_batches
 from ..errors import ScenarioError
 from ..closed_loop.library import get_scenario
 from .lock import folder_lock
-from ..closed_loop.runner import RunSpec, cache_key, cached_result, not_flown, save_run
+from ..closed_loop.runner import RunSpec
+from ..closed_loop.record import RunRecord, cache_key, cached_result, not_flown, save_run
 
 
 def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True, engine: str = "process",
-          address: str | None = None, resume: bool = True, on_result=None) -> list[dict]:
+          address: str | None = None, resume: bool = True, on_result=None) -> list[RunRecord]:
     """Fly every spec (independent runs); results in the order of ``specs``.
 
     Parameters
@@ -62,10 +63,10 @@ def sweep(specs: list[RunSpec], out_dir, jobs: int = 1, progress: bool = True, e
         return _sweep(specs, out_dir, jobs, progress, engine, address, resume, on_result)
 
 
-def _sweep(specs, out_dir: Path, jobs, progress, engine, address, resume, on_result) -> list[dict]:
+def _sweep(specs, out_dir: Path, jobs, progress, engine, address, resume, on_result) -> list[RunRecord]:
     ids = [s.run_id for s in specs]
     keys = {s.run_id: cache_key(s) for s in specs}   # once per run: it hashes the model file and reads the code
-    results: dict[str, dict] = {}
+    results: dict[str, RunRecord] = {}
     if resume:
         for s in specs:
             r = cached_result(s, out_dir, keys[s.run_id])
@@ -82,7 +83,7 @@ def _sweep(specs, out_dir: Path, jobs, progress, engine, address, resume, on_res
     def done(spec, result, trace):
         # Keyed by the files the run read when it started flying (a file replaced during the sweep shows there).
         key = cache_key(spec, result["inputs_sha256"]) if "inputs_sha256" in result else keys[spec.run_id]
-        results[spec.run_id] = save_run({**result, "cache_key": key}, trace, out_dir)
+        results[spec.run_id] = save_run(RunRecord.from_dict(result).replace(cache_key=key), trace, out_dir)
         if bar:
             bar.update()
         if on_result is not None:
