@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sim.files import write_json
+from sim.files import check_writable, write_json
+from sim.levels import DEFAULT_LEVEL, LEVEL_INPUTS, LEVELS
 
 
 def register(sub) -> None:
@@ -22,6 +23,9 @@ def register(sub) -> None:
                                    "with a message naming the defect when the file is not valid.")
     p.add_argument("file", metavar="FILE", type=Path, help="the .onnx model file")
     p.add_argument("--json", metavar="FILE", type=Path, default=None, help="write what the model declares as JSON")
+    p.add_argument("--level", metavar="LEVEL", choices=LEVELS, default=None,
+                   help=f"refuse the file unless it declares this command level ({', '.join(LEVELS)}; a file "
+                        f"without the metadata 'level' is at {DEFAULT_LEVEL})")
     p.set_defaults(handler=cmd_check_model)
 
 
@@ -40,6 +44,7 @@ def format_model_info(info, ready=None) -> str:
         f"  architecture    {info.architecture}",
         f"  dtype           {info.dtype.name}",
         f"  dt              {info.dt:g} s",
+        f"  level           {info.level} (u = {', '.join(LEVEL_INPUTS[info.level])})",
         f"  theta           {theta}",
         f"  jacobian graph  {jac}",
         f"  extra states    " + ("none (the 12 rigid-body states)" if not info.extra_states else
@@ -64,10 +69,17 @@ def cmd_check_model(args: argparse.Namespace) -> int:
     but nothing here flies it), and an invalid file raises (the command line's exit 2)."""
     import sys
 
-    from .prediction.models import OnnxModel
     from .controllers.readiness import readiness
+    from .errors import ModelContractError
+    from .prediction.models import OnnxModel
 
+    if args.json is not None:
+        check_writable(args.json, "--json")             # before the check, so that a refusal writes nothing
     model = OnnxModel(args.file)
+    if args.level is not None and model.level != args.level:
+        given = "" if "level" in model.info.metadata else ", absent"
+        raise ModelContractError(f"{args.file}: the model is at the command level {model.level!r} (metadata "
+                                 f"'level'{given}); --level {args.level} asks for a model at {args.level!r}")
     ready = readiness(model)
     print(format_model_info(model.info, ready))
     if args.json:

@@ -55,6 +55,7 @@ def _metadata(**changes):
         "dataset_seed": "3",
         "code_version": "0.1.0+test",
         "test_metrics": json.dumps(TEST_METRICS),
+        "level": "wrench",
     }
     for k, v in changes.items():
         if v is None:
@@ -401,3 +402,67 @@ def test_works_without_torch_and_cli_import_stays_light(valid):
     r = subprocess.run([sys.executable, "-c", code, str(valid)], cwd=REPO, capture_output=True, text=True,
                        timeout=120)
     assert r.returncode == 0, r.stderr
+
+
+# --------------------------------------------------------------------------- command levels
+
+CTBR_INPUTS = ["T", "p_cmd", "q_cmd", "r_cmd"]
+CTATT_INPUTS = ["T", "phi_cmd", "theta_cmd", "r_cmd"]
+
+
+@pytest.mark.parametrize("level, names", [("ctbr", CTBR_INPUTS), ("ctatt", CTATT_INPUTS)])
+def test_a_model_states_its_command_level_and_it_round_trips(tmp_path, level, names):
+    from mpc.prediction.models import OnnxModel
+
+    path = build_model(tmp_path / f"{level}.onnx", meta=_metadata(level=level, input_names=json.dumps(names)))
+    info = check_model(path)
+    assert info.level == level and info.to_dict()["level"] == level
+    assert OnnxModel(path).level == level
+
+
+def test_a_model_without_a_level_is_at_the_wrench_level(tmp_path):
+    path = build_model(tmp_path / "plain.onnx", meta=_metadata(level=None))
+    assert check_model(path).level == "wrench"
+    assert check_model(REPO / "models" / "proposed.onnx").level == "wrench"       # the shipped files name none
+
+
+@pytest.mark.parametrize("meta, message", [
+    (dict(level="rates"), "metadata 'level' must be one of ['wrench', 'ctbr', 'ctatt']; found 'rates'"),
+    (dict(level="ctbr"), "metadata 'input_names' must be ['T', 'p_cmd', 'q_cmd', 'r_cmd'] (the inputs of level "
+                         "'ctbr'); found ['T', 'tau_x', 'tau_y', 'tau_z']"),
+    (dict(input_names=json.dumps(CTATT_INPUTS)), "metadata 'input_names' must be ['T', 'tau_x', 'tau_y', 'tau_z']; "
+                                                 "found ['T', 'phi_cmd', 'theta_cmd', 'r_cmd']"),
+])
+def test_a_level_and_input_names_that_disagree_are_refused(tmp_path, meta, message):
+    path = build_model(tmp_path / "m.onnx", meta=_metadata(**meta))
+    with pytest.raises(ModelContractError) as e:
+        check_model(path)
+    assert message in str(e.value)
+
+
+def test_no_controller_flies_a_level_other_than_the_wrench_yet(tmp_path):
+    from mpc.controllers.readiness import readiness
+    from mpc.prediction.models import OnnxModel
+
+    path = build_model(tmp_path / "ctbr.onnx", meta=_metadata(level="ctbr", input_names=json.dumps(CTBR_INPUTS)))
+    ready = readiness(OnnxModel(path))
+    assert len(ready) == 4 and not any(r.flies for r in ready.values())
+    assert all("command level 'ctbr'" in r.reason for r in ready.values())
+
+
+def test_check_model_refuses_a_level_the_model_does_not_declare(tmp_path, valid, capsys):
+    js = tmp_path / "info.json"
+    assert main(["check-model", str(valid), "--level", "ctbr", "--json", str(js)]) == 2
+    err = capsys.readouterr().err
+    assert "metadata 'level'" in err and "--level ctbr" in err and err.count("\n") == 1 and "Traceback" not in err
+    assert not js.exists()
+    assert main(["check-model", str(REPO / "models" / "baseline.onnx"), "--level", "wrench"]) == 0
+    assert "level           wrench (u = T, tau_x, tau_y, tau_z)" in capsys.readouterr().out
+
+
+def test_fly_refuses_a_model_at_another_level_in_one_line(tmp_path, capsys):
+    path = build_model(tmp_path / "ctbr.onnx", meta=_metadata(level="ctbr", input_names=json.dumps(CTBR_INPUTS)))
+    js = tmp_path / "r.json"
+    assert main(["fly", "--scenario", "hover", "--controller", "lqr", "--model", str(path), "--json", str(js)]) == 2
+    err = capsys.readouterr().err
+    assert "command level 'ctbr'" in err and err.count("\n") == 1 and not js.exists()

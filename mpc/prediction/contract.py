@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.levels import DEFAULT_LEVEL, LEVEL_INPUTS, LEVELS
 from sim.params import DT, INPUT_NAMES, STATE_NAMES, THETA_NAMES, QuadParams
 
 from ..errors import ModelContractError
@@ -61,9 +62,12 @@ REQUIRED_METADATA = ("dt",)
 #: ``theta`` (JSON object over THETA_NAMES, SI units: the vehicle spec's m, J, kt, kq),
 #: ``training_config`` (JSON object), ``config_hash`` (:func:`config_hash` of it),
 #: ``dataset_seed`` (int), ``code_version`` (free text), ``test_metrics`` (JSON object),
-#: ``extra_states`` (JSON list of the extra states' names), ``extra_scale`` (JSON list of their scales, > 0).
+#: ``extra_states`` (JSON list of the extra states' names), ``extra_scale`` (JSON list of their scales, > 0),
+#: ``level`` (the command level of the input ``u``, one of :data:`sim.levels.LEVELS`; ``wrench`` when absent: then
+#: ``input_names``, where given, must be that level's, :data:`sim.levels.LEVEL_INPUTS`).
 OPTIONAL_METADATA = ("pinnmpc.contract", "architecture", "state_names", "input_names", "theta", "training_config",
-                     "config_hash", "dataset_seed", "code_version", "test_metrics", "extra_states", "extra_scale")
+                     "config_hash", "dataset_seed", "code_version", "test_metrics", "extra_states", "extra_scale",
+                     "level")
 
 NX = len(STATE_NAMES)
 NU = len(INPUT_NAMES)
@@ -125,6 +129,10 @@ class ModelInfo:
         Names of the states beyond the 12 rigid-body ones (empty for most models).
     extra_scale : tuple of float or None
         Their declared scales, or None.
+    level : str
+        The command level of the input ``u`` (:data:`sim.levels.LEVELS`): ``wrench`` (thrust and body torques)
+        unless the metadata ``level`` says ``ctbr`` (thrust and body rates) or ``ctatt`` (thrust, roll, pitch and
+        yaw rate).
     """
 
     path: Path
@@ -141,6 +149,7 @@ class ModelInfo:
     jacobian: Path | None
     extra_states: tuple = ()
     extra_scale: tuple | None = None
+    level: str = DEFAULT_LEVEL
 
     @property
     def nx(self) -> int:
@@ -157,7 +166,7 @@ class ModelInfo:
             "code_version": self.code_version, "test_metrics": self.test_metrics,
             "metadata": dict(self.metadata), "jacobian": None if self.jacobian is None else str(self.jacobian),
             "extra_states": list(self.extra_states),
-            "extra_scale": None if self.extra_scale is None else list(self.extra_scale),
+            "extra_scale": None if self.extra_scale is None else list(self.extra_scale), "level": self.level,
         }
 
 
@@ -598,11 +607,15 @@ def _parse_metadata(meta: dict, where: str, stem: str = "model") -> dict:
         raise ModelContractError(f"{where}: metadata 'dt' must equal sim.params.DT = {DT!r} s "
                                  f"(within {DT_TOL:g}); found {dt!r}")
 
-    for key, want in (("state_names", STATE_NAMES), ("input_names", INPUT_NAMES)):
+    level = meta.get("level", DEFAULT_LEVEL)
+    if level not in LEVELS:
+        raise ModelContractError(f"{where}: metadata 'level' must be one of {list(LEVELS)}; found {_short(level)!r}")
+    for key, want in (("state_names", STATE_NAMES), ("input_names", LEVEL_INPUTS[level])):
         if key in meta:
             names = _json(meta, key, where, list, f"the JSON list {list(want)}")
             if names != list(want):
-                raise ModelContractError(f"{where}: metadata {key!r} must be {list(want)}; found {names}")
+                at = f" (the inputs of level {level!r})" if key == "input_names" and level != DEFAULT_LEVEL else ""
+                raise ModelContractError(f"{where}: metadata {key!r} must be {list(want)}{at}; found {names}")
 
     theta = None
     if "theta" in meta:
@@ -646,7 +659,7 @@ def _parse_metadata(meta: dict, where: str, stem: str = "model") -> dict:
 
     return {"architecture": architecture, "dt": dt, "theta": theta, "training_config": training_config,
             "config_hash": h, "dataset_seed": dataset_seed, "code_version": meta.get("code_version"),
-            "test_metrics": test_metrics}
+            "test_metrics": test_metrics, "level": level}
 
 
 # --------------------------------------------------------------------------- evaluation

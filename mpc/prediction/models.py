@@ -50,6 +50,8 @@ class PredictionModel:
     #: Acceptable deviations of the extra states (n_extra,), in their own units, or None to derive them from the
     #: model's hover equilibrium (:func:`mpc.prediction.extended.extra_scale`). They measure steps and defects only.
     extra_scale: np.ndarray | None = None
+    #: The command level of the input ``u`` (:data:`sim.levels.LEVELS`): what the model takes each period.
+    level: str = "wrench"
 
     @property
     def n_extra(self) -> int:
@@ -272,6 +274,7 @@ class OnnxModel(PredictionModel):
         self.theta = None if self.info.theta is None else np.array([self.info.theta[n] for n in THETA_NAMES])
         self.extra_names = tuple(self.info.extra_states)
         self.extra_scale = None if self.info.extra_scale is None else np.array(self.info.extra_scale)
+        self.level = self.info.level
         self.dtype = self.info.dtype
         self._model = open_session(self.path, threads)
         if self.info.jacobian is None:

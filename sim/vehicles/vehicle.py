@@ -34,6 +34,7 @@ from .._validate import nonnegative_finite, positive_finite
 from ..errors import SimInputError
 from ..files import read_named_toml
 from ..params import GRAVITY, HIGH_FIDELITY, Fidelity, QuadParams
+from .onboard import InnerLoopConfig, inner_loop_from_dict
 
 #: The least maximum thrust a vehicle may have, as a multiple of its weight: below it the rotors cannot hover it and
 #: still turn it (at 1.2 a hover uses 83 % of the thrust and leaves 17 % for attitude control).
@@ -80,14 +81,19 @@ class Vehicle:
     k_h: float = _ROLLING_SPIDER_K_H          # translational lift per rotor, N / (m/s)^2 (RotorPy only)
     k_flap: float = 0.0                       # flapping moment per rotor, N m s / (m RU) (RotorPy only)
     source: str = ""                          # where the numbers come from
+    # The onboard controller of the ctbr and ctatt command levels (the [inner_loop] table); None: none given.
+    inner_loop: InnerLoopConfig | None = None
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name:
             raise SimInputError(f"vehicle name must be a non-empty string; found {self.name!r}")
         if not isinstance(self.source, str):
             raise SimInputError(f"vehicle source must be a string; found {self.source!r}")
+        if self.inner_loop is not None and not isinstance(self.inner_loop, InnerLoopConfig):
+            raise SimInputError(f"vehicle {self.name!r}: inner_loop must be an InnerLoopConfig; found "
+                                f"{type(self.inner_loop).__name__}")
         for f in dataclasses.fields(self):
-            if f.name in ("name", "source") or (f.name == "n_max" and self.n_max is None):
+            if f.name in ("name", "source", "inner_loop") or (f.name == "n_max" and self.n_max is None):
                 continue
             v = getattr(self, f.name)
             if isinstance(v, bool):
@@ -136,9 +142,14 @@ class Vehicle:
         return self.m * self.c_d
 
     def to_dict(self) -> dict:
-        """JSON-ready description (stored with every result and dataset): every field, ``n_max`` resolved."""
+        """JSON-ready description (stored with every result and dataset): every field, ``n_max`` resolved, and
+        ``inner_loop`` (a table) only where the vehicle has one."""
         out = dataclasses.asdict(self)
         out["n_max"] = self.n_max_value
+        if self.inner_loop is None:
+            del out["inner_loop"]
+        else:
+            out["inner_loop"] = {k: list(v) if isinstance(v, tuple) else v for k, v in out["inner_loop"].items()}
         return out
 
     def replace(self, **changes) -> "Vehicle":
@@ -164,17 +175,27 @@ class Vehicle:
     def to_toml(self) -> str:
         """The vehicle as a vehicle file's text (:func:`load_vehicle` reads it back to the same vehicle)."""
         def value(v):
-            return '"""' + v.replace("\\", "\\\\").replace('"', '\\"') + '"""' if isinstance(v, str) else repr(float(v))
+            if isinstance(v, str):
+                return '"""' + v.replace("\\", "\\\\").replace('"', '\\"') + '"""'
+            if isinstance(v, list):
+                return "[" + ", ".join(repr(float(x)) for x in v) + "]"
+            return repr(float(v))
 
-        return "".join(f"{k} = {value(v)}\n" for k, v in self.to_dict().items())
+        d = self.to_dict()
+        table = d.pop("inner_loop", None)
+        text = "".join(f"{k} = {value(v)}\n" for k, v in d.items())
+        if table is not None:
+            text += "\n[inner_loop]\n" + "".join(f"{k} = {value(v)}\n" for k, v in table.items())
+        return text
 
 
 #: Fields that must be > 0 (the rest may be 0: an effect switched off).
 _POSITIVE = frozenset(("m", "Jxx", "Jyy", "Jzz", "kt", "kq", "d", "n_max"))
 #: Fields passed to QuadParams.
 _PARAM_KEYS = ("m", "Jxx", "Jyy", "Jzz", "kt", "kq", "d", "c_d", "n_max")
-#: Keys of a vehicle file.
-VEHICLE_KEYS = tuple(f.name for f in dataclasses.fields(Vehicle))
+#: Keys of a vehicle file (plain values), and its one table.
+VEHICLE_KEYS = tuple(f.name for f in dataclasses.fields(Vehicle) if f.name != "inner_loop")
+VEHICLE_TABLES = ("inner_loop",)
 
 
 def vehicle_names() -> list[str]:
@@ -186,10 +207,16 @@ def vehicle_from_dict(data: dict, where: str = "vehicle") -> Vehicle:
     """A :class:`Vehicle` from a mapping of vehicle-file keys; unknown keys and bad values raise naming them."""
     if not isinstance(data, dict):
         raise SimInputError(f"{where}: must be a table of keys; found {type(data).__name__}")
-    unknown = sorted(set(data) - set(VEHICLE_KEYS))
+    unknown = sorted(set(data) - set(VEHICLE_KEYS) - set(VEHICLE_TABLES))
     if unknown:
-        raise SimInputError(f"{where}: unknown key {unknown[0]!r}; the keys are {', '.join(VEHICLE_KEYS)}")
+        raise SimInputError(f"{where}: unknown key {unknown[0]!r}; the keys are {', '.join(VEHICLE_KEYS)}, and the "
+                            f"table [{'], ['.join(VEHICLE_TABLES)}]")
+    data = dict(data)
+    if "inner_loop" in data:
+        data["inner_loop"] = inner_loop_from_dict(data["inner_loop"], where)
     for k, v in data.items():
+        if k == "inner_loop":
+            continue
         if k in ("name", "source"):
             if not isinstance(v, str):
                 raise SimInputError(f"{where}: {k} must be a string; found {v!r}")
