@@ -209,17 +209,19 @@ def input_hashes(spec) -> dict[str, str | None]:
     out = {}
     for role, path in input_files(spec).items():
         try:
-            out[role] = hashlib.sha256(path.read_bytes()).hexdigest()
+            out[role] = _digest(path)
         except FileNotFoundError:
             out[role] = None
     return out
 
 
+def _digest(path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
 def file_sha256(path: str) -> str | None:
     """SHA-256 of the model file ``path``; None for an equation model (no file)."""
-    if is_equation_model(path):
-        return None
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    return None if is_equation_model(path) else _digest(path)
 
 
 _CODE_VERSION: str | None = None

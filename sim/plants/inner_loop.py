@@ -132,7 +132,4 @@ class InnerLoopPlant(Plant):
         return out
 
     def describe(self) -> dict:
-        c = self.loop.config
-        return {**self.plant.describe(), "level": self.level,
-                "inner_loop": {"rate_hz": c.rate_hz, "rate_kp": list(c.rate_kp), "rate_ki": list(c.rate_ki),
-                               "rate_kd": list(c.rate_kd), "att_kp": list(c.att_kp), "att_ki": list(c.att_ki)}}
+        return {**self.plant.describe(), "level": self.level, "inner_loop": self.loop.config.to_dict()}

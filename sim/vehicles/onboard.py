@@ -90,6 +90,10 @@ class InnerLoopConfig:
         if self.max_tilt >= math.pi / 2:
             raise SimInputError(f"inner_loop.max_tilt must be below pi/2 rad; found {self.max_tilt!r}")
 
+    def to_dict(self) -> dict:
+        """JSON-ready form: the ``[inner_loop]`` table's keys, gains as lists."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+
     @property
     def period_s(self) -> float:
         """One period of the loops, s."""

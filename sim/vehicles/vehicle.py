@@ -149,7 +149,7 @@ class Vehicle:
         if self.inner_loop is None:
             del out["inner_loop"]
         else:
-            out["inner_loop"] = {k: list(v) if isinstance(v, tuple) else v for k, v in out["inner_loop"].items()}
+            out["inner_loop"] = self.inner_loop.to_dict()
         return out
 
     def replace(self, **changes) -> "Vehicle":
