@@ -169,9 +169,9 @@ def dataset_params(ds) -> QuadParams:
     the stated values as the prior of theta-hat."""
     if "params" in ds.meta:
         return QuadParams(**ds.meta["params"])
-    from sim.vehicles.vehicle import Vehicle
+    from sim.vehicles.vehicle import vehicle_from_dict
 
-    return Vehicle(**ds.meta["vehicle"]).params
+    return vehicle_from_dict(ds.meta["vehicle"], "dataset metadata 'vehicle'").params
 
 
 def training_stats(ds) -> dict:

@@ -12,7 +12,7 @@ from sim.files import check_writable, write_json, write_npz, write_text
 from .sweeps.engines import ENGINES
 
 #: Fields printed by ``pinnmpc fly``, in order (names other tools rely on).
-FLY_FIELDS = ("scenario", "controller", "qp", "model", "plant", "vehicle", "timing", "estimator", "rmse_position_m", "max_position_error_m", "crashed",
+FLY_FIELDS = ("scenario", "controller", "qp", "model", "plant", "vehicle", "level", "timing", "estimator", "rmse_position_m", "max_position_error_m", "crashed",
               "crash_time_s", "solve_ms", "deadline_misses", "deadline_fallbacks", "solver_failures",
               "fallbacks")
 
@@ -30,6 +30,16 @@ def _qp_option(p, what: str) -> None:
                         f"inputs and solved by a dense active-set solver, usually faster; the optional extra "
                         f"dense: {DENSE_INSTALL}). A run records it, and a saved run is reused only by the same "
                         f"solver")
+
+
+def _level_option(p) -> None:
+    """``--level``: the command level the controllers send and the plants take."""
+    from sim.levels import DEFAULT_LEVEL, LEVELS
+
+    p.add_argument("--level", choices=LEVELS, default=DEFAULT_LEVEL,
+                   help="command level: wrench (thrust and body torques, the default); ctbr (thrust and body rates) "
+                        "or ctatt (thrust, roll, pitch and yaw rate), flown through the vehicle's inner loop (its "
+                        "[inner_loop] table, docs/plants.md); a model file must declare the level it takes")
 
 
 def _check_qp(qp: str) -> None:
@@ -107,6 +117,7 @@ def register(sub) -> None:
                         "sees an extended Kalman filter's estimate from motion capture and an IMU, on its own "
                         "model, with a disturbance estimate (docs/estimation.md)")
     _qp_option(p, "the ltv and sqp controllers (the others solve no QP)")
+    _level_option(p)
     p.add_argument("--json", metavar="FILE", type=Path, default=None, help="write the result as JSON")
     p.add_argument("--trace", metavar="FILE.npz", type=Path, default=None, help="write the trace arrays")
     p.add_argument("--plot", metavar="FILE.png", type=Path, default=None, help="plot path, height, error, inputs")
@@ -329,7 +340,7 @@ def cmd_fly(args: argparse.Namespace) -> int:
     from .closed_loop.runner import load_run_model
 
     spec = RunSpec(args.scenario, args.controller, args.model, args.seed, args.horizon, args.timing,
-                   plant=args.plant, vehicle=args.vehicle, estimator=args.estimator, qp=args.qp)
+                   plant=args.plant, vehicle=args.vehicle, estimator=args.estimator, qp=args.qp, level=args.level)
     model = load_run_model(spec)
     ready = require(model, spec.controller)     # the same verdict as pinnmpc check-model prints
     if ready.warning:

@@ -440,14 +440,20 @@ def test_a_level_and_input_names_that_disagree_are_refused(tmp_path, meta, messa
     assert message in str(e.value)
 
 
-def test_no_controller_flies_a_level_other_than_the_wrench_yet(tmp_path):
+def test_a_model_at_another_level_is_judged_with_that_level_s_inputs(tmp_path):
     from mpc.controllers.readiness import readiness
     from mpc.prediction.models import OnnxModel
+    from mpc.prediction.spec import VehicleSpec
 
+    # A wrench model's graph declared at ctbr: its "rates" move the body as torques would, a million times too
+    # little for a rate command of 1 rad/s. Readiness now judges it as any model (by its LQR), not by its level.
     path = build_model(tmp_path / "ctbr.onnx", meta=_metadata(level="ctbr", input_names=json.dumps(CTBR_INPUTS)))
     ready = readiness(OnnxModel(path))
-    assert len(ready) == 4 and not any(r.flies for r in ready.values())
-    assert all("command level 'ctbr'" in r.reason for r in ready.values())
+    assert len(ready) == 4 and all("level" not in r.reason for r in ready.values())
+    # The controllers bound and weigh a ctbr input's rates by the vehicle's largest rate command and 1 rad/s.
+    inputs = VehicleSpec().inputs("ctbr")
+    assert np.allclose(inputs.matrix[1:, 1:], np.eye(3) / VehicleSpec().max_rate) and np.allclose(inputs.scale[1:], 1)
+    assert np.allclose(inputs.project([1.0, 20.0, -20.0, 0.5]), [1.0, 10.0, -10.0, 0.5])
 
 
 def test_check_model_refuses_a_level_the_model_does_not_declare(tmp_path, valid, capsys):
@@ -465,4 +471,5 @@ def test_fly_refuses_a_model_at_another_level_in_one_line(tmp_path, capsys):
     js = tmp_path / "r.json"
     assert main(["fly", "--scenario", "hover", "--controller", "lqr", "--model", str(path), "--json", str(js)]) == 2
     err = capsys.readouterr().err
-    assert "command level 'ctbr'" in err and err.count("\n") == 1 and not js.exists()
+    assert "'ctbr' level (metadata 'level')" in err and "--level ctbr" in err and err.count("\n") == 1
+    assert not js.exists()

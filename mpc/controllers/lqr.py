@@ -13,7 +13,6 @@ from __future__ import annotations
 import numpy as np
 
 from sim.params import DT, NU, NX
-from sim.vehicles.rotors import realize
 
 from .controller import ControlInfo, ControllerBase, Timer, check_measured
 from ..errors import ConfigurationError
@@ -28,25 +27,29 @@ DEFAULT_STATE_SCALE = np.array([0.1, 0.1, 0.1, 0.2, 0.2, 0.3, 1.0, 1.0, 1.0, 0.5
 DEFAULT_INPUT_SCALE_FRAC_T = 0.2
 
 
-def default_weights(spec=None) -> tuple[np.ndarray, np.ndarray]:
-    """Diagonal state and input weights ``Q`` (12, 12), ``R`` (4, 4); the thrust scale is 0.2 m g of ``spec``."""
+def default_weights(spec=None, level: str = "wrench") -> tuple[np.ndarray, np.ndarray]:
+    """Diagonal state and input weights ``Q`` (12, 12), ``R`` (4, 4) at command level ``level``; the thrust scale is
+    0.2 m g of ``spec`` (:func:`input_scale`)."""
     spec = VehicleSpec() if spec is None else spec
     Q = np.diag(1.0 / DEFAULT_STATE_SCALE ** 2)
-    R = np.diag(1.0 / input_scale(spec) ** 2)
+    R = np.diag(1.0 / input_scale(spec, level) ** 2)
     return Q, R
 
 
-def input_scale(spec=None) -> np.ndarray:
-    """Acceptable input deviations (4,): thrust 0.2 m g (N), torques the spec's ``torque_scale`` (N m).
+def input_scale(spec=None, level: str = "wrench") -> np.ndarray:
+    """Acceptable input deviations (4,) at command level ``level``: thrust 0.2 m g (N), then torques the spec's
+    ``torque_scale`` (N m), or the rates' and angles' of :class:`mpc.prediction.spec.InputSet`.
 
-    ``spec``: a :class:`mpc.prediction.spec.VehicleSpec`, or any object with ``m, g, kt, d`` and ``n_max_sq`` (such as a
-    :class:`sim.QuadParams`), whose torque scale is then computed as a VehicleSpec's.
+    ``spec``: a :class:`mpc.prediction.spec.VehicleSpec`, or (at the wrench level) any object with ``m, g, kt, d`` and
+    ``n_max_sq`` (such as a :class:`sim.QuadParams`), whose torque scale is then computed as a VehicleSpec's.
     """
     import math
 
     from ..prediction.spec import torque_scale
 
     spec = VehicleSpec() if spec is None else spec
+    if level != "wrench":
+        return spec.inputs(level).scale
     ts = getattr(spec, "torque_scale", None)
     if ts is None:
         ts = torque_scale(spec.kt, math.sqrt(spec.n_max_sq), spec.d)
@@ -185,9 +188,11 @@ class LQRController(ControllerBase):
         self.spec = VehicleSpec.from_model(self.model) if spec is None else spec
         if not isinstance(self.spec, VehicleSpec):
             raise ConfigurationError(f"spec must be a VehicleSpec; found {type(self.spec).__name__}")
-        Qd, Rd = default_weights(self.spec)
+        #: What the controller may command at its model's level (:class:`mpc.prediction.spec.InputSet`).
+        self.inputs = self.spec.inputs(self.model.level)
+        Qd, Rd = default_weights(self.spec, self.model.level)
         Q, self.R = _check_weights(Qd if Q is None else Q, Rd if R is None else R)
-        self.ff = FeedForward(self.model, reference, self.spec, np.diag(Q), input_scale(self.spec))
+        self.ff = FeedForward(self.model, reference, self.spec, np.diag(Q), self.inputs.scale)
         #: State weight over the model's whole state (the rigid body's ``Q``, zero on extra states).
         self.Q = extended_weights(Q, self.model.n_extra)
         self.u_hover, self.A, self.B = self.ff.hover_linearization()
@@ -223,7 +228,7 @@ class LQRController(ControllerBase):
     def input(self, x: np.ndarray, x_ref: np.ndarray, u_ff: np.ndarray | None = None) -> np.ndarray:
         """Feasible input (4,) for state ``x``, desired state ``x_ref`` and feed-forward ``u_ff`` (no checks)."""
         u = (self.u_hover if u_ff is None else u_ff) - self.K @ (x - x_ref)
-        return realize(u, self.spec).wrench
+        return self.inputs.project(u)
 
     def __call__(self, x, t: float):
         """Input (4,) and :class:`ControlInfo` for the measured state ``x`` at time ``t`` (s)."""

@@ -30,7 +30,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from sim.params import NU
-from sim.vehicles.rotors import load_matrix, realize
 
 from .base import MPCBase, shift_stages
 from .controller import ControlInfo, Reference, Timer, check_common_settings, check_measured
@@ -133,10 +132,10 @@ class LTVMPC(MPCBase):
         N = self.s.horizon
         self.N = N
         self.nx_var = (N + 1) * self.nx
-        self._load = load_matrix(self.spec)     # wrench -> rotor loads n^2 / n_max^2 (unit-free)
-        from .lqr import input_scale
-
-        self._sx, self._su = self.state_scale, input_scale(self.spec)   # step sizes are measured in these
+        # What may be commanded: lower <= L u <= upper (at the wrench level the rotor loads n^2 / n_max^2, unit-free).
+        self.inputs = self.lqr.inputs
+        self._load = self.inputs.matrix
+        self._sx, self._su = self.state_scale, self.inputs.scale   # step sizes are measured in these
         self._build_pattern()
         self._status = osqp.SolverStatus
         self._deadline: float | None = None
@@ -159,7 +158,7 @@ class LTVMPC(MPCBase):
             # bounds, or none.
             if self.s.constraints:
                 lim = self.s.attitude_limit_rad
-                self._dense_constraints = (self._load, np.zeros(NU), np.ones(NU), self._attitude_rows(),
+                self._dense_constraints = (self._load, self.inputs.lower, self.inputs.upper, self._attitude_rows(),
                                            np.full(2, -lim), np.full(2, lim))
             else:
                 self._dense_constraints = (np.zeros((0, NU)), np.zeros(0), np.zeros(0), np.zeros((0, self.nx)),
@@ -242,8 +241,8 @@ class LTVMPC(MPCBase):
             for k in range(N):
                 add(r, self._ui(k), self._load)
                 r += NU
-            lo.append(np.zeros(N * NU))
-            hi.append(np.ones(N * NU))
+            lo.append(np.tile(self.inputs.lower, N))
+            hi.append(np.tile(self.inputs.upper, N))
             sel = self._attitude_rows()
             for k in range(1, N + 1):
                 add(r, self._xi(k), sel)
@@ -395,11 +394,12 @@ class LTVMPC(MPCBase):
                        fallback=fallback, extra={"counts": dict(self.counts)})
 
     def _rotor_feasible(self, u):
-        """``u`` (4,) if the rotors can realize it, else its exact projection onto the rotor-feasible set."""
+        """``u`` (4,) if it may be commanded, else its projection (:meth:`mpc.prediction.spec.InputSet.project`: at
+        the wrench level onto the rotor-feasible set)."""
         load = self._load @ u
-        if np.all(load >= 0.0) and np.all(load <= 1.0):
+        if np.all(load >= self.inputs.lower) and np.all(load <= self.inputs.upper):
             return u
-        return realize(u, self.spec).wrench
+        return self.inputs.project(u)
 
     def _solve_qp(self, x, ref, u_ref, xb, ub, fx, A, B, warm=None, split=None, hess=None, same_matrices=False):
         """Update the QP's values along ``(xb, ub)`` and solve it; OSQP's result.

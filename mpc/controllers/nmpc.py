@@ -35,7 +35,6 @@ import casadi as ca
 import numpy as np
 
 from sim.params import NU
-from sim.vehicles.rotors import load_matrix, realize
 
 from .base import MPCBase, shift_stages
 from .controller import ControlInfo, Reference, Timer, check_common_settings, check_measured, check_state
@@ -175,11 +174,10 @@ class NMPC(MPCBase):
         # IPOPT works on scaled variables: X = sx * Xs, U = u_hover + su * Us, with sx and su the
         # acceptable deviations of the default weights (torques are ~1e-3 N m; unscaled, the
         # limited-memory Hessian needed ~50 iterations per period).
-        from .lqr import input_scale
-
         nx = self.nx
+        self.inputs = self.lqr.inputs      # what may be commanded at the model's level
         self._sx = self.state_scale.copy()
-        self._su = input_scale(self.spec)
+        self._su = self.inputs.scale
         Xs = ca.MX.sym("Xs", nx, N + 1)
         Us = ca.MX.sym("Us", NU, N)
         X = ca.mtimes(ca.diag(ca.DM(self._sx)), Xs)
@@ -203,7 +201,7 @@ class NMPC(MPCBase):
         D = U - uref
         cost = (ca.sum2(ca.sum1(E[:, :N] * ca.mtimes(Q, E[:, :N]))) + ca.sum2(ca.sum1(D * ca.mtimes(R, D)))
                 + ca.mtimes([E[:, N].T, P, E[:, N]]))
-        load = ca.DM(load_matrix(self.spec))     # rotor loads n^2 / n_max^2 per unit wrench
+        load = ca.DM(self.inputs.matrix)     # lower <= L u <= upper (the wrench level: rotor loads n^2 / n_max^2)
         inv_sx = ca.DM(1.0 / self._sx)
         g = ca.vertcat(ca.vec((Xn - X[:, 1:]) * ca.repmat(inv_sx, 1, N)), (X[:, 0] - x0) * inv_sx,
                        ca.vec(ca.mtimes(load, U)))
@@ -224,8 +222,8 @@ class NMPC(MPCBase):
         lbX[3:5, 1:], ubX[3:5, 1:] = -lim / self._sx[3:5, None], lim / self._sx[3:5, None]
         self._lbw = np.concatenate([lbX.ravel(order="F"), np.full(NU * N, -np.inf)])
         self._ubw = np.concatenate([ubX.ravel(order="F"), np.full(NU * N, np.inf)])
-        self._lbg = np.concatenate([np.zeros(self._n_dyn), np.zeros(NU * N)])
-        self._ubg = np.concatenate([np.zeros(self._n_dyn), np.ones(NU * N)])
+        self._lbg = np.concatenate([np.zeros(self._n_dyn), np.tile(self.inputs.lower, N)])
+        self._ubg = np.concatenate([np.zeros(self._n_dyn), np.tile(self.inputs.upper, N)])
         self._nX = nx * (N + 1)
         self._lam = None
 
@@ -318,7 +316,7 @@ class NMPC(MPCBase):
                     X, U = self._unpack(self._w)
                     self._w = self._pack(shift_stages(X), shift_stages(U))
                     u = U[1]
-            u = realize(u, self.spec).wrench
+            u = self.inputs.project(u)
         predicted = None if self._w is None else self._unpack(self._w)[0].copy()
         return u, ControlInfo(solve_time_s=tm.elapsed, status="optimal" if ok else status,
                               iterations=int(st.get("iter_count", 0)), predicted=predicted, fallback=fallback,

@@ -69,15 +69,8 @@ def readiness(model) -> dict[str, Readiness]:
     model : mpc.prediction.models.PredictionModel
         Oracle, analytic or ONNX model (already past the contract check).
     """
-    from sim.levels import DEFAULT_LEVEL
-
     from .lqr import LQRController
 
-    level = getattr(model, "level", DEFAULT_LEVEL)
-    if level != DEFAULT_LEVEL:
-        why = (f"its input is at the command level {level!r} (metadata 'level'); the controllers of this version "
-               f"command the wrench level only")
-        return {c: Readiness(c, False, None, why) for c in CONTROLLERS}
     try:
         LQRController(None, model)
     except ConfigurationError as e:

@@ -59,7 +59,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim.params import NU
-from sim.vehicles.rotors import realize
 
 from .base import shift_stages
 from .controller import ControlInfo, Timer, check_state
@@ -539,7 +538,7 @@ class SQPMPC(LTVMPC):
         U = np.empty((N, u_ref.shape[1]))
         X[0] = x
         for k in range(N):
-            U[k] = realize(u_ref[k] - self.lqr.K @ (X[k] - ref[k]), self.spec).wrench
+            U[k] = self.inputs.project(u_ref[k] - self.lqr.K @ (X[k] - ref[k]))
             with np.errstate(all="ignore"):
                 nxt = self.model.step(X[k], U[k])[0]
             X[k + 1] = nxt if np.all(np.isfinite(nxt)) else X[k]

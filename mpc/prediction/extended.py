@@ -39,11 +39,20 @@ EQUILIBRIUM_ITERATIONS = 20
 EQUILIBRIUM_RTOL = 1e-10
 
 
+def free_extra(model) -> np.ndarray:
+    """Indices (into the extra states) of those that come to rest by themselves: all but the model's
+    :attr:`~mpc.prediction.models.PredictionModel.integrators`."""
+    held = set(getattr(model, "integrators", ()))
+    return np.array([i for i, n in enumerate(model.extra_names) if n not in held], dtype=np.intp)
+
+
 def extra_equilibrium(model, x: np.ndarray, u: np.ndarray, e0: np.ndarray | None = None) -> np.ndarray:
     """The model's extra states at rest (K, n_extra) for rigid-body states ``x`` (K, 12) and inputs ``u`` (K, 4).
 
     Solves ``f((x, e), u)[12:] = e`` by Newton's method with the model's
-    Jacobian, from ``e0`` (K, n_extra) or zeros.
+    Jacobian, from ``e0`` (K, n_extra) or zeros. Integrating extra states (an inner loop's integrals,
+    :attr:`~mpc.prediction.models.PredictionModel.integrators`) have no rest value of their own: they keep their
+    value from ``e0``, and the others come to rest with them.
 
     Raises
     ------
@@ -56,38 +65,46 @@ def extra_equilibrium(model, x: np.ndarray, u: np.ndarray, e0: np.ndarray | None
     u = np.atleast_2d(np.asarray(u, dtype=float))
     ne = model.n_extra
     e = np.zeros((len(x), ne)) if e0 is None else np.array(np.broadcast_to(e0, (len(x), ne)), dtype=float)
-    eye = np.eye(ne)
-    r = np.full_like(e, np.inf)
+    free = free_extra(model)
+    if len(free) == 0:
+        return e
+    eye = np.eye(len(free))
+    r = np.full((len(x), len(free)), np.inf)
     for _ in range(EQUILIBRIUM_ITERATIONS):
         with np.errstate(all="ignore"):
             zn, A, _ = model.linearize(np.hstack([x, e]), u)
-        r = zn[:, NX:] - e
+        r = zn[:, NX + free] - e[:, free]
         if not (np.all(np.isfinite(r)) and np.all(np.isfinite(A))):
             raise ConfigurationError(f"model {model.name!r}: its extra states {list(model.extra_names)} are not finite "
                                      f"at rest (state and input held)")
-        if np.all(np.abs(r) <= EQUILIBRIUM_RTOL * np.maximum(np.abs(e), 1.0)):
+        if np.all(np.abs(r) <= EQUILIBRIUM_RTOL * np.maximum(np.abs(e[:, free]), 1.0)):
             return e
         try:
-            e = e + np.linalg.solve(eye - A[:, NX:, NX:], r[:, :, None])[:, :, 0]
+            Aff = A[:, NX + free][:, :, NX + free]
+            e[:, free] = e[:, free] + np.linalg.solve(eye - Aff, r[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError as exc:
             raise ConfigurationError(f"model {model.name!r}: its extra states have no equilibrium with the state and "
                                      f"input held (I - de'/de is singular)") from exc
-    worst = float(np.max(np.abs(r) / np.maximum(np.abs(e), 1.0)))
+    worst = float(np.max(np.abs(r) / np.maximum(np.abs(e[:, free]), 1.0)))
     raise ConfigurationError(f"model {model.name!r}: its extra states {list(model.extra_names)} do not settle with "
                              f"the state and input held (relative change {worst:.2g} after "
                              f"{EQUILIBRIUM_ITERATIONS} Newton steps)")
 
 
-def quasi_steady_input_jacobian(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+def quasi_steady_input_jacobian(A: np.ndarray, B: np.ndarray, free: np.ndarray | None = None) -> np.ndarray:
     """d x_next / d u (K, 12, 4) with the extra states at rest: ``B_x + A_xe (I - A_ee)^-1 B_e``.
 
-    ``A`` (K, nx, nx), ``B`` (K, nx, 4): the model's Jacobians at an equilibrium of its extra states.
+    ``A`` (K, nx, nx), ``B`` (K, nx, 4): the model's Jacobians at an equilibrium of its extra states. ``free``: the
+    indices of the extra states that come to rest (:func:`free_extra`; all when None); the others are held.
     """
     ne = A.shape[1] - NX
     if ne == 0:
         return B
-    de = np.linalg.solve(np.eye(ne) - A[:, NX:, NX:], B[:, NX:, :])     # (K, ne, 4): d e_rest / d u
-    return B[:, :NX, :] + A[:, :NX, NX:] @ de
+    f = np.arange(ne) if free is None else np.asarray(free, dtype=np.intp)
+    if len(f) == 0:
+        return B[:, :NX, :]
+    de = np.linalg.solve(np.eye(len(f)) - A[:, NX + f][:, :, NX + f], B[:, NX + f, :])   # (K, nf, 4): d e_rest / d u
+    return B[:, :NX, :] + A[:, :NX][:, :, NX + f] @ de
 
 
 def extra_scale(model, e_hover: np.ndarray) -> np.ndarray:
@@ -171,4 +188,4 @@ class ExtraStateTracker:
         return None if self._z is None else self._z[NX:].copy()
 
 
-__all__ = ["ExtraStateTracker", "extra_equilibrium", "extra_scale", "quasi_steady_input_jacobian"]
+__all__ = ["ExtraStateTracker", "extra_equilibrium", "extra_scale", "free_extra", "quasi_steady_input_jacobian"]

@@ -52,6 +52,9 @@ class PredictionModel:
     extra_scale: np.ndarray | None = None
     #: The command level of the input ``u`` (:data:`sim.levels.LEVELS`): what the model takes each period.
     level: str = "wrench"
+    #: Names of extra states that integrate (an inner loop's integral): they have no rest value of their own, so
+    #: an equilibrium holds them where they are (:func:`mpc.prediction.extended.extra_equilibrium`).
+    integrators: tuple[str, ...] = ()
 
     @property
     def n_extra(self) -> int:
@@ -109,10 +112,12 @@ class AnalyticModel(PredictionModel):
         command, turned into rotor commands as the plant does.
     """
 
-    def __init__(self, params: QuadParams | None = None, name: str = "oracle", fidelity=None):
+    def __init__(self, params: QuadParams | None = None, name: str = "oracle", fidelity=None, *,
+                 level: str = "wrench", inner_loop=None, exact_loop: bool = False):
         import casadi as ca
 
         from sim.equations.dynamics_casadi import actuated_step_function, step_function
+        from sim.levels import DEFAULT_LEVEL, check_level
         from sim.params import Fidelity
 
         self.params = QuadParams() if params is None else params
@@ -123,15 +128,52 @@ class AnalyticModel(PredictionModel):
         self.fidelity = None if fidelity is None or fidelity.is_nominal else fidelity
         self.name = name
         self.theta = self.params.theta
-        if self.fidelity is not None and self.fidelity.motor_tau > 0.0:
-            self.extra_names = ROTOR_STATE_NAMES
-            self.extra_scale = np.full(4, 0.1 * self.params.n_hover)
-        #: CasADi function ``F(x, u) -> x_next`` (column vectors), for symbolic use (NMPC).
-        self.casadi_step = step_function(self.params) if self.fidelity is None else \
-            actuated_step_function(self.params, self.fidelity)
+        self.level = check_level(level)
+        #: The onboard controller a ``ctbr`` or ``ctatt`` model stands for (None at the wrench level), and whether the
+        #: model is that loop exactly (the oracle) or its nominal response.
+        self.inner_loop, self.exact_loop = inner_loop, bool(exact_loop)
+        if self.level != DEFAULT_LEVEL:
+            self._level_model()
+        else:
+            if self.fidelity is not None and self.fidelity.motor_tau > 0.0:
+                self.extra_names = ROTOR_STATE_NAMES
+                self.extra_scale = np.full(4, 0.1 * self.params.n_hover)
+            #: CasADi function ``F(x, u) -> x_next`` (column vectors), for symbolic use (NMPC).
+            self.casadi_step = step_function(self.params) if self.fidelity is None else \
+                actuated_step_function(self.params, self.fidelity)
         self._theta = ca.DM(self.params.theta)
-        self._step, self._lin = _numeric_functions(self.params, self.fidelity)
+        self._step, self._lin = _numeric_functions(self.params, self.fidelity, self._level_key())
         self._maps: dict = {}
+
+    def _level_model(self) -> None:
+        """Set up the ``ctbr`` or ``ctatt`` model: the nominal response of :attr:`inner_loop`, or the loop exactly."""
+        from sim.equations.levels_casadi import (INTEGRATOR_NAMES, inner_loop_extra_names, inner_loop_step_function,
+                                                 level_step_function)
+        from sim.vehicles.onboard import InnerLoopConfig
+
+        if not isinstance(self.inner_loop, InnerLoopConfig):
+            raise ModelContractError(f"a model at the {self.level!r} level needs the vehicle's inner loop (an "
+                                     f"InnerLoopConfig); found {type(self.inner_loop).__name__}")
+        if self.fidelity is not None:
+            raise ModelContractError(f"the equations at the {self.level!r} level are the nominal rigid body's; the "
+                                     f"high-fidelity effects are not modelled at this level")
+        if self.exact_loop:
+            self.extra_names = inner_loop_extra_names(self.inner_loop, self.level)
+            self.integrators = tuple(n for n in self.extra_names if n in INTEGRATOR_NAMES)
+            if self.extra_names:
+                #: Integrals 0.05 rad (rad s), errors 1 rad/s: what the loop's memory may be off by.
+                self.extra_scale = np.array([0.05 if n.startswith("i_") else 1.0 for n in self.extra_names])
+            self.casadi_step = inner_loop_step_function(self.params, self.level, self.inner_loop)
+        else:
+            #: The assumed response of the closed inner loop (:class:`sim.vehicles.onboard.LoopResponse`).
+            self.response = self.inner_loop.response()
+            self.casadi_step = level_step_function(self.params, self.level, self.response)
+
+    def _level_key(self):
+        """What selects the compiled equations besides the rigid body's numbers (None at the wrench level)."""
+        if self.level == "wrench":
+            return None
+        return (self.level, self.inner_loop if self.exact_loop else self.response, self.exact_loop)
 
     def reference_states(self, trajectory, times) -> np.ndarray | None:
         """The model's own reference (K, nx) along a flat ``trajectory`` at ``times`` (K,), or None.
@@ -193,32 +235,46 @@ ROTOR_STATE_NAMES = ("n1", "n2", "n3", "n4")
 _NUMERIC: dict = {}
 
 
-def _numeric_functions(params: QuadParams, fidelity=None):
+def _numeric_functions(params: QuadParams, fidelity=None, level=None):
     """Compiled ``step(x, u, theta)`` and ``lin(x, u, theta) -> (x_next, A, B)`` of the equations.
 
     ``theta`` is an input, so one compiled library serves every parameter
     set that differs only in ``(m, Jxx, Jyy, Jzz, kt, kq)``; ``fidelity`` (a
-    non-nominal :class:`sim.params.Fidelity`) selects the high-fidelity equations.
+    non-nominal :class:`sim.params.Fidelity`) selects the high-fidelity equations; ``level``, None at the wrench
+    level, else ``(level, response or inner-loop config, exact)`` (:meth:`AnalyticModel._level_key`), the equations
+    at a command level.
     """
     from sim.equations.compiled import compiled
 
     key = tuple(getattr(params, n) for n in ("g", "c_d", "d"))
     if fidelity is not None:
         key += (params.n_max_sq, fidelity.motor_tau, fidelity.rotor_drag, fidelity.rotor_gyro)
+    if level is not None:
+        key += (params.n_max_sq, level)
     if key not in _NUMERIC:
-        step, lin = numeric_sources(params, fidelity)
+        step, lin = numeric_sources(params, fidelity, level)
         _NUMERIC[key] = (compiled(step), compiled(lin))
     return _NUMERIC[key]
 
 
-def numeric_sources(params: QuadParams, fidelity=None):
+def numeric_sources(params: QuadParams, fidelity=None, level=None):
     """The CasADi ``step`` and ``lin`` of :func:`_numeric_functions` before compilation (to precompile them)."""
     import casadi as ca
 
     from sim.equations.dynamics_casadi import actuated_step_function, step_function
 
     sym = ca.SX
-    if fidelity is None or fidelity.is_nominal:
+    if level is not None:
+        from sim.equations.levels_casadi import inner_loop_step_function, level_step_function
+
+        lv, how, exact = level
+        if exact:
+            # Composed of loop-period calls (MX): its Jacobian's C code is a fraction of the expanded one's.
+            F = inner_loop_step_function(params, lv, how, symbolic_theta=True, composed=True)
+            name, sym = f"pinnmpc_{lv}_loop", ca.MX
+        else:
+            F, name = level_step_function(params, lv, how, symbolic_theta=True), f"pinnmpc_{lv}"
+    elif fidelity is None or fidelity.is_nominal:
         F, name = step_function(params, symbolic_theta=True), "pinnmpc"
     else:
         # Composed of substep calls: the expanded form's Jacobian is 3 MB of C and takes about 50 s to compile; this
@@ -454,17 +510,60 @@ def model_params(model: str, plant: str, vehicle) -> QuadParams:
     return p.with_theta([getattr(p, n) * factors.get(n, 1.0) for n in THETA_NAMES])
 
 
-def flown_model(model: str, plant: str, vehicle, high_fidelity: bool = False) -> PredictionModel:
-    """The prediction model ``model`` flown on ``plant`` with ``vehicle``: an equation model
-    (:data:`EQUATION_MODELS`, ``analytic:...``; :func:`model_params`) or the ONNX file ``model``.
+def flown_model(model: str, plant: str, vehicle, high_fidelity: bool = False,
+                level: str = "wrench") -> PredictionModel:
+    """The prediction model ``model`` flown on ``plant`` with ``vehicle`` at command level ``level``: an equation
+    model (:data:`EQUATION_MODELS`, ``analytic:...``; :func:`model_params`) or the ONNX file ``model``.
 
     ``high_fidelity``: the equation model is the plant's high-fidelity equations, the vehicle's motor lag (four
     rotor-speed states), rotor drag and gyroscopic torque with the rigid body.
+
+    At ``ctbr`` or ``ctatt`` (:mod:`sim.levels`) the equations take the command at that level: ``oracle`` is the
+    plant's equations with the vehicle's inner loop exactly (its discrete controller stepped inside the period, its
+    memory as extra states: :func:`sim.equations.levels_casadi.inner_loop_step_function`); ``nominal`` and
+    ``analytic:...`` the rigid body with the loop's assumed response (:meth:`sim.vehicles.onboard.InnerLoopConfig.response`).
+    An ONNX file must declare the level (its metadata ``level``).
+
+    Raises
+    ------
+    ConfigurationError
+        At ``ctbr`` or ``ctatt``: the vehicle has no inner loop, the oracle is asked of a plant whose loop is not this
+        project's or of the high-fidelity set-up, or the file's level is another.
     """
-    if is_equation_model(model):
-        return AnalyticModel(model_params(model, plant, vehicle), name=model_name(model),
-                             fidelity=vehicle.fidelity if high_fidelity else None)
-    return load_model(model)
+    from sim.levels import DEFAULT_LEVEL, check_level
+
+    from ..errors import ConfigurationError
+
+    try:
+        check_level(level)
+    except Exception as e:
+        raise ConfigurationError(str(e)) from None
+    if level == DEFAULT_LEVEL:
+        if is_equation_model(model):
+            return AnalyticModel(model_params(model, plant, vehicle), name=model_name(model),
+                                 fidelity=vehicle.fidelity if high_fidelity else None)
+        loaded = load_model(model)
+        if loaded.level != level:
+            raise ConfigurationError(f"model {model!r} takes commands at the {loaded.level!r} level (metadata 'level'); "
+                                     f"this run flies at {level!r}: fly it with --level {loaded.level}")
+        return loaded
+    if not is_equation_model(model):
+        loaded = load_model(model)
+        if loaded.level != level:
+            raise ConfigurationError(f"model {model!r} takes commands at the {loaded.level!r} level (metadata 'level'), "
+                                     f"not at {level!r}: a model flies only at the level it declares")
+        return loaded
+    if vehicle.inner_loop is None:
+        raise ConfigurationError(f"vehicle {vehicle.name!r} has no inner loop: its file gives no [inner_loop] table "
+                                 f"(inner_loop.rate_kp is missing), so it cannot be flown at the {level!r} level")
+    exact = model == "oracle"
+    if exact and (plant != "sim" or high_fidelity):
+        raise ConfigurationError(
+            f"the oracle at the {level!r} level is this project's plant with its own inner loop, nominal set-up: "
+            f"{'the high-fidelity set-up' if plant == 'sim' else f'plant {plant!r}'} has no such equations here; "
+            f"fly --model nominal (the rigid body with the loop's assumed response)")
+    return AnalyticModel(model_params(model, plant, vehicle), name=model_name(model), level=level,
+                         inner_loop=vehicle.inner_loop, exact_loop=exact)
 
 
 class LinearModel(PredictionModel):

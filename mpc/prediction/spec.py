@@ -43,13 +43,15 @@ SPEC_FIELDS = ("m", "Jxx", "Jyy", "Jzz", "kt", "kq", "d", "n_max", "g", "c_d")
 
 def datasheet(vehicle=None) -> dict:
     """The datasheet values of ``vehicle`` (a :class:`sim.vehicles.vehicle.Vehicle`, name or file; default vehicle if
-    None)."""
+    None), with its largest rate and tilt commands where it has an inner loop."""
     from sim.vehicles.vehicle import load_vehicle
 
     v = load_vehicle(vehicle)
     p = v.params
+    loop = v.inner_loop
     return {"m": p.m, "Jxx": p.Jxx, "Jyy": p.Jyy, "Jzz": p.Jzz, "kt": p.kt, "kq": p.kq, "d": p.d,
-            "n_max": v.n_max_value, "g": p.g, "c_d": p.c_d}
+            "n_max": v.n_max_value, "g": p.g, "c_d": p.c_d,
+            "max_rate": None if loop is None else loop.max_rate, "max_tilt": None if loop is None else loop.max_tilt}
 
 
 @dataclass(frozen=True)
@@ -74,6 +76,8 @@ class VehicleSpec:
     source: str = "datasheet"     # where m, J, kt, kq came from
     vehicle: str = ""             # the vehicle whose datasheet filled the rest
     torque_scale: float | None = None  # acceptable torque deviation of the controllers' weights, N m (see below)
+    max_rate: float | None = None   # largest body-rate command of the vehicle's inner loop, rad/s (None: no loop)
+    max_tilt: float | None = None   # largest roll or pitch command of the vehicle's inner loop, rad (None: no loop)
 
     def __post_init__(self):
         missing = [n for n in SPEC_FIELDS if getattr(self, n) is None]
@@ -81,6 +85,9 @@ class VehicleSpec:
             sheet = datasheet()
             for n in missing:
                 object.__setattr__(self, n, sheet[n])
+            if len(missing) == len(SPEC_FIELDS) and self.max_rate is None and self.max_tilt is None:
+                object.__setattr__(self, "max_rate", sheet["max_rate"])
+                object.__setattr__(self, "max_tilt", sheet["max_tilt"])
             if not self.vehicle:
                 from sim.vehicles.vehicle import DEFAULT_VEHICLE
                 object.__setattr__(self, "vehicle", DEFAULT_VEHICLE)
@@ -92,6 +99,11 @@ class VehicleSpec:
                 bound = ">= 0" if low_ok else "> 0"
                 raise ConfigurationError(f"VehicleSpec.{name} must be a finite number {bound}; found {v!r}")
             object.__setattr__(self, name, float(v))
+        for name in ("max_rate", "max_tilt"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)
+                                  or v <= 0):
+                raise ConfigurationError(f"VehicleSpec.{name} must be None or a finite number > 0; found {v!r}")
         if self.torque_scale is None:
             object.__setattr__(self, "torque_scale", torque_scale(self.kt, self.n_max, self.d))
         elif not (isinstance(self.torque_scale, (int, float)) and math.isfinite(self.torque_scale)
@@ -144,3 +156,87 @@ class VehicleSpec:
     def weight(self) -> float:
         """m g, N (scales the thrust weight and the thrust variable of the NMPC)."""
         return self.m * self.g
+
+    def inputs(self, level: str = "wrench") -> "InputSet":
+        """The inputs a controller may command at ``level`` (:data:`sim.levels.LEVELS`): :class:`InputSet`."""
+        return InputSet(self, level)
+
+
+#: Share of the rotors' total thrust a controller may command at the ``ctbr`` and ``ctatt`` levels: the rest is left
+#: to the inner loop's torques.
+THRUST_HEADROOM = 0.9
+#: Acceptable deviations of the commanded rates (rad/s) and angles (rad): those of the states they command (the
+#: default state weights').
+RATE_SCALE, TILT_SCALE = 1.0, 0.2
+
+
+class InputSet:
+    """What a controller may command at one level: ``lower <= matrix @ u <= upper``, its projection and its scales.
+
+    * ``wrench``: the rotor-feasible set, each rotor's load ``n_i^2 / n_max^2`` between 0 and 1
+      (:func:`sim.vehicles.rotors.load_matrix`); the projection is the rotors' own (:func:`sim.vehicles.rotors.realize`).
+    * ``ctbr``: thrust from 0 to :data:`THRUST_HEADROOM` of the rotors' total, each rate within the vehicle's
+      ``max_rate``; ``ctatt``: the same thrust, roll and pitch within ``max_tilt``, the yaw rate within ``max_rate``.
+      The projection clips each input.
+
+    Parameters
+    ----------
+    spec : VehicleSpec
+    level : str
+
+    Attributes
+    ----------
+    matrix : ndarray (4, 4)
+    lower, upper : ndarray (4,)
+    scale : ndarray (4,)
+        Acceptable deviations of each input (the controllers' input weights are ``1 / scale^2``): thrust 0.2 m g;
+        torques the spec's ``torque_scale``; rates :data:`RATE_SCALE`, angles :data:`TILT_SCALE`.
+
+    Raises
+    ------
+    ConfigurationError
+        At ``ctbr`` or ``ctatt`` for a vehicle that states no ``max_rate`` (or ``max_tilt``): no inner loop.
+    """
+
+    def __init__(self, spec: VehicleSpec, level: str = "wrench"):
+        from sim.levels import check_level
+        from sim.vehicles.rotors import load_matrix
+
+        from ..errors import ConfigurationError as _CE
+        try:
+            self.level = check_level(level)
+        except Exception as e:
+            raise _CE(str(e)) from None
+        self.spec = spec
+        thrust_scale = 0.2 * spec.m * spec.g
+        if level == "wrench":
+            self.matrix, self.lower, self.upper = load_matrix(spec), np.zeros(4), np.ones(4)
+            self.scale = np.array([thrust_scale] + [spec.torque_scale] * 3)
+            return
+        need = ("max_rate",) if level == "ctbr" else ("max_rate", "max_tilt")
+        for name in need:
+            if getattr(spec, name) is None:
+                raise _CE(f"vehicle {spec.vehicle!r} has no inner loop (its file gives no [inner_loop] table with "
+                          f"inner_loop.rate_kp and inner_loop.{name}), so it cannot be flown at the {level!r} level")
+        t_max = THRUST_HEADROOM * 4.0 * spec.kt * spec.n_max_sq
+        limits = (np.array([t_max, spec.max_rate, spec.max_rate, spec.max_rate]) if level == "ctbr" else
+                  np.array([t_max, spec.max_tilt, spec.max_tilt, spec.max_rate]))
+        self.matrix = np.diag(1.0 / limits)
+        self.lower, self.upper = np.array([0.0, -1.0, -1.0, -1.0]), np.ones(4)
+        self.scale = (np.array([thrust_scale, RATE_SCALE, RATE_SCALE, RATE_SCALE]) if level == "ctbr" else
+                      np.array([thrust_scale, TILT_SCALE, TILT_SCALE, RATE_SCALE]))
+        self._low, self._high = limits * self.lower, limits * self.upper
+
+    def project(self, u) -> np.ndarray:
+        """``u`` (4,) if it may be commanded, else its projection onto the set."""
+        u = np.asarray(u, dtype=float)
+        if self.level == "wrench":
+            from sim.vehicles.rotors import realize
+
+            return realize(u, self.spec).wrench
+        return np.clip(u, self._low, self._high)
+
+    def contains(self, u, tol: float = 1e-9) -> bool:
+        """True when ``u`` (4,) lies in the set (within ``tol`` of each row's bounds)."""
+        r = self.matrix @ np.asarray(u, dtype=float)
+        return bool(np.all(r >= self.lower - tol) and np.all(r <= self.upper + tol))

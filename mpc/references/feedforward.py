@@ -39,7 +39,7 @@ import numpy as np
 from sim.params import DT, NU, NX
 
 from ..errors import ConfigurationError
-from .trajectory import FlatTrajectory, Hover, StateReference, flat_state, held_wrench
+from .trajectory import FlatTrajectory, Hover, StateReference, flat_state, held_input
 
 #: Gauss-Newton iterations of the fit (it stops earlier when the step is below STEP_TOL, in input scales).
 FIT_ITERATIONS = 2
@@ -96,7 +96,7 @@ def _fit(model, x0, x1, u_guess, w, u_scale, iterations=FIT_ITERATIONS):
     included (for a model that gives its own reference); of width 12: the rigid body, with the extra states at
     rest for each input.
     """
-    from ..prediction.extended import extra_equilibrium, quasi_steady_input_jacobian
+    from ..prediction.extended import extra_equilibrium, free_extra, quasi_steady_input_jacobian
 
     u = np.array(u_guess, dtype=float, copy=True)
     extended = model.n_extra > 0 and x0.shape[1] == NX
@@ -106,7 +106,7 @@ def _fit(model, x0, x1, u_guess, w, u_scale, iterations=FIT_ITERATIONS):
             if extended:
                 e = extra_equilibrium(model, x0, u, e)
                 fx, A, B = model.linearize(np.hstack([x0, e]), u)
-                fx, B = fx[:, :NX], quasi_steady_input_jacobian(A, B)
+                fx, B = fx[:, :NX], quasi_steady_input_jacobian(A, B, free_extra(model))
             else:
                 fx, _, B = model.linearize(x0, u)
         r = fx - x1
@@ -247,6 +247,9 @@ class FeedForward:
         """The reference's extra states up to period ``k_max`` (computed once, in order)."""
         from ..prediction.extended import extra_equilibrium
 
+        if self.sequential:
+            self._extend_sequential(k_max)
+            return
         k0 = len(self._extras)
         if k0 > k_max:
             return
@@ -267,7 +270,48 @@ class FeedForward:
         """Feed-forward inputs (K, 4) for the periods starting at ``times`` (K,), s (fitted once, cached)."""
         return self._cached(self._inputs, times, self._compute_inputs).reshape(-1, NU)
 
+    @property
+    def sequential(self) -> bool:
+        """True when the model integrates some of its extra states (an inner loop's integrals,
+        :attr:`mpc.prediction.models.PredictionModel.integrators`): then the inputs and the extra states along the
+        reference are fitted together, period after period (:meth:`_extend_sequential`), since an integral's value
+        depends on every input before it."""
+        return bool(getattr(self.model, "integrators", ())) and not self.model_reference
+
+    def _extend_sequential(self, k_max: int) -> None:
+        """The reference's extra states up to period ``k_max`` + 1 and its inputs up to ``k_max``, in order: each
+        input fitted from the full state the previous ones left (the rigid body's reference, the extra states the
+        model carried along it), each next extra state the model's."""
+        k0 = max(len(self._extras) - 1, 0)
+        if len(self._extras) == 0:
+            self._extras.append(self.trim_extra.copy())
+        if len(self._extras) > k_max + 1:
+            return
+        times = self.dt * np.arange(k0, k_max + 2)
+        xs = self.states(times)
+        flat = self.is_flat
+        guess = held_input(self.trajectory, times[:-1], self.spec, self.dt, self.model.level) if flat else \
+            np.tile(self.trim, (len(times) - 1, 1))
+        w = np.concatenate([self.w, np.zeros(self.model.n_extra)])
+        keys = self._keys(times[:-1])
+        e = self._extras[k0]
+        for i in range(len(times) - 1):
+            z = np.concatenate([xs[i], e])[None]
+            x1 = np.concatenate([xs[i + 1], e])[None]
+            u = _fit(self.model, z, x1, guess[i:i + 1], w, self.u_scale, MODEL_REFERENCE_FIT_ITERATIONS)[0]
+            with np.errstate(all="ignore"):
+                e = self.model.step(z, u)[0, NX:]
+            self._inputs[int(keys[i])] = u[0]
+            self._extras.append(e)
+
     def _compute_inputs(self, t: np.ndarray) -> np.ndarray:
+        if self.sequential:
+            k = np.round(t / self.dt).astype(np.int64)
+            if np.any(k < 0) or np.any(np.abs(k * self.dt - t) > 1e-9):
+                raise ConfigurationError("a model with integrating extra states has its feed-forward on the control "
+                                         "grid only (times k dt, k >= 0)")
+            self._extend_sequential(int(np.max(k)))
+            return np.array([self._inputs[int(kk)] for kk in self._keys(t)])
         if self.model_reference:
             # The model's own reference, extra states included: the fit carries the whole state from one period to
             # the next, so a lagging motor is commanded ahead of time.
@@ -275,11 +319,11 @@ class FeedForward:
 
             x0, x1 = self.full_states(t), self.full_states(t + self.dt)
             w = np.concatenate([self.w, 1.0 / extra_scale(self.model, self.trim_extra) ** 2])
-            guess = held_wrench(self.trajectory, t, self.spec, self.dt)
+            guess = held_input(self.trajectory, t, self.spec, self.dt, self.model.level)
             return _fit(self.model, x0, x1, guess, w, self.u_scale, MODEL_REFERENCE_FIT_ITERATIONS)[0]
         x0, x1 = self.states(t), self.states(t + self.dt)
         if self.is_flat:
-            guess = held_wrench(self.trajectory, t, self.spec, self.dt)
+            guess = held_input(self.trajectory, t, self.spec, self.dt, self.model.level)
         else:
             guess = np.tile(self.trim, (len(t), 1))
         return fit_inputs(self.model, x0, x1, guess, self.w, self.u_scale)

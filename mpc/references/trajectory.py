@@ -378,6 +378,21 @@ def held_wrench(traj: FlatTrajectory, times, spec=None, dt: float = DT) -> np.nd
     return np.einsum("kjn,j->kn", u.reshape(t.size, 3, NU), _GL_WEIGHTS)
 
 
+def held_input(traj: FlatTrajectory, times, spec=None, dt: float = DT, level: str = "wrench") -> np.ndarray:
+    """The input (K, 4) at command level ``level`` to hold over each ``[t_k, t_k + dt)``: the interval mean (as
+    :func:`held_wrench`) of the flatness map's thrust and, after it, its torques (``wrench``), its body rates
+    (``ctbr``), or its roll, pitch and yaw rate (``ctatt``). A first guess that the controllers' fit through their
+    model refines (:mod:`mpc.references.feedforward`)."""
+    if level == "wrench":
+        return held_wrench(traj, times, spec, dt)
+    t = _times(times)
+    tt = (t[:, None] + dt * _GL_NODES[None, :]).ravel()
+    x, u = flat_state(traj.flat(tt), spec)
+    cols = (6, 7, 8) if level == "ctbr" else (3, 4, 8)
+    v = np.hstack([u[:, :1], x[:, cols]])
+    return np.einsum("kjn,j->kn", v.reshape(t.size, 3, NU), _GL_WEIGHTS)
+
+
 def reference_spec(plant: str, vehicle):
     """The vehicle numbers of the flatness map that makes a reference feasible on ``plant`` (a name of
     :data:`sim.plants.named.PLANTS`) flying ``vehicle``: the vehicle's, with the drag of the plant's own equations

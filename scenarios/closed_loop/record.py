@@ -88,6 +88,7 @@ class RunRecord(Mapping):
     vehicle: Any = _absent()
     estimator: Any = _absent()
     qp: Any = _absent()
+    level: Any = _absent()
     inputs_sha256: Any = _absent()
     gust_peak_error_m: Any = _absent()
     recovery_time_s: Any = _absent()
@@ -182,6 +183,7 @@ def not_flown(spec, error: str) -> RunRecord:
     metrics null, ``error`` the reason (one line)."""
     return RunRecord(run_id=spec.run_id, scenario=spec.scenario_name, controller=spec.controller,
                      model=spec.model_name, plant=spec.plant, vehicle=spec.vehicle_data.name, qp=spec.qp_solver,
+                     level=spec.level,
                      **NOT_FLOWN, error=error, inputs_sha256=input_hashes(spec))
 
 
@@ -272,6 +274,8 @@ def cache_key(spec, inputs: dict | None = None) -> str:
     if spec.qp_solver not in (None, DEFAULT_QP):
         # Only where it is not OSQP, the solver of every run before the choice: an OSQP run keeps its identity.
         ident["qp"] = spec.qp_solver
+    if spec.level != "wrench":
+        ident["level"] = spec.level       # likewise: a wrench run keeps its identity
     return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
 
 

@@ -34,6 +34,7 @@ from mpc.controllers.factory import CONTROLLERS, DEFAULT_QP, HORIZON, QP_CONTROL
 from mpc.prediction.models import EQUATION_MODELS, flown_model, model_name, model_params
 from mpc.references.trajectory import flown_reference, reference_spec
 from sim.params import DT
+from sim.levels import DEFAULT_LEVEL, LEVELS
 from sim.plants.named import PLANTS
 
 from ..errors import ScenarioError
@@ -75,7 +76,7 @@ def load_run_model(spec: "RunSpec"):
     vehicle's motor lag (four rotor-speed states), rotor drag and gyroscopic torque.
     """
     hifi = spec.model == "oracle" and high_fidelity_equations(spec.model, spec.plant, get_scenario(spec.scenario))
-    return flown_model(spec.model, spec.plant, spec.vehicle_data, high_fidelity=hifi)
+    return flown_model(spec.model, spec.plant, spec.vehicle_data, high_fidelity=hifi, level=spec.level)
 
 
 @dataclass(frozen=True)
@@ -88,7 +89,8 @@ class RunSpec:
     vehicle's name or a vehicle file (None: the default vehicle); ``qp`` the
     QP solver of the LTV-MPC and the SQP (:data:`mpc.controllers.dense_qp.QP_SOLVERS`: ``"osqp"``
     or ``"daqp"``, the dense path), which the other controllers have no use
-    for (see :attr:`qp_solver`).
+    for (see :attr:`qp_solver`); ``level`` the command level (:data:`sim.levels.LEVELS`): at ``ctbr`` and ``ctatt``
+    the controller sends that command and the plant flies it through the vehicle's inner loop.
     """
 
     scenario: str
@@ -102,6 +104,7 @@ class RunSpec:
     vehicle: str | None = None    # vehicle name or file; None: the default vehicle
     estimator: str = "none"       # "none" (the state, plus the scenario's noise) or "ekf" (sensors and a filter)
     qp: str = DEFAULT_QP          # QP solver of the LTV-MPC and the SQP: "osqp" or "daqp"
+    level: str = DEFAULT_LEVEL    # command level: "wrench", "ctbr" or "ctatt"
 
     def __post_init__(self):
         from sim.vehicles.vehicle import load_vehicle
@@ -127,6 +130,12 @@ class RunSpec:
 
         if self.qp not in QP_SOLVERS:
             raise ScenarioError(f"qp must be one of {', '.join(QP_SOLVERS)}; found {self.qp!r}")
+        if not isinstance(self.level, str) or self.level not in LEVELS:
+            raise ScenarioError(f"level must be one of {', '.join(LEVELS)}; found {self.level!r}")
+        if self.level != DEFAULT_LEVEL and self._vehicle.inner_loop is None:
+            raise ScenarioError(f"vehicle {self._vehicle.name!r} has no inner loop: its file gives no [inner_loop] "
+                                f"table (inner_loop.rate_kp is missing), so it cannot be flown at the {self.level!r} "
+                                f"level")
         sc = get_scenario(self.scenario)  # raises for an unknown name or a bad scenario file
         object.__setattr__(self, "_scenario_name", sc.name)
         if sc.high_fidelity and self.plant != "sim":
@@ -149,6 +158,11 @@ class RunSpec:
                 raise ScenarioError(f"model file {self.model!r} does not exist")
         elif self.model == "oracle":
             model_params(self.model, self.plant, self._vehicle)   # raises where the plant has no known equations
+            if self.level != DEFAULT_LEVEL and (self.plant != "sim" or sc.high_fidelity):
+                raise ScenarioError(f"the oracle at the {self.level!r} level is the reference simulator with its own "
+                                    f"inner loop, nominal set-up; {self.plant!r}"
+                                    f"{' with the high-fidelity set-up' if sc.high_fidelity else ''} has no such "
+                                    f"equations here: fly --model nominal")
 
     @property
     def model_name(self) -> str:
@@ -194,6 +208,8 @@ class RunSpec:
             base += f"__{self.estimator}"
         if self.qp_solver not in (None, DEFAULT_QP):
             base += f"__{self.qp_solver}"
+        if self.level != DEFAULT_LEVEL:
+            base += f"__{self.level}"
         return base if self.timing == "ideal" else f"{base}__{self.timing}"
 
 
@@ -266,8 +282,11 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
     own = scenario is None and model is None      # all that is flown comes from the spec (and its files)
     if model is None:
         model = load_run_model(spec)      # contract errors raise here, before anything flies
+    if model.level != spec.level:
+        raise ScenarioError(f"model {model.name!r} takes commands at the {model.level!r} level; the run flies at "
+                            f"{spec.level!r}")
     vehicle = spec.vehicle_data
-    plant = sc.plant(spec.plant, vehicle)  # a missing RotorPy raises here, before anything flies
+    plant = sc.plant(spec.plant, vehicle, spec.level)  # a missing RotorPy raises here, before anything flies
     K = sc.steps
     t_all = DT * np.arange(K + 1)
     # The scenario's offsets from its reference at t = 0 are kept; the reference part of its start is the one this
@@ -343,7 +362,7 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
         run_id=spec.run_id, scenario=sc.name, controller=spec.controller, model=spec.model_name,
         model_file=None if sha is None else str(spec.model), model_sha256=sha, seed=sc.seed, member=spec.member,
         horizon=spec.horizon, timing=spec.timing, plant=spec.plant, vehicle=vehicle.name, estimator=spec.estimator,
-        qp=flown_qp(spec, sqp), inputs_sha256=inputs, **metrics,
+        qp=flown_qp(spec, sqp), level=spec.level, inputs_sha256=inputs, **metrics,
         shifted_plan=int(np.sum(failed & ~lqr_fb)), deadline_fallbacks=late, failure_causes=causes,
         preflight=None if pre is None else {"iterations": int(pre.iterations), "status": pre.status},
         preflight_ms=None if pre is None else 1e3 * pre.solve_time_s, error=error, wall_time_s=wall,

@@ -253,13 +253,14 @@ class Scenario:
             return parts[0]
         return lambda t: parts[0](t) + parts[1](t)
 
-    def plant(self, name: str, vehicle):
+    def plant(self, name: str, vehicle, level: str = "wrench"):
         """The plant ``name`` (:data:`sim.plants.named.PLANTS`) flying ``vehicle`` with this scenario's
-        high-fidelity set-up, payload and disturbances."""
+        high-fidelity set-up, payload and disturbances, taking commands at ``level`` (:mod:`sim.levels`; at ``ctbr``
+        and ``ctatt`` through the vehicle's inner loop)."""
         from sim.plants.named import make_plant
 
         return make_plant(name, vehicle, high_fidelity=self.high_fidelity,
-                          payload_kg=self.payload_fraction * vehicle.m, wind=self.disturbance())
+                          payload_kg=self.payload_fraction * vehicle.m, wind=self.disturbance(), level=level)
 
     def start_state(self, spec, x_ref0: np.ndarray | None = None) -> np.ndarray:
         """The initial state (12,) on the reference the plant flies.

@@ -37,13 +37,30 @@ def known_equations(name: str, params: QuadParams) -> QuadParams | None:
 
 
 def make_plant(name: str = "sim", vehicle=None, *, high_fidelity: bool = False, payload_kg: float = 0.0,
-               wind: WindFn | None = None) -> Plant:
+               wind: WindFn | None = None, level: str = "wrench") -> Plant:
     """The plant called ``name`` (one of :data:`PLANTS`) flying ``vehicle`` (a :class:`Vehicle`, name or file).
 
     ``high_fidelity`` switches on the vehicle's motor lag, rotor drag and gyroscopic torque in the reference
     simulator (the ``+highfi`` scenarios); RotorPy's plants have their own set-ups and refuse it.
+
+    ``level`` (:mod:`sim.levels`): the command the plant takes. At ``ctbr`` and ``ctatt`` the reference simulator
+    flies it through the vehicle's inner loop (:class:`sim.plants.inner_loop.InnerLoopPlant`, the vehicle file's
+    ``[inner_loop]``); a vehicle without one is refused.
     """
+    from ..levels import DEFAULT_LEVEL, check_level
+
     vehicle = load_vehicle(vehicle)
+    check_level(level)
+    if level != DEFAULT_LEVEL:
+        if vehicle.inner_loop is None:
+            raise SimInputError(f"vehicle {vehicle.name!r} has no inner loop: its file gives no [inner_loop] table "
+                                f"(inner_loop.rate_kp is missing), so it cannot be flown at the {level!r} level")
+        if name != "sim":
+            raise SimInputError(f"plant {name!r} does not take commands at the {level!r} level yet")
+        from .inner_loop import InnerLoopPlant
+
+        base = make_plant(name, vehicle, high_fidelity=high_fidelity, payload_kg=payload_kg, wind=wind)
+        return InnerLoopPlant(base, vehicle.inner_loop, level)
     if name == "sim":
         return SimPlant(vehicle, vehicle.fidelity if high_fidelity else NOMINAL, payload_kg=payload_kg, wind=wind)
     if name in ("rotorpy", "rotorpy-ideal"):

@@ -1,0 +1,187 @@
+"""Flying at the ctbr and ctatt command levels: the per-level models against the plant with its inner loop, the
+controllers on them, the refusals.
+
+* The oracle at a level (``sim.equations.levels_casadi.inner_loop_step_function``) is the plant's own inner loop
+  stepped inside the period: it must equal the reference simulator flown through
+  ``sim.plants.inner_loop.InnerLoopPlant`` to rounding, with the loop's integrals and last error as its extra states.
+* The nominal models (first-order rates, second-order attitude) are the continuous-time limit of a P loop: one
+  period of them against the plant with that loop differs by a share of the period's change that halves when the
+  loop's rate doubles.
+* The oracle flown by the SQP and the LTV-MPC tracks ``figure8-fast`` within 1 mm at both levels.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from sim.equations.levels_casadi import inner_loop_extra_names, inner_loop_step_function, level_step_function
+from sim.plants.inner_loop import InnerLoopPlant
+from sim.plants.named import make_plant
+from sim.vehicles.onboard import InnerLoopConfig
+from sim.vehicles.vehicle import load_vehicle
+
+TOL = {
+    "exact": 1e-12,          # oracle vs plant over 50 periods, any state entry (rounding only)
+    "nominal_rel": 0.07,     # nominal vs plant with a matched P loop at 1 kHz: rate error / the period's rate change
+    "nominal_angle": 3e-4,   # the same, largest angle error after one period, rad
+    "order": (1.8, 2.3),     # the error ratio when the loop's rate doubles (first order in its period: 2)
+    "track_m": 1e-3,         # the oracle's RMSE on figure8-fast, m
+}
+SHIPPED = ("crazyflie", "crazyflie-brushless", "hummingbird", "rolling-spider")
+LEVELS = ("ctbr", "ctatt")
+#: Another rate and other gains than any shipped vehicle's: 100 Hz, a D term (the last error as an extra state).
+OTHER_LOOP = InnerLoopConfig(rate_hz=100.0, rate_kp=(50.0, 50.0, 25.0), rate_ki=(100.0, 100.0, 20.0),
+                             rate_kd=(0.3, 0.3, 0.0), rate_i_limit=(0.4, 0.4, 1.0), att_kp=(5.0, 5.0),
+                             att_ki=(2.0, 2.0), att_i_limit=(0.2, 0.2), max_rate=8.0, max_tilt=0.7,
+                             source="a test: 100 Hz with a D term")
+
+
+def _random_flight(vehicle, level, seed=0, periods=50):
+    """Commands (periods, 4) and start state (12,) of a tumbling flight."""
+    rng = np.random.default_rng(seed)
+    x0 = np.zeros(12)
+    x0[2], x0[3], x0[6] = -1.0, 0.1, 0.3
+    u = np.column_stack([vehicle.m * 9.81 * rng.uniform(0.9, 1.2, periods), rng.normal(0, 0.5, (periods, 3))])
+    if level == "ctatt":
+        u[:, 1:3] *= 0.3
+    return x0, u
+
+
+@pytest.mark.parametrize("level", LEVELS)
+@pytest.mark.parametrize("name", SHIPPED + ("other",))
+def test_the_oracle_at_a_level_is_the_plant_with_its_inner_loop_to_rounding(name, level):
+    v = load_vehicle("crazyflie").replace(inner_loop=OTHER_LOOP) if name == "other" else load_vehicle(name)
+    c = v.inner_loop
+    F = inner_loop_step_function(v.params, level, c)
+    extra = inner_loop_extra_names(c, level)
+    plant = InnerLoopPlant(make_plant("sim", v), c, level)
+    x0, U = _random_flight(v, level)
+    plant.reset(x0)
+    z = np.concatenate([x0, np.zeros(len(extra))])
+    if "e_p" in extra:       # the loop's first period has no last error: its derivative term is zero
+        sp = np.clip(U[0, 1:4], -c.max_rate, c.max_rate) if level == "ctbr" else None
+        if sp is None:
+            e_att = np.clip(U[0, 1:3], -c.max_tilt, c.max_tilt) - x0[3:5]
+            sp = np.clip(np.r_[np.asarray(c.att_kp) * e_att + np.asarray(c.att_ki) * e_att * c.period_s, U[0, 3]],
+                         -c.max_rate, c.max_rate)
+        z[12 + extra.index("e_p"):12 + extra.index("e_p") + 3] = sp - x0[6:9]
+    worst = 0.0
+    for u in U:
+        x = plant.advance(u).x
+        z = np.asarray(F(z, u)).ravel()
+        worst = max(worst, float(np.max(np.abs(z[:12] - x))))
+    assert worst <= TOL["exact"], worst
+    assert len(extra) == {("crazyflie", "ctbr"): 3, ("crazyflie", "ctatt"): 5, ("other", "ctbr"): 6,
+                          ("other", "ctatt"): 8}.get((name.replace("-brushless", ""), level), 0)
+
+
+def _nominal_errors(level, rate_hz):
+    """Largest one-period errors of the nominal model against the plant with a P loop at ``rate_hz``: rates
+    relative to the period's rate change, rates (rad/s) and angles (rad)."""
+    c = InnerLoopConfig(rate_hz=rate_hz, rate_kp=(40.0, 40.0, 20.0), att_kp=(5.0, 5.0), max_rate=20.0, max_tilt=1.2)
+    v = load_vehicle("crazyflie").replace(inner_loop=c)
+    F = level_step_function(v.params, level, c.response())
+    rng = np.random.default_rng(1)
+    rel, rate, angle = 0.0, 0.0, 0.0
+    for _ in range(20):
+        x0 = np.zeros(12)
+        x0[2] = -1.0
+        x0[3:6], x0[6:9], x0[9:12] = rng.normal(0, 0.1, 3), rng.normal(0, 0.5, 3), rng.normal(0, 0.5, 3)
+        u = np.r_[v.m * 9.81 * rng.uniform(0.8, 1.2), rng.normal(0, 0.5, 3)]
+        if level == "ctatt":
+            u[1:3] = rng.normal(0, 0.2, 2)
+        plant = InnerLoopPlant(make_plant("sim", v), c, level)
+        plant.reset(x0)
+        xp = plant.advance(u).x
+        xn = np.asarray(F(x0, u)).ravel()
+        err = float(np.max(np.abs(xn[6:9] - xp[6:9])))
+        rel, rate = max(rel, err / float(np.max(np.abs(xp[6:9] - x0[6:9])))), max(rate, err)
+        angle = max(angle, float(np.max(np.abs(xn[3:6] - xp[3:6]))))
+    return rel, rate, angle
+
+
+@pytest.mark.parametrize("level", LEVELS)
+def test_the_nominal_model_of_a_level_is_the_continuous_limit_of_the_plant_with_a_matched_loop(level):
+    errors = {r: _nominal_errors(level, r) for r in (100, 200, 500, 1000)}
+    rel, _, angle = errors[1000]
+    assert rel <= TOL["nominal_rel"] and angle <= TOL["nominal_angle"], errors[1000]
+    lo, hi = TOL["order"]
+    for a, b in ((100, 200), (500, 1000)):
+        assert lo <= errors[a][1] / errors[b][1] <= hi, errors
+    # The angle error (the rate error integrated) is first order only from 500 Hz (1.78 from 100 to 200 Hz).
+    assert lo <= errors[500][2] / errors[1000][2] <= hi, errors
+
+
+def test_the_response_is_derived_from_the_gains_or_read_with_its_source():
+    c = load_vehicle("crazyflie").inner_loop
+    r = c.response()
+    # A PD rate loop: tau = (1 + kd) / kp + half a period; the attitude P over it: wn = sqrt(kp_att / tau).
+    assert r.rate_tau[0] == pytest.approx(1 / 164.45 + 0.001, rel=1e-12)
+    assert r.att_wn[0] == pytest.approx(np.sqrt(6.0 / r.rate_tau[0]), rel=1e-12)
+    assert r.att_zeta[0] == pytest.approx(1 / (2 * r.att_wn[0] * r.rate_tau[0]), rel=1e-12)
+    assert "derived from the loop's gains" in r.source
+    given = InnerLoopConfig(rate_kp=(1.0, 1.0, 1.0), rate_tau=(0.02, 0.02, 0.05), att_wn=(15.0, 15.0),
+                            att_zeta=(0.5, 0.5), response_source="drone-models so_rpy, cf2x_L250")
+    assert given.response().rate_tau == (0.02, 0.02, 0.05) and "cf2x_L250" in given.response().source
+
+
+# ----------------------------------------------------------------------------- flown
+
+def _fly(tmp_path, vehicle, level, controller, model="oracle"):
+    from scenarios.cli import main
+
+    out = tmp_path / f"{vehicle.replace('/', '_')}-{level}-{controller}-{model}.json"
+    assert main(["fly", "--model", model, "--controller", controller, "--scenario", "figure8-fast",
+                 "--level", level, "--vehicle", vehicle, "--json", str(out)]) == 0
+    return json.loads(out.read_text())
+
+
+@pytest.mark.parametrize("level, controller", [("ctbr", "sqp"), ("ctatt", "ltv")])
+def test_the_oracle_flies_figure8_fast_within_a_millimetre(tmp_path, level, controller):
+    r = _fly(tmp_path, "crazyflie", level, controller)
+    assert r["level"] == level and r["plant_spec"]["level"] == level and not r["crashed"]
+    assert r["rmse_position_m"] <= TOL["track_m"], r["rmse_position_m"]
+    assert r["run_id"].endswith(f"__{level}")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("level", LEVELS)
+@pytest.mark.parametrize("controller", ("sqp", "ltv"))
+@pytest.mark.parametrize("name", SHIPPED + ("other",))
+def test_the_oracle_flies_figure8_fast_within_a_millimetre_on_every_vehicle(tmp_path, name, level, controller):
+    vehicle = name
+    if name == "other":
+        path = tmp_path / "other-loop.toml"
+        path.write_text(load_vehicle("crazyflie").replace(name="other-loop", inner_loop=OTHER_LOOP).to_toml())
+        vehicle = str(path)
+    r = _fly(tmp_path, vehicle, level, controller)
+    assert not r["crashed"] and r["rmse_position_m"] <= TOL["track_m"], r["rmse_position_m"]
+
+
+# ----------------------------------------------------------------------------- refused
+
+def _refused(tmp_path, capsys, args, message):
+    from scenarios.cli import main
+
+    out = tmp_path / "r.json"
+    assert main(args + ["--json", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and not out.exists(), err
+
+
+def test_a_vehicle_without_an_inner_loop_is_refused_at_ctbr(tmp_path, capsys):
+    path = tmp_path / "bare.toml"
+    path.write_text(load_vehicle("crazyflie").replace(name="bare", inner_loop=None).to_toml())
+    _refused(tmp_path, capsys, ["fly", "--model", "nominal", "--controller", "lqr", "--scenario", "hover",
+                                "--level", "ctbr", "--vehicle", str(path)], "inner_loop.rate_kp is missing")
+
+
+def test_a_model_file_flown_at_another_level_is_refused(tmp_path, capsys):
+    _refused(tmp_path, capsys, ["fly", "--model", "models/baseline.onnx", "--controller", "lqr", "--scenario",
+                                "hover", "--level", "ctbr"], "takes commands at the 'wrench' level (metadata 'level')")
+
+
+def test_the_oracle_at_a_level_is_refused_where_its_loop_is_not_ours(tmp_path, capsys):
+    _refused(tmp_path, capsys, ["fly", "--model", "oracle", "--controller", "lqr", "--scenario", "hover+highfi",
+                                "--level", "ctbr", "--vehicle", "crazyflie"], "fly --model nominal")
