@@ -18,13 +18,13 @@ from .controller import ControlInfo, ControllerBase, Timer, check_measured
 from ..errors import ConfigurationError
 from ..references.feedforward import FeedForward
 from ..prediction.models import AnalyticModel, PredictionModel
-from ..prediction.spec import VehicleSpec
+from ..prediction.spec import THRUST_SCALE_FRACTION, VehicleSpec
 
 #: Default weights as 1 / (acceptable deviation)^2: position 0.1 m, roll/pitch 0.2 rad,
 #: yaw 0.3 rad, body rates 1 rad/s, velocity 0.5 m/s; thrust 0.2 m g, torques the vehicle's
 #: :attr:`mpc.prediction.spec.VehicleSpec.torque_scale` (2e-3 N m for the Rolling Spider).
 DEFAULT_STATE_SCALE = np.array([0.1, 0.1, 0.1, 0.2, 0.2, 0.3, 1.0, 1.0, 1.0, 0.5, 0.5, 0.5])
-DEFAULT_INPUT_SCALE_FRAC_T = 0.2
+DEFAULT_INPUT_SCALE_FRAC_T = THRUST_SCALE_FRACTION
 
 
 def default_weights(spec=None, level: str = "wrench") -> tuple[np.ndarray, np.ndarray]:
@@ -48,11 +48,12 @@ def input_scale(spec=None, level: str = "wrench") -> np.ndarray:
     from ..prediction.spec import torque_scale
 
     spec = VehicleSpec() if spec is None else spec
-    if level != "wrench":
+    if isinstance(spec, VehicleSpec):
         return spec.inputs(level).scale
-    ts = getattr(spec, "torque_scale", None)
-    if ts is None:
-        ts = torque_scale(spec.kt, math.sqrt(spec.n_max_sq), spec.d)
+    if level != "wrench":
+        raise ConfigurationError(f"the input scales at the {level!r} level need a VehicleSpec (its largest rate and "
+                                 f"tilt commands); found {type(spec).__name__}")
+    ts = torque_scale(spec.kt, math.sqrt(spec.n_max_sq), spec.d)
     return np.array([DEFAULT_INPUT_SCALE_FRAC_T * spec.m * spec.g] + [ts] * 3)
 
 

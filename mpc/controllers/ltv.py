@@ -6,7 +6,9 @@ and one sparse QP is solved::
 
     min  sum_k (x_k - r_k)' Q (x_k - r_k) + (u_k - f_k)' R (u_k - f_k) + (x_N - r_N)' P (x_N - r_N)
     s.t. x_0 = measured state, the linearized dynamics,
-         0 <= M^-1 u_k / n_max^2 <= 1  (rotor-feasible wrench set, linear in u; each row a rotor's load)
+         0 <= M^-1 u_k / n_max^2 <= 1  (rotor-feasible wrench set, linear in u; each row a rotor's load; at the
+                                        ctbr and ctatt levels, bounds on thrust, rates and angles instead:
+                                        mpc.prediction.spec.InputSet)
          |phi_k|, |theta_k| <= attitude limit,   k = 1 .. N
 
 with ``r_k`` the reference states, ``f_k`` the model's own feed-forward
@@ -396,10 +398,7 @@ class LTVMPC(MPCBase):
     def _rotor_feasible(self, u):
         """``u`` (4,) if it may be commanded, else its projection (:meth:`mpc.prediction.spec.InputSet.project`: at
         the wrench level onto the rotor-feasible set)."""
-        load = self._load @ u
-        if np.all(load >= self.inputs.lower) and np.all(load <= self.inputs.upper):
-            return u
-        return self.inputs.project(u)
+        return u if self.inputs.contains(u, tol=0.0) else self.inputs.project(u)
 
     def _solve_qp(self, x, ref, u_ref, xb, ub, fx, A, B, warm=None, split=None, hess=None, same_matrices=False):
         """Update the QP's values along ``(xb, ub)`` and solve it; OSQP's result.

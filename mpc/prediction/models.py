@@ -527,8 +527,10 @@ def flown_model(model: str, plant: str, vehicle, high_fidelity: bool = False,
     Raises
     ------
     ConfigurationError
-        At ``ctbr`` or ``ctatt``: the vehicle has no inner loop, the oracle is asked of a plant whose loop is not this
-        project's or of the high-fidelity set-up, or the file's level is another.
+        The file's level is another, or the oracle is asked at ``ctbr`` or ``ctatt`` of a plant whose loop is not
+        this project's or of the high-fidelity set-up (:func:`check_level_oracle`).
+    sim.errors.SimInputError
+        At ``ctbr`` or ``ctatt``, the vehicle has no inner loop.
     """
     from sim.levels import DEFAULT_LEVEL, check_level
 
@@ -538,32 +540,35 @@ def flown_model(model: str, plant: str, vehicle, high_fidelity: bool = False,
         check_level(level)
     except Exception as e:
         raise ConfigurationError(str(e)) from None
-    if level == DEFAULT_LEVEL:
-        if is_equation_model(model):
-            return AnalyticModel(model_params(model, plant, vehicle), name=model_name(model),
-                                 fidelity=vehicle.fidelity if high_fidelity else None)
-        loaded = load_model(model)
-        if loaded.level != level:
-            raise ConfigurationError(f"model {model!r} takes commands at the {loaded.level!r} level (metadata 'level'); "
-                                     f"this run flies at {level!r}: fly it with --level {loaded.level}")
-        return loaded
     if not is_equation_model(model):
         loaded = load_model(model)
         if loaded.level != level:
-            raise ConfigurationError(f"model {model!r} takes commands at the {loaded.level!r} level (metadata 'level'), "
-                                     f"not at {level!r}: a model flies only at the level it declares")
+            raise ConfigurationError(f"model {model!r} takes commands at the {loaded.level!r} level (metadata 'level'); "
+                                     f"this run flies at {level!r}: a model flies only at the level it declares "
+                                     f"(--level {loaded.level})")
         return loaded
-    if vehicle.inner_loop is None:
-        raise ConfigurationError(f"vehicle {vehicle.name!r} has no inner loop: its file gives no [inner_loop] table "
-                                 f"(inner_loop.rate_kp is missing), so it cannot be flown at the {level!r} level")
+    if level == DEFAULT_LEVEL:
+        return AnalyticModel(model_params(model, plant, vehicle), name=model_name(model),
+                             fidelity=vehicle.fidelity if high_fidelity else None)
+    loop = vehicle.inner_loop_at(level)
     exact = model == "oracle"
-    if exact and (plant != "sim" or high_fidelity):
+    if exact:
+        check_level_oracle(plant, level, high_fidelity)
+    return AnalyticModel(model_params(model, plant, vehicle), name=model_name(model), level=level,
+                         inner_loop=loop, exact_loop=exact)
+
+
+def check_level_oracle(plant: str, level: str, high_fidelity: bool = False) -> None:
+    """Raise :class:`ConfigurationError` where the oracle at ``level`` does not exist: at ``ctbr`` and ``ctatt`` it
+    is this project's simulator with its own inner loop, so only on plant ``sim`` without the high-fidelity
+    set-up (the wrench level's oracle is :func:`model_params`')."""
+    from ..errors import ConfigurationError
+
+    if level != "wrench" and (plant != "sim" or high_fidelity):
         raise ConfigurationError(
             f"the oracle at the {level!r} level is this project's plant with its own inner loop, nominal set-up: "
             f"{'the high-fidelity set-up' if plant == 'sim' else f'plant {plant!r}'} has no such equations here; "
             f"fly --model nominal (the rigid body with the loop's assumed response)")
-    return AnalyticModel(model_params(model, plant, vehicle), name=model_name(model), level=level,
-                         inner_loop=vehicle.inner_loop, exact_loop=exact)
 
 
 class LinearModel(PredictionModel):

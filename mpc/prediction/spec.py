@@ -162,6 +162,8 @@ class VehicleSpec:
         return InputSet(self, level)
 
 
+#: The controllers' acceptable thrust deviation (the scale of their input weight) as a share of the weight m g.
+THRUST_SCALE_FRACTION = 0.2
 #: Share of the rotors' total thrust a controller may command at the ``ctbr`` and ``ctatt`` levels: the rest is left
 #: to the inner loop's torques.
 THRUST_HEADROOM = 0.9
@@ -189,7 +191,8 @@ class InputSet:
     matrix : ndarray (4, 4)
     lower, upper : ndarray (4,)
     scale : ndarray (4,)
-        Acceptable deviations of each input (the controllers' input weights are ``1 / scale^2``): thrust 0.2 m g;
+        Acceptable deviations of each input (the controllers' input weights are ``1 / scale^2``): thrust
+        :data:`THRUST_SCALE_FRACTION` of m g;
         torques the spec's ``torque_scale``; rates :data:`RATE_SCALE`, angles :data:`TILT_SCALE`.
 
     Raises
@@ -202,13 +205,12 @@ class InputSet:
         from sim.levels import check_level
         from sim.vehicles.rotors import load_matrix
 
-        from ..errors import ConfigurationError as _CE
         try:
             self.level = check_level(level)
         except Exception as e:
-            raise _CE(str(e)) from None
+            raise ConfigurationError(str(e)) from None
         self.spec = spec
-        thrust_scale = 0.2 * spec.m * spec.g
+        thrust_scale = THRUST_SCALE_FRACTION * spec.m * spec.g
         if level == "wrench":
             self.matrix, self.lower, self.upper = load_matrix(spec), np.zeros(4), np.ones(4)
             self.scale = np.array([thrust_scale] + [spec.torque_scale] * 3)
@@ -216,7 +218,7 @@ class InputSet:
         need = ("max_rate",) if level == "ctbr" else ("max_rate", "max_tilt")
         for name in need:
             if getattr(spec, name) is None:
-                raise _CE(f"vehicle {spec.vehicle!r} has no inner loop (its file gives no [inner_loop] table with "
+                raise ConfigurationError(f"vehicle {spec.vehicle!r} has no inner loop (its file gives no [inner_loop] table with "
                           f"inner_loop.rate_kp and inner_loop.{name}), so it cannot be flown at the {level!r} level")
         t_max = THRUST_HEADROOM * 4.0 * spec.kt * spec.n_max_sq
         limits = (np.array([t_max, spec.max_rate, spec.max_rate, spec.max_rate]) if level == "ctbr" else

@@ -372,25 +372,20 @@ def held_wrench(traj: FlatTrajectory, times, spec=None, dt: float = DT) -> np.nd
     trajectory to second order in ``dt`` when it is the mean of the
     continuous wrench over that period (3-point Gauss-Legendre).
     """
-    t = _times(times)
-    tt = (t[:, None] + dt * _GL_NODES[None, :]).ravel()
-    _, u = flat_state(traj.flat(tt), spec)
-    return np.einsum("kjn,j->kn", u.reshape(t.size, 3, NU), _GL_WEIGHTS)
+    return held_input(traj, times, spec, dt)
 
 
 def held_input(traj: FlatTrajectory, times, spec=None, dt: float = DT, level: str = "wrench") -> np.ndarray:
     """The input (K, 4) at command level ``level`` to hold over each ``[t_k, t_k + dt)``: the interval mean (as
     :func:`held_wrench`) of the flatness map's thrust and, after it, its torques (``wrench``), its body rates
-    (``ctbr``), or its roll, pitch and yaw rate (``ctatt``). A first guess that the controllers' fit through their
-    model refines (:mod:`mpc.references.feedforward`)."""
-    if level == "wrench":
-        return held_wrench(traj, times, spec, dt)
+    (``ctbr``), or its roll, pitch and yaw rate (``ctatt``). At ``ctbr`` and ``ctatt`` a first guess that the
+    controllers' fit through their model refines (:mod:`mpc.references.feedforward`)."""
     t = _times(times)
     tt = (t[:, None] + dt * _GL_NODES[None, :]).ravel()
     x, u = flat_state(traj.flat(tt), spec)
-    cols = (6, 7, 8) if level == "ctbr" else (3, 4, 8)
-    v = np.hstack([u[:, :1], x[:, cols]])
-    return np.einsum("kjn,j->kn", v.reshape(t.size, 3, NU), _GL_WEIGHTS)
+    if level != "wrench":
+        u = np.hstack([u[:, :1], x[:, (6, 7, 8) if level == "ctbr" else (3, 4, 8)]])
+    return np.einsum("kjn,j->kn", u.reshape(t.size, 3, NU), _GL_WEIGHTS)
 
 
 def reference_spec(plant: str, vehicle):

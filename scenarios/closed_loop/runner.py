@@ -31,10 +31,10 @@ from pathlib import Path
 import numpy as np
 
 from mpc.controllers.factory import CONTROLLERS, DEFAULT_QP, HORIZON, QP_CONTROLLERS, make_controller
-from mpc.prediction.models import EQUATION_MODELS, flown_model, model_name, model_params
+from mpc.prediction.models import EQUATION_MODELS, check_level_oracle, flown_model, model_name, model_params
 from mpc.references.trajectory import flown_reference, reference_spec
 from sim.params import DT
-from sim.levels import DEFAULT_LEVEL, LEVELS
+from sim.levels import DEFAULT_LEVEL, check_level
 from sim.plants.named import PLANTS
 
 from ..errors import ScenarioError
@@ -130,12 +130,9 @@ class RunSpec:
 
         if self.qp not in QP_SOLVERS:
             raise ScenarioError(f"qp must be one of {', '.join(QP_SOLVERS)}; found {self.qp!r}")
-        if not isinstance(self.level, str) or self.level not in LEVELS:
-            raise ScenarioError(f"level must be one of {', '.join(LEVELS)}; found {self.level!r}")
-        if self.level != DEFAULT_LEVEL and self._vehicle.inner_loop is None:
-            raise ScenarioError(f"vehicle {self._vehicle.name!r} has no inner loop: its file gives no [inner_loop] "
-                                f"table (inner_loop.rate_kp is missing), so it cannot be flown at the {self.level!r} "
-                                f"level")
+        check_level(self.level)
+        if self.level != DEFAULT_LEVEL:
+            self._vehicle.inner_loop_at(self.level)       # raises naming the missing table
         sc = get_scenario(self.scenario)  # raises for an unknown name or a bad scenario file
         object.__setattr__(self, "_scenario_name", sc.name)
         if sc.high_fidelity and self.plant != "sim":
@@ -158,11 +155,7 @@ class RunSpec:
                 raise ScenarioError(f"model file {self.model!r} does not exist")
         elif self.model == "oracle":
             model_params(self.model, self.plant, self._vehicle)   # raises where the plant has no known equations
-            if self.level != DEFAULT_LEVEL and (self.plant != "sim" or sc.high_fidelity):
-                raise ScenarioError(f"the oracle at the {self.level!r} level is the reference simulator with its own "
-                                    f"inner loop, nominal set-up; {self.plant!r}"
-                                    f"{' with the high-fidelity set-up' if sc.high_fidelity else ''} has no such "
-                                    f"equations here: fly --model nominal")
+            check_level_oracle(self.plant, self.level, sc.high_fidelity)
 
     @property
     def model_name(self) -> str:

@@ -252,13 +252,18 @@ def rotor_command_casadi(u, p, n_max_sq):
     lifted to ``1e-9 n_max_sq`` so that the square root stays differentiable (a rotor asked for less than
     3e-5 of its top speed, which the controllers never do).
     """
+    n_sq = ca.fmin(ca.fmax(allocate_casadi(u, p), 1e-9 * n_max_sq), n_max_sq)
+    return ca.sqrt(n_sq)
+
+
+def allocate_casadi(w, p):
+    """Symbolic unclipped ``n^2`` (4, 1), RU^2, that produces the wrench ``w`` (4, 1), as
+    :func:`sim.vehicles.rotors.allocate`, with ``kt, kq, d`` from ``p``."""
     kt, kq, lever = _get(p, "kt"), _get(p, "kq"), _get(p, "d") / 2.0 ** 0.5
     rows = mixer(kt, kq, lever)
     # The mixer's rows are orthogonal, so its inverse is its transpose with each row divided by its squared norm.
     norms = [4.0 * kt * kt, 4.0 * (kt * lever) ** 2, 4.0 * (kt * lever) ** 2, 4.0 * kq * kq]
-    n_sq = ca.vertcat(*[sum(rows[r][i] * u[r] / norms[r] for r in range(4)) for i in range(4)])
-    n_sq = ca.fmin(ca.fmax(n_sq, 1e-9 * n_max_sq), n_max_sq)
-    return ca.sqrt(n_sq)
+    return ca.vertcat(*[sum(rows[r][i] * w[r] / norms[r] for r in range(4)) for i in range(4)])
 
 
 @_memo

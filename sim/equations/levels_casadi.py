@@ -21,8 +21,7 @@ import casadi as ca
 
 from ..levels import LEVELS, check_level
 from ..params import DT, NU, NX, SUBSTEPS, THETA_NAMES, QuadParams
-from ..vehicles.rotors import mixer
-from .dynamics_casadi import _memo, dynamics_casadi, rk4_casadi
+from .dynamics_casadi import _memo, allocate_casadi, dynamics_casadi, rk4_casadi, wrench_from_rotor_sq_casadi
 
 
 def _values(p: QuadParams, theta=None) -> dict:
@@ -104,11 +103,7 @@ def _clip(v, lo, hi):
 def realized_wrench_casadi(w, vals, n_max_sq):
     """The wrench (4, 1) the rotors realize for the command ``w`` (4, 1), as :func:`sim.vehicles.rotors.realize`:
     allocated, each ``n^2`` clipped to ``[0, n_max_sq]``, recomputed."""
-    kt, kq, lever = vals["kt"], vals["kq"], vals["d"] / 2.0 ** 0.5
-    rows = mixer(kt, kq, lever)
-    norms = [4.0 * kt * kt, 4.0 * (kt * lever) ** 2, 4.0 * (kt * lever) ** 2, 4.0 * kq * kq]
-    n_sq = [_clip(sum(rows[r][i] * w[r] / norms[r] for r in range(4)), 0.0, n_max_sq) for i in range(4)]
-    return ca.vertcat(*[sum(row[i] * n_sq[i] for i in range(4)) for row in rows])
+    return wrench_from_rotor_sq_casadi(_clip(allocate_casadi(w, vals), 0.0, n_max_sq), vals)
 
 
 def inner_loop_extra_names(config, level: str) -> tuple[str, ...]:

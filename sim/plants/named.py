@@ -52,15 +52,13 @@ def make_plant(name: str = "sim", vehicle=None, *, high_fidelity: bool = False, 
     vehicle = load_vehicle(vehicle)
     check_level(level)
     if level != DEFAULT_LEVEL:
-        if vehicle.inner_loop is None:
-            raise SimInputError(f"vehicle {vehicle.name!r} has no inner loop: its file gives no [inner_loop] table "
-                                f"(inner_loop.rate_kp is missing), so it cannot be flown at the {level!r} level")
+        loop = vehicle.inner_loop_at(level)
         if name != "sim":
             raise SimInputError(f"plant {name!r} does not take commands at the {level!r} level yet")
         from .inner_loop import InnerLoopPlant
 
         base = make_plant(name, vehicle, high_fidelity=high_fidelity, payload_kg=payload_kg, wind=wind)
-        return InnerLoopPlant(base, vehicle.inner_loop, level)
+        return InnerLoopPlant(base, loop, level)
     if name == "sim":
         return SimPlant(vehicle, vehicle.fidelity if high_fidelity else NOMINAL, payload_kg=payload_kg, wind=wind)
     if name in ("rotorpy", "rotorpy-ideal"):

@@ -141,6 +141,19 @@ class Vehicle:
         """The drag ``c_d`` as RotorPy's parasitic drag coefficient ``m c_d``, N / (m/s)^2 (isotropic, body frame)."""
         return self.m * self.c_d
 
+    def inner_loop_at(self, level: str) -> InnerLoopConfig:
+        """The onboard controller that flies commands at ``level`` (``ctbr`` or ``ctatt``, :mod:`sim.levels`).
+
+        Raises
+        ------
+        SimInputError
+            The vehicle has no ``[inner_loop]`` table: one line naming the missing key.
+        """
+        if self.inner_loop is None:
+            raise SimInputError(f"vehicle {self.name!r} has no inner loop: its file gives no [inner_loop] table "
+                                f"(inner_loop.rate_kp is missing), so it cannot be flown at the {level!r} level")
+        return self.inner_loop
+
     def to_dict(self) -> dict:
         """JSON-ready description (stored with every result and dataset): every field, ``n_max`` resolved, and
         ``inner_loop`` (a table) only where the vehicle has one."""
