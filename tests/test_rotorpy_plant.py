@@ -1,5 +1,6 @@
 """RotorPy as a plant: frames, rotor order and set-ups checked against the reference simulator."""
 
+import json
 import sys
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from sim.plants.plant import SimPlant
 from sim.plants.named import make_plant
 from sim.plants.rotorpy_plant import (FLIP, INTEGRATORS, ROTORPY_INDEX, RotorPyPlant, from_rotorpy_state,
                                       rotorpy_params, to_rotorpy_state)
+from sim.vehicles.onboard import InnerLoopConfig
 from sim.vehicles.rotors import ROTOR_X, ROTOR_Y, SPIN, mixer_matrix
 from sim.vehicles.vehicle import load_vehicle
 
@@ -39,6 +41,12 @@ TOL = {
     "yaw_spin": 1e-8,           # rad, psi through pi, RotorPy vs reference
     "wind": 1e-8,               # m and m/s, constant wind over 3 periods
     "payload": 1e-8,            # m, sink at hover thrust
+    # ctbr: RotorPy's cmd_ctbr against our plant with the same P loop (instant motors, no drag), 100 periods;
+    # measured 4.6e-11 (any state, in its unit), also with calls that end inside a loop period.
+    "ctbr_state": 1e-8,
+    # ctatt, instant motors, no drag: the PD attitude loop's steady state after 2 s of a constant command; its slow
+    # pole is near att_kp (5-6 1/s), so the error left is about 1e-6.
+    "ctatt_steady": 1e-4,       # rad (roll, pitch) and rad/s (yaw rate)
 }
 
 VEHICLE = load_vehicle()
@@ -389,7 +397,10 @@ def test_flying_rotorpy_does_not_import_torch():
     assert out.returncode == 0, out.stderr
 
 
-ACCEPT = {"oracle_rmse_m": 1e-3}    # the oracle on RotorPy's ideal set-up: within 1 mm of the figure-8
+ACCEPT = {
+    "oracle_rmse_m": 1e-3,          # the oracle on RotorPy's ideal set-up: within 1 mm of the figure-8
+    "nominal_level_rmse_m": 0.05,   # the per-level nominal model on RotorPy's Crazyflie: no crash, within 50 mm
+}
 
 
 def test_the_oracle_flies_rotorpy_within_a_millimetre(tmp_path, capsys):
@@ -428,3 +439,75 @@ def test_a_rotorpy_dataset_flown_in_two_processes_equals_one_flown_in_one():
     for k in ("x", "u", "rotor_speed", "x_next", "wrench", "saturated", "split"):
         np.testing.assert_array_equal(getattr(one, k), getattr(two, k))
     assert one.meta == two.meta
+
+
+# ---------------------------------------------------------------- command levels: RotorPy's own onboard loops
+
+#: A P-only rate loop (RotorPy's cmd_ctbr has no integral or derivative) at 500 Hz: a loop period of 2 ms, so a
+#: call of 3 ms ends inside one.
+P_LOOP = InnerLoopConfig(rate_hz=500.0, rate_kp=(120.0, 100.0, 60.0), att_kp=(6.0, 5.0), max_rate=6.0,
+                         max_tilt=0.8, source="a test: a P loop")
+
+
+@pytest.mark.parametrize("split", [False, True], ids=["whole periods", "calls ending inside a loop period"])
+def test_rotorpy_at_ctbr_is_our_plant_with_the_same_p_loop(split):
+    v = NO_DRAG.replace(inner_loop=P_LOOP)
+    ours = make_plant("sim", v, level="ctbr")
+    rp = make_plant("rotorpy-ideal", v, level="ctbr")
+    rng = np.random.default_rng(4)
+    x0 = hover_state()
+    x0[3], x0[6] = 0.1, 0.3
+    ours.reset(x0)
+    rp.reset(x0)
+    worst = 0.0
+    for _ in range(100):
+        u = np.r_[P.m * P.g * rng.uniform(0.9, 1.2), rng.normal(0.0, 2.0, 3)]   # some rates beyond max_rate
+        if split:
+            rp.advance(u, 0.003)
+            a = rp.advance(u, DT - 0.003)
+        else:
+            a = rp.advance(u)
+        b = ours.advance(u)
+        worst = max(worst, float(np.max(np.abs(a.x - b.x))))
+    assert worst <= TOL["ctbr_state"], worst
+    d = rp.describe()
+    assert (d["level"], d["inner_loop"]["rotorpy_abstraction"], d["inner_loop"]["k_w"]) == (
+        "ctbr", "cmd_ctbr", list(P_LOOP.rate_kp))
+
+
+def test_rotorpy_at_ctatt_holds_the_commanded_tilt_and_yaw_rate():
+    """RotorPy's PD attitude loop reaches a constant roll and pitch command, and the yaw setpoint integrated from a
+    yaw-rate command turns the vehicle at that rate (instant motors, no drag: nothing disturbs the steady state)."""
+    v = NO_DRAG.replace(inner_loop=P_LOOP)
+    rp = make_plant("rotorpy-ideal", v, level="ctatt")
+    rp.reset(hover_state())
+    for _ in range(200):
+        out = rp.advance([P.m * P.g, 0.2, -0.1, 0.0])
+    np.testing.assert_allclose(out.x[3:5], [0.2, -0.1], atol=TOL["ctatt_steady"])
+    for _ in range(200):
+        out = rp.advance([P.m * P.g, 0.0, 0.0, 0.3])
+    np.testing.assert_allclose(out.x[[3, 4, 8]], [0.0, 0.0, 0.3], atol=TOL["ctatt_steady"])
+    # Commands beyond the vehicle's limits are clipped, as our loop clips them: a 2 rad roll holds at max_tilt.
+    for _ in range(200):
+        out = rp.advance([P.m * P.g, 2.0, 0.0, 0.0])
+    assert abs(out.x[3] - P_LOOP.max_tilt) <= TOL["ctatt_steady"]
+
+
+def test_rotorpy_at_a_level_needs_the_vehicles_inner_loop():
+    with pytest.raises(SimInputError, match=r"inner_loop.rate_kp is missing"):
+        make_plant("rotorpy", NO_DRAG.replace(inner_loop=None), level="ctbr")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("level", ["ctbr", "ctatt"])
+def test_the_nominal_model_flies_rotorpys_crazyflie_at_a_level(tmp_path, level):
+    """The acceptance flight: the per-level nominal model, SQP, figure8-fast, RotorPy with motor lag and
+    aerodynamics. Measured 32.9 mm (ctbr) and 25.0 mm (ctatt); the wrench level's is 31.0 mm."""
+    from scenarios.cli import main
+
+    out = tmp_path / "r.json"
+    assert main(["fly", "--plant", "rotorpy", "--vehicle", "crazyflie", "--level", level, "--model", "nominal",
+                 "--controller", "sqp", "--scenario", "figure8-fast", "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert (r["level"], r["plant_spec"]["level"], r["crashed"]) == (level, level, False)
+    assert r["rmse_position_m"] <= ACCEPT["nominal_level_rmse_m"], r["rmse_position_m"]

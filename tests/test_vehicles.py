@@ -54,7 +54,7 @@ def test_the_default_vehicle_is_the_reference_values():
 
 
 def test_the_presets_carry_rotorpys_numbers_and_their_sources():
-    assert vehicle_names() == ["crazyflie", "crazyflie-brushless", "hummingbird", "rolling-spider"]
+    assert vehicle_names() == ["cf2x_L250", "crazyflie", "crazyflie-brushless", "hummingbird", "rolling-spider"]
     hb, cf = load_vehicle("hummingbird"), load_vehicle("crazyflie")
     assert (hb.m, hb.kt, hb.kq, hb.d, hb.n_max, hb.motor_tau) == (0.5, 5.57e-6, 1.36e-7, 0.17, 1500.0, 0.005)
     assert (cf.m, cf.kt, cf.d, cf.n_max, cf.motor_tau, cf.c_d) == (0.03, 2.3e-8, 0.043, 2500.0, 0.072, 0.0)
@@ -69,6 +69,18 @@ def test_the_brushless_crazyflie_carries_the_benchmarks_stated_values():
     assert cb.d / 2 ** 0.5 == pytest.approx(0.0353, abs=1e-6)          # their arm is the lever, d / sqrt(2)
     # n_max gives their thrust-to-weight 2.0
     assert 4 * cb.kt * cb.n_max ** 2 / (cb.m * 9.81) == pytest.approx(2.0, abs=1e-3)
+
+
+def test_the_drone_models_crazyflie_carries_that_packages_values():
+    v = load_vehicle("cf2x_L250")
+    assert (v.m, v.Jxx, v.Jzz, v.motor_tau) == (0.0319, 1.68e-5, 2.98e-5, 0.1212)
+    # their rpm2thrust quadratic term, 2.4583e-10 N/RPM^2, in rad/s; their thrust_max 0.12 N per rotor
+    assert v.kt == pytest.approx(2.4582929831265485e-10 * (60 / (2 * 3.141592653589793)) ** 2, rel=1e-4)
+    assert v.kt * v.n_max ** 2 == pytest.approx(0.12, rel=1e-4)
+    assert v.d / 2 ** 0.5 == pytest.approx(0.03253, rel=1e-3)        # their L is the lever, d / sqrt(2)
+    r = v.inner_loop.response()
+    assert r.att_wn[0] ** 2 == pytest.approx(245.67, rel=1e-4)       # their fitted roll: wn^2 and 2 zeta wn
+    assert 2 * r.att_zeta[0] * r.att_wn[0] == pytest.approx(17.32, rel=1e-3)
 
 
 def test_a_key_left_out_takes_its_default_and_n_max_follows_the_weight(tmp_path):
@@ -97,7 +109,7 @@ def test_a_bad_vehicle_file_is_a_one_line_error_naming_the_key(tmp_path, text, m
 
 
 def test_unknown_names_and_missing_files_are_clear_errors(tmp_path):
-    with pytest.raises(SimInputError, match="unknown vehicle 'mavic'; choose from crazyflie"):
+    with pytest.raises(SimInputError, match="unknown vehicle 'mavic'; choose from cf2x_L250, crazyflie"):
         load_vehicle("mavic")
     with pytest.raises(SimInputError, match="does not exist"):
         load_vehicle(tmp_path / "none.toml")

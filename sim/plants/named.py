@@ -9,8 +9,9 @@ from ..params import NOMINAL, QuadParams
 from .plant import Plant, SimPlant, WindFn
 from ..vehicles.vehicle import load_vehicle
 
-#: Plant names, the default first.
-PLANTS = ("sim", "rotorpy", "rotorpy-ideal")
+#: Plant names, the default first. ``drone-models[:PHYSICS]`` are the Crazyflie models identified from real flights
+#: (:mod:`sim.plants.drone_models_plant`; the level ``ctatt`` only).
+PLANTS = ("sim", "rotorpy", "rotorpy-ideal", "drone-models", "drone-models:so_rpy", "drone-models:so_rpy_rotor")
 #: Plants whose equations this project knows (they have an oracle): our simulator's nominal set-up, and RotorPy
 #: without motor lag and aerodynamics (the same rigid body, no drag). RotorPy's aerodynamics have no such form here.
 KNOWN_EQUATIONS = ("sim", "rotorpy-ideal")
@@ -45,18 +46,18 @@ def make_plant(name: str = "sim", vehicle=None, *, high_fidelity: bool = False, 
 
     ``level`` (:mod:`sim.levels`): the command the plant takes. At ``ctbr`` and ``ctatt`` the reference simulator
     flies it through the vehicle's inner loop (:class:`sim.plants.inner_loop.InnerLoopPlant`, the vehicle file's
-    ``[inner_loop]``); a vehicle without one is refused.
+    ``[inner_loop]``), RotorPy through its own onboard controllers with that table's rate and gains
+    (:class:`sim.plants.rotorpy_plant.RotorPyPlant`); a vehicle without one is refused. The drone-models plants
+    (:class:`sim.plants.drone_models_plant.DroneModelsPlant`) take ``ctatt`` only.
     """
     from ..levels import DEFAULT_LEVEL, check_level
 
     vehicle = load_vehicle(vehicle)
     check_level(level)
-    if level != DEFAULT_LEVEL:
-        loop = vehicle.inner_loop_at(level)
-        if name != "sim":
-            raise SimInputError(f"plant {name!r} does not take commands at the {level!r} level yet")
+    if level != DEFAULT_LEVEL and name == "sim":
         from .inner_loop import InnerLoopPlant
 
+        loop = vehicle.inner_loop_at(level)
         base = make_plant(name, vehicle, high_fidelity=high_fidelity, payload_kg=payload_kg, wind=wind)
         return InnerLoopPlant(base, loop, level)
     if name == "sim":
@@ -67,5 +68,12 @@ def make_plant(name: str = "sim", vehicle=None, *, high_fidelity: bool = False, 
                                 f"has its own (use --plant rotorpy for RotorPy's motor lag and aerodynamics)")
         from .rotorpy_plant import RotorPyPlant
         full = name == "rotorpy"
-        return RotorPyPlant(vehicle, motor_lag=full, aero=full, payload_kg=payload_kg, wind=wind)
+        return RotorPyPlant(vehicle, motor_lag=full, aero=full, payload_kg=payload_kg, wind=wind, level=level)
+    if name in PLANTS and name.startswith("drone-models"):
+        if high_fidelity:
+            raise SimInputError(f"high fidelity is a set-up of the reference simulator (plant 'sim'); plant {name!r} "
+                                f"is drone-models' fitted model, with its own thrust lag and drag")
+        from .drone_models_plant import DroneModelsPlant, parse_plant_name
+
+        return DroneModelsPlant(vehicle, parse_plant_name(name), level, payload_kg=payload_kg, wind=wind)
     raise SimInputError(f"plant must be one of {', '.join(PLANTS)}; found {name!r}")

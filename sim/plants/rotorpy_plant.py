@@ -1,4 +1,5 @@
-"""RotorPy as a plant: its ``Multirotor`` flies our wrench commands, in our frames.
+"""RotorPy as a plant: its ``Multirotor`` flies our commands (wrench, or through its own onboard controllers), in
+our frames.
 
 :class:`RotorPyPlant` puts RotorPy's numpy ``Multirotor`` (RotorPy 3.x,
 ``rotorpy/vehicles/multirotor.py``) behind the :class:`sim.plants.plant.Plant`
@@ -43,6 +44,30 @@ RotorPy's rotors always carry a first-order lag; for instant motors the
 rotor speeds are set to the clipped command at the start of every call, so
 the lag term is exactly zero throughout it.
 
+Command levels (:mod:`sim.levels`). At ``ctbr`` and ``ctatt`` the plant flies
+RotorPy's own onboard controllers, ``cmd_ctbr`` and ``cmd_ctatt``
+(``Multirotor.get_cmd_motor_speeds``), at the vehicle's inner-loop rate
+(``[inner_loop] rate_hz``): the motor speeds they give at the start of a
+loop period are held through it (also when a call of :meth:`advance` ends
+inside one). Their laws are RotorPy's, not the reference simulator's loop
+(:mod:`sim.plants.inner_loop`); their gains come from the vehicle's
+``[inner_loop]`` table (:func:`rotorpy_loop_gains`):
+
+* ``ctbr``: a P loop on the body rates, ``J k_w (w_cmd - w)``, with
+  ``k_w = rate_kp`` per axis; no integral and no derivative;
+* ``ctatt``: a PD loop on the attitude error on SO(3), plus the gyroscopic
+  term, ``J (-kp_att e_R - kd_att w) + w x J w``, with roll and pitch
+  ``kp_att = att_kp rate_kp`` and ``kd_att = rate_kp`` (the cascade of the
+  two P loops), and yaw ``kd_att = rate_kp``, ``kp_att = min(att_kp)
+  rate_kp`` (as if the yaw angle had the attitude loop's smaller gain; a
+  critically damped yaw, ``rate_kp^2 / 4``, diverged on the Crazyflie with
+  its 72 ms motor lag). RotorPy takes a whole attitude: roll and pitch are
+  the command's, the yaw the command's yaw rate integrated over each loop
+  period from the yaw at :meth:`reset`.
+
+Rate commands are clipped to ``max_rate`` and tilt commands to ``max_tilt``,
+as the reference simulator's loop does.
+
 Disturbances: the payload is added to RotorPy's mass (the rotor limits stay
 the vehicle's); the wind, a world-frame acceleration ``wind(t)`` (NED,
 m/s^2) evaluated at the start of each call, is added to RotorPy's velocity
@@ -85,7 +110,9 @@ import numpy as np
 from .._validate import as_batch
 from ..errors import PlantUnavailableError, SimInputError
 from ..params import NX
-from .plant import PLANT_TICK_S, Plant, PlantOutput, WindFn
+from .plant import PLANT_TICK_S, Plant, PlantOutput, WindFn, plant_time
+from ..levels import DEFAULT_LEVEL, check_level
+from ..vehicles.onboard import InnerLoopConfig
 from ..vehicles.rotors import wrench_from_rotor_sq
 from ..vehicles.vehicle import Vehicle
 
@@ -103,6 +130,9 @@ INTEGRATORS = {
     "ideal": {"method": "DOP853", "rtol": 1e-11, "atol": 1e-12},
     "physics": {"method": "DOP853", "rtol": 1e-8, "atol": 1e-10},
 }
+
+#: RotorPy's control abstraction that takes the commands of each level.
+ABSTRACTIONS = {"wrench": "cmd_ctbm", "ctbr": "cmd_ctbr", "ctatt": "cmd_ctatt"}
 
 _UNAVAILABLE = "plant 'rotorpy' needs RotorPy: pip install -e '.[rotorpy]'"
 _WindMultirotor = None   # the Multirotor subclass, built on first use (RotorPy is imported lazily)
@@ -186,6 +216,21 @@ def rotorpy_params(vehicle: Vehicle, payload_kg: float = 0.0, tau_m: float | Non
         "rotor_speed_min": 0.0, "rotor_speed_max": vehicle.n_max_value,
         "motor_noise_std": 0.0,
     }
+
+
+def rotorpy_loop_gains(config: InnerLoopConfig) -> dict:
+    """RotorPy's onboard-controller gains for the vehicle's ``[inner_loop]`` ``config`` (see the module docstring).
+
+    Returns
+    -------
+    dict
+        ``k_w`` (3,) 1/s, the rate loop's P gain per body axis; ``kp_att`` (3,) 1/s^2 and ``kd_att`` (3,) 1/s, the
+        attitude loop's PD gains per axis (roll, pitch, yaw), in RotorPy's FLU body frame (the same per axis).
+    """
+    kp = np.asarray(config.rate_kp, dtype=float)
+    att = np.asarray(config.att_kp, dtype=float)
+    return {"k_w": kp.copy(), "kp_att": np.array([att[0] * kp[0], att[1] * kp[1], att.min() * kp[2]]),
+            "kd_att": kp.copy()}
 
 
 def _quat_from_euler(phi: float, theta: float, psi: float) -> np.ndarray:
@@ -275,7 +320,7 @@ def from_rotorpy_state(state: dict, previous) -> tuple[np.ndarray, np.ndarray]:
 
 
 class RotorPyPlant(Plant):
-    """RotorPy's ``Multirotor`` flying our wrench commands (see the module docstring).
+    """RotorPy's ``Multirotor`` flying our commands at one level (see the module docstring).
 
     Parameters
     ----------
@@ -294,6 +339,11 @@ class RotorPyPlant(Plant):
         ``wind(t) -> (3,)``: a world-frame (NED) acceleration, m/s^2, evaluated at the start of each call.
     rtol, atol : float, optional
         ``solve_ivp`` tolerances replacing those of the set-up (:data:`INTEGRATORS`).
+    level : str
+        The command it takes (:mod:`sim.levels`): ``wrench`` (the default), ``ctbr`` or ``ctatt``.
+    inner_loop : InnerLoopConfig, optional
+        The onboard controller's rate and gains at ``ctbr`` and ``ctatt`` (the vehicle's ``[inner_loop]`` when
+        omitted; a vehicle without one is refused).
 
     Raises
     ------
@@ -305,8 +355,14 @@ class RotorPyPlant(Plant):
 
     def __init__(self, vehicle: Vehicle | None = None, *, motor_lag: bool = True, aero: bool = True,
                  payload_kg: float = 0.0, wind: WindFn | None = None, rtol: float | None = None,
-                 atol: float | None = None):
+                 atol: float | None = None, level: str = DEFAULT_LEVEL, inner_loop: InnerLoopConfig | None = None):
         super().__init__(vehicle, payload_kg=payload_kg, wind=wind)
+        self.level = check_level(level)
+        self.loop = None
+        if self.level != DEFAULT_LEVEL:
+            self.loop = self.vehicle.inner_loop_at(level) if inner_loop is None else inner_loop
+            if not isinstance(self.loop, InnerLoopConfig):
+                raise SimInputError(f"inner_loop must be an InnerLoopConfig; found {type(inner_loop).__name__}")
         for flag, value in (("motor_lag", motor_lag), ("aero", aero)):
             if not isinstance(value, (bool, np.bool_)):
                 raise SimInputError(f"{flag} must be True or False; found {value!r}")
@@ -328,9 +384,16 @@ class RotorPyPlant(Plant):
         self._instant = not self.motor_lag or self.vehicle.motor_tau == 0.0
         tau = self.vehicle.motor_tau if not self._instant else (self.vehicle.motor_tau or 1.0)
         cls = _multirotor_class()
-        self._mr = cls(rotorpy_params(self.vehicle, self.payload_kg, tau_m=tau),
-                       control_abstraction="cmd_ctbm", aero=self.aero, enable_ground=False,
-                       integrator_kwargs=kwargs)
+        params = rotorpy_params(self.vehicle, self.payload_kg, tau_m=tau)
+        if self.loop is not None:
+            params.update(rotorpy_loop_gains(self.loop))
+        # One Multirotor integrates; at ctbr and ctatt a second one, at the level's abstraction, is RotorPy's
+        # onboard controller (its motor speeds are held over a loop period, so they are computed apart).
+        self._mr = cls(params, control_abstraction="cmd_ctbm" if self.loop is None else "cmd_motor_speeds",
+                       aero=self.aero, enable_ground=False, integrator_kwargs=kwargs)
+        self._onboard = None if self.loop is None else cls(
+            params, control_abstraction=ABSTRACTIONS[self.level], aero=self.aero, enable_ground=False,
+            integrator_kwargs=kwargs)
         if self._mr.g != p.g:   # RotorPy's constant changed under us
             raise SimInputError(f"plant {self.name!r}: RotorPy's gravity is {self._mr.g} m/s^2; vehicle "
                                 f"{self.vehicle.name!r} has g = {p.g}")
@@ -340,30 +403,62 @@ class RotorPyPlant(Plant):
     def _reset(self, x0, rotor_speed):
         n = np.full(4, self.vehicle.params.n_hover) if rotor_speed is None else rotor_speed
         self._n = n.copy()
+        self._phase, self._held, self._yaw_ref = 0, None, float(x0[5])
         return PlantOutput(x0, n.copy(), np.full(4, np.nan), np.zeros(4, dtype=bool))
 
-    def _wind_accel(self) -> np.ndarray:
-        """The wind acceleration at ``self.t`` in RotorPy's frame (3,), m/s^2."""
+    def _wind_accel(self, t: float) -> np.ndarray:
+        """The wind acceleration at time ``t`` (s) in RotorPy's frame (3,), m/s^2."""
         if self.wind is None:
             return np.zeros(3)
-        a = np.asarray(self.wind(self.t), dtype=float)
+        a = np.asarray(self.wind(t), dtype=float)
         if a.shape != (3,) or not np.all(np.isfinite(a)):
             raise SimInputError(f"wind(t) must return a finite acceleration of shape (3,); found {a.shape} "
-                                f"at t={self.t}")
+                                f"at t={t}")
         return FLIP * a
 
+    def _level_control(self, u) -> dict:
+        """RotorPy's control dictionary of the command ``u`` (4,) at this plant's level, clipped as the reference
+        simulator's loop clips it; at ``ctatt`` the yaw setpoint advances by one loop period of the yaw rate."""
+        c = self.loop
+        if self.level == "ctbr":
+            w = np.clip(u[1:4], -c.max_rate, c.max_rate)
+            return {"cmd_thrust": float(u[0]), "cmd_w": FLIP * w}
+        tilt = np.clip(u[1:3], -c.max_tilt, c.max_tilt)
+        self._yaw_ref += float(np.clip(u[3], -c.max_rate, c.max_rate)) * c.period_s
+        return {"cmd_thrust": float(u[0]), "cmd_q": _quat_from_euler(tilt[0], tilt[1], self._yaw_ref)}
+
     def _advance(self, u, ticks):
+        if self.loop is None:
+            return self._advance_held(u, ticks, self.t)
+        out, done = None, 0
+        while done < ticks:     # the onboard controller runs at the start of each of its periods
+            if self._phase == 0:
+                state = _to_rotorpy(self.x, self._n)
+                self._held = self._onboard.get_cmd_motor_speeds(state, self._level_control(u))
+            n = min(ticks - done, self.loop.ticks - self._phase)
+            out = self._advance_held(self._held, n, plant_time(self._ticks + done), motor_speeds=True)
+            self._phase = (self._phase + n) % self.loop.ticks
+            done += n
+            self._out = out      # the next piece starts from this one's state
+        return out
+
+    def _advance_held(self, u, ticks, t: float, motor_speeds: bool = False):
+        """Integrate ``ticks`` ticks from time ``t`` (s) holding ``u``: the wrench (4,), or with ``motor_speeds``
+        RotorPy's signed commanded motor speeds (4,) in its order."""
         mr = self._mr
-        control = {"cmd_thrust": float(u[0]), "cmd_moment": FLIP * u[1:4]}
         state = _to_rotorpy(self.x, self._n)
-        n_cmd = mr.get_cmd_motor_speeds(state, control)            # RotorPy's order, signed
+        if motor_speeds:
+            n_cmd, control = u, {"cmd_motor_speeds": u}
+        else:
+            control = {"cmd_thrust": float(u[0]), "cmd_moment": FLIP * u[1:4]}
+            n_cmd = mr.get_cmd_motor_speeds(state, control)        # RotorPy's order, signed
         n_clip = np.clip(n_cmd, mr.rotor_speed_min, mr.rotor_speed_max)
         saturated = ((n_cmd < mr.rotor_speed_min) | (n_cmd > mr.rotor_speed_max))[ROTORPY_INDEX]
         if self._instant:
             state["rotor_speeds"] = n_clip.copy()                  # the lag term is exactly zero
         n0 = state["rotor_speeds"][ROTORPY_INDEX]
         wrench = wrench_from_rotor_sq(n0 * n0, self.vehicle.params)
-        mr.accel = self._wind_accel()
+        mr.accel = self._wind_accel(t)
         # RotorPy's step draws its motor noise (zero here) from numpy's global generator: leave that one as found.
         rng_state = np.random.get_state()
         try:
@@ -383,5 +478,10 @@ class RotorPyPlant(Plant):
             version = metadata.version("rotorpy")
         except metadata.PackageNotFoundError:   # pragma: no cover - run from a source tree
             version = "unknown"
-        return {**super().describe(), "motor_lag": self.motor_lag, "aero": self.aero,
-                "integrator": dict(self.integrator_kwargs), "rotorpy": version}
+        out = {**super().describe(), "motor_lag": self.motor_lag, "aero": self.aero,
+               "integrator": dict(self.integrator_kwargs), "rotorpy": version}
+        if self.loop is not None:
+            out["level"] = self.level
+            out["inner_loop"] = {**self.loop.to_dict(), "rotorpy_abstraction": ABSTRACTIONS[self.level],
+                                 **{k: v.tolist() for k, v in rotorpy_loop_gains(self.loop).items()}}
+        return out
