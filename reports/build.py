@@ -14,6 +14,7 @@ from .sections.realflights import realdata_section
 from .inputs import load_inputs
 from .sections.summary import summary_text
 from .sections.learn import learn_section
+from .sections.levels import levels_section
 from .sections.versus import versus_section
 from .sections.estimation import estimation_section, split_by_estimator
 from .sections.zoo import (NO_STUDY, answer_text, dose_response_figure, estimator_threshold_section, max_speed_figure,
@@ -38,6 +39,7 @@ SECTIONS = (
     "Closed-loop results",
     "High-fidelity plant: models trained on its own data",
     "Learned against nominal on plants with unmodelled physics",
+    "Command levels: wrench, ctbr and ctatt side by side",
     "Learning from flown flights",
     "Other plants and vehicles",
     "Real flights: the nano-drone benchmark",
@@ -127,6 +129,7 @@ def report_markdown(run_dir) -> str:
     body["High-fidelity plant: models trained on its own data"] = highfi_table(
         inp.runs + members, inp.evaluation)
     body["Learned against nominal on plants with unmodelled physics"] = versus_section(inp.versus)
+    body["Command levels: wrench, ctbr and ctatt side by side"] = levels_section(inp.levels)
     body["Learning from flown flights"] = learn_section(inp.learn, d, _figure_md)
     body["Other plants and vehicles"] = plants_section(inp.runs, other_plants)
     body["Real flights: the nano-drone benchmark"] = realdata_section(inp.realdata)

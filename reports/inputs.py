@@ -4,8 +4,10 @@ Required: ``results.json``, ``evaluation.json``, ``fisher.json`` (a missing or
 malformed one raises :class:`~reports.errors.ReportError` naming the file).
 Optional: ``ablation.json``, ``provenance.json``, ``study.json`` (the zoo
 study, copied by ``pinnmpc run``), ``versus.json`` (learned against nominal,
-copied likewise), ``learn_<plant>.json`` (learning from flown flights, copied likewise), ``realdata.json`` (``pinnmpc realdata --out`` this folder) and ``traces/<run_id>.npz`` (missing ones are reported in the
-text instead; a malformed ``study.json`` or ``versus.json`` raises).
+copied likewise), ``levels.json`` (the three command levels, copied likewise), ``learn_<plant>.json``
+(learning from flown flights, copied likewise), ``realdata.json`` (``pinnmpc realdata --out`` this folder) and
+``traces/<run_id>.npz`` (missing ones are reported in the text instead; a malformed ``study.json``,
+``versus.json`` or ``levels.json`` raises).
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ RUN_KEYS = ("scenario", "controller", "model")
 STUDY_KEYS = ("scenario", "members", "controllers", "ladder", "models", "scores", "oracle_rmse_m")
 #: Keys a versus.json must have.
 VERSUS_KEYS = ("scenario", "controller", "members", "ladder_members", "ladder", "goal", "plants")
+#: Keys a levels.json must have.
+LEVELS_KEYS = ("scenario", "controller", "members", "levels", "plants")
 #: Keys a realdata.json must have.
 REALDATA_KEYS = ("source", "horizons", "splits", "models", "published_h50", "goal_h50", "identification")
 #: Keys a learn_<plant>.json must have.
@@ -113,6 +117,8 @@ class Inputs:
         ``realdata.json`` (``pinnmpc realdata``: real flight logs under the benchmark's protocol), None when absent.
     learn : dict or None
         ``learn_<plant>.json`` by plant (``pinnmpc learn``: learning from flown flights), None when there is none.
+    levels : dict or None
+        ``levels.json`` (``pinnmpc levels``: the three command levels side by side), None when absent.
     """
 
     run_dir: Path
@@ -127,6 +133,7 @@ class Inputs:
     study_ekf: dict | None = None
     realdata: dict | None = None
     learn: dict | None = None
+    levels: dict | None = None
     _traces: dict = field(default_factory=dict, repr=False)
 
     def models_by_name(self) -> dict:
@@ -186,6 +193,11 @@ def load_inputs(run_dir) -> Inputs:
         missing = [k for k in VERSUS_KEYS if not isinstance(versus, dict) or k not in versus]
         if missing:
             raise ReportError(f"'versus.json': not the output of pinnmpc versus (lacks {', '.join(missing)})")
+    levels = _read_json(d / "levels.json", False)
+    if levels is not None:
+        missing = [k for k in LEVELS_KEYS if not isinstance(levels, dict) or k not in levels]
+        if missing:
+            raise ReportError(f"'levels.json': not the output of pinnmpc levels (lacks {', '.join(missing)})")
     realdata = _read_json(d / "realdata.json", False)
     if realdata is not None:
         missing = [k for k in REALDATA_KEYS if not isinstance(realdata, dict) or k not in realdata]
@@ -200,7 +212,7 @@ def load_inputs(run_dir) -> Inputs:
         learn[st["plant"]] = st
     plan = results.get("plan") if isinstance(results.get("plan"), dict) else {}
     return Inputs(d, runs, plan, evaluation, fisher, ablation, provenance, study, versus, study_ekf, realdata,
-                  learn or None)
+                  learn or None, levels)
 
 
 def _read_study(d: Path, name: str) -> dict | None:

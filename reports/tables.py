@@ -355,7 +355,12 @@ def provenance_section(prov: dict | None, plan: dict | None = None) -> str:
     if plan and plan.get("models_dir") is not None:
         out.append(f"Closed-loop plan: models from `{plan['models_dir']}`"
                    + (f", full = {plan['full']}" if "full" in plan else "")
-                   + (f", {len(plan['specs'])} runs planned" if isinstance(plan.get("specs"), list) else "") + ".")
+                   + (f", {len(plan['specs'])} runs planned" if isinstance(plan.get("specs"), list) else "")
+                   + (f", every run at the `{plan['level']}` level" if plan.get("level") else "") + ".")
+        left = plan.get("left_out")
+        if isinstance(left, dict) and left:
+            out.append(f"Left out at the `{plan.get('level')}` level (their models take commands at another): "
+                       + ", ".join(f"`{m}` ({lv})" for m, lv in left.items()) + ".")
     return "\n\n".join(out) if out else "`provenance.json` is empty."
 
 

@@ -32,14 +32,15 @@ def _qp_option(p, what: str) -> None:
                         f"solver")
 
 
-def _level_option(p) -> None:
-    """``--level``: the command level the controllers send and the plants take."""
+def _level_option(p, every: str = "") -> None:
+    """``--level``: the command level the controllers send and the plants take (``every``: what the option does to
+    a command that flies many runs)."""
     from sim.levels import DEFAULT_LEVEL, LEVELS
 
     p.add_argument("--level", choices=LEVELS, default=DEFAULT_LEVEL,
                    help="command level: wrench (thrust and body torques, the default); ctbr (thrust and body rates) "
                         "or ctatt (thrust, roll, pitch and yaw rate), flown through the vehicle's inner loop (its "
-                        "[inner_loop] table, docs/plants.md); a model file must declare the level it takes")
+                        "[inner_loop] table, docs/levels.md); a model file must declare the level it takes" + every)
 
 
 def _check_qp(qp: str) -> None:
@@ -155,6 +156,8 @@ def register(sub) -> None:
                         "estimator's estimate, docs/estimation.md). Default: every run without, and the "
                         "disturbance and noise cases with the SQP both ways")
     _qp_option(p, "every LTV-MPC and SQP run (the NMPC's and the LQR's runs are unchanged)")
+    _level_option(p, ". Every run flies at it: models of another level are left out (and named), the oracle "
+                     "becomes the nominal model where it has no equations at that level")
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser("study", help="dose-response: fly every zoo model as an ensemble and score the predictors",
@@ -202,6 +205,28 @@ def register(sub) -> None:
     _sweep_options(p, "versus.json", "--models/versus")
     _qp_option(p, "every SQP run")
     p.set_defaults(handler=cmd_versus)
+
+    p = sub.add_parser("levels", help="the three command levels side by side: the nominal model (and the oracle) "
+                                      "at wrench, ctbr and ctatt on each plant",
+                       description="On our plant (nominal and high-fidelity set-ups) and on RotorPy, each flying the "
+                                   "Crazyflie, and on drone-models' Crazyflie identified from real flights (ctatt "
+                                   "only), fly figure8-fast with the SQP at the wrench, ctbr and ctatt levels: the "
+                                   "nominal model of each level and, where it exists, the oracle, from --members "
+                                   "ensemble members. Gives each row's median RMSE with a bootstrap interval, its "
+                                   "crashes and the SQP's median solve time, and their ratios to the wrench level's. "
+                                   "Writes OUT/levels.json and a copy MODELS/levels/levels.json, which the report of "
+                                   "pinnmpc run shows. Resumable like run. About 10 minutes on 2 cores with 5 "
+                                   "members (docs/levels.md).")
+    p.add_argument("--models", type=Path, default=Path("models"),
+                   help="models folder, where levels/levels.json is published (default models)")
+    p.add_argument("--out", type=Path, default=Path("results/levels"), help="results folder (default results/levels)")
+    p.add_argument("--members", type=int, default=5, help="ensemble members per plant, level and model (default 5)")
+    p.add_argument("--plants", default=None, metavar="LIST",
+                   help="comma-separated plants: sim, highfi, rotorpy, drone-models (default all; rotorpy and "
+                        "drone-models need their extras)")
+    _sweep_options(p, "levels.json", "--models/levels")
+    _qp_option(p, "every SQP run")
+    p.set_defaults(handler=cmd_levels)
 
     from .studies.learn import LEARN_PLANTS, LearnSettings, upper_flights
     from .studies.training_refs import references_per_iteration
@@ -396,7 +421,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     check_writable(args.out, "--out", folder=True)
     out = run_main_job(args.out, args.models, args.jobs, args.full, progress=True, engine=args.engine,
                        address=args.address, resume=not args.fresh, plant=args.plant, vehicle=args.vehicle,
-                       estimator=args.estimator, qp=args.qp, report=build_report)
+                       estimator=args.estimator, qp=args.qp, report=build_report, level=args.level)
     runs = out["results"]
     crashed = [r["run_id"] for r in runs if r.get("crashed")]
     errors = [r["run_id"] for r in runs if r.get("error")]
@@ -473,6 +498,29 @@ def cmd_versus(args: argparse.Namespace) -> int:
     print(format_versus(out))
     print(f"wrote {args.out / 'versus.json'}"
           + ("" if args.no_publish else f" and {args.models / 'versus' / 'versus.json'}"))
+    return 0
+
+
+def cmd_levels(args: argparse.Namespace) -> int:
+    """Handler of ``pinnmpc levels``."""
+    import os
+
+    from .studies.levels import format_levels, parse_level_plants, run_levels
+
+    _check_qp(args.qp)
+    jobs = args.jobs if args.jobs is not None else (os.cpu_count() or 1)
+    for name, v in (("--jobs", jobs), ("--members", args.members)):
+        if v < 1:
+            raise ValueError(f"{name} must be >= 1; found {v}")
+    if args.address is not None and args.engine != "ray":
+        raise ValueError("--address needs --engine ray")
+    plants = parse_level_plants(args.plants)
+    check_writable(args.out, "--out", folder=True)
+    out = run_levels(args.models, args.out, args.members, plants, jobs, progress=True, publish=not args.no_publish,
+                     engine=args.engine, address=args.address, resume=not args.fresh, qp=args.qp)
+    print(format_levels(out))
+    print(f"wrote {args.out / 'levels.json'}"
+          + ("" if args.no_publish else f" and {args.models / 'levels' / 'levels.json'}"))
     return 0
 
 

@@ -27,6 +27,8 @@ TOL = {
     "nominal_angle": 3e-4,   # the same, largest angle error after one period, rad
     "order": (1.8, 2.3),     # the error ratio when the loop's rate doubles (first order in its period: 2)
     "track_m": 1e-3,         # the oracle's RMSE on figure8-fast, m
+    # the oracle's RMSE at ctbr and ctatt over the wrench level's, ensemble member 0 (noise): measured 1.04 both
+    "oracle_member_ratio": 1.2,
 }
 SHIPPED = ("crazyflie", "crazyflie-brushless", "hummingbird", "rolling-spider")
 LEVELS = ("ctbr", "ctatt")
@@ -185,3 +187,91 @@ def test_a_model_file_flown_at_another_level_is_refused(tmp_path, capsys):
 def test_the_oracle_at_a_level_is_refused_where_its_loop_is_not_ours(tmp_path, capsys):
     _refused(tmp_path, capsys, ["fly", "--model", "oracle", "--controller", "lqr", "--scenario", "hover+highfi",
                                 "--level", "ctbr", "--vehicle", "crazyflie"], "fly --model nominal")
+
+
+# ----------------------------------------------------------------------------- the main job at a level
+
+def test_the_main_job_at_a_level_flies_each_equations_run_there_and_leaves_out_the_models_of_another():
+    from pathlib import Path
+
+    from mpc.prediction.models import is_equation_model
+    from scenarios.closed_loop.library import get_scenario
+    from scenarios.studies.campaign import left_out_at_level, main_plan, shipped_models
+
+    models = Path(__file__).resolve().parents[1] / "models"
+    base, plan = main_plan(models), main_plan(models, level="ctbr")
+    assert plan and all(s.level == "ctbr" for s in plan) and len({s.run_id for s in plan}) == len(plan)
+    # the shipped model files take wrenches: none flies, and each is named as left out
+    assert all(is_equation_model(s.model) for s in plan)
+    assert set(left_out_at_level(shipped_models(models), "ctbr").values()) == {"wrench"}
+    # the oracle only where it exists at the level: our plant's nominal set-up
+    assert all(s.plant == "sim" and not get_scenario(s.scenario).high_fidelity for s in plan if s.model == "oracle")
+
+    def case(s):
+        return s.scenario, s.controller, s.timing, s.estimator, s.plant, s.vehicle, s.member
+
+    # every run the wrench plan flies with equations has its twin at the level, and nothing else is flown
+    assert {case(s) for s in base if is_equation_model(s.model)} == {case(s) for s in plan}
+    assert main_plan(models, level="wrench") == base
+
+
+# ----------------------------------------------------------------------------- the levels study
+
+def test_the_levels_study_flies_the_oracle_only_where_it_exists_at_a_level():
+    from scenarios.studies.levels import levels_specs
+
+    def flown(key):
+        return {(lv, m): len(runs) for lv, by_model in levels_specs(key, 3).items() for m, runs in by_model.items()}
+
+    assert flown("sim") == {(lv, m): 3 for lv in LEVELS + ("wrench",) for m in ("nominal", "oracle")}
+    assert flown("highfi") == {("wrench", "nominal"): 3, ("wrench", "oracle"): 3, ("ctbr", "nominal"): 3,
+                               ("ctatt", "nominal"): 3}
+    assert flown("rotorpy") == {(lv, "nominal"): 3 for lv in LEVELS + ("wrench",)}
+    assert flown("drone-models") == {("ctatt", "nominal"): 3}
+    specs = levels_specs("highfi", 2)
+    assert {(s.scenario, s.plant, s.vehicle, s.level, s.member) for s in specs["ctbr"]["nominal"]} == {
+        ("figure8-fast+highfi", "sim", "crazyflie", "ctbr", k) for k in range(2)}
+
+
+def test_the_levels_study_gives_each_level_as_a_multiple_of_the_wrench_level():
+    from reports.sections.levels import levels_section
+    from scenarios.studies.levels import summarize_levels
+
+    def runs(rmse, solve, crashed=False):
+        return [{"rmse_position_m": v, "crashed": crashed, "solve_ms": {"median": t}} for v, t in zip(rmse, solve)]
+
+    out = summarize_levels("sim", {("wrench", "nominal"): runs([0.010, 0.012, 0.011], [4.0, 6.0, 5.0]),
+                                   ("ctbr", "nominal"): runs([0.022, 0.020, 0.021], [6.0, 7.0, 8.0]),
+                                   ("ctatt", "nominal"): runs([0.5, 0.5, 0.5], [9.0, 9.0, 9.0], crashed=True)})
+    rows = {r["level"]: r for r in out["rows"]}
+    assert rows["ctbr"]["rmse_vs_wrench"] == pytest.approx(0.021 / 0.011, rel=1e-12)
+    assert rows["ctbr"]["solve_vs_wrench"] == pytest.approx(7.0 / 5.0, rel=1e-12)
+    assert rows["wrench"]["rmse_vs_wrench"] is None
+    assert rows["ctatt"]["ensemble"]["crashes"] == 3 and rows["ctatt"]["rmse_vs_wrench"] is None
+    md = levels_section({"scenario": "figure8-fast", "controller": "sqp", "members": 3, "levels": ["wrench"],
+                         "plants": {"sim": out}})
+    assert "| ctbr | nominal | 21.0 (20.0–22.0) (1.91×) | 0/3 | 7.0 (1.40×) |" in md, md
+
+
+def test_the_levels_study_refuses_an_unknown_plant_in_one_line(tmp_path, capsys):
+    from scenarios.cli import main
+
+    assert main(["levels", "--plants", "sim,mars", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "--plants must be a comma-separated list of sim, highfi, rotorpy, drone-models; found 'sim,mars'" in err
+    assert err.count("\n") == 1 and not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_the_levels_study_on_our_plant_in_one_run(tmp_path):
+    from scenarios.studies.levels import run_levels
+
+    out = run_levels(tmp_path / "models", tmp_path / "out", members=1, plants=["sim"], jobs=2, progress=False,
+                     publish=False)
+    saved = json.loads((tmp_path / "out" / "levels.json").read_text())
+    rows = {(r["level"], r["model"]): r for r in saved["plants"]["sim"]["rows"]}
+    assert saved["runs"] == out["runs"] == 6 and len(rows) == 6
+    # the oracle tracks at every level: its noise-driven error (member 0) barely grows through the inner loop
+    for lv in ("ctbr", "ctatt"):
+        assert rows[(lv, "oracle")]["ensemble"]["crashes"] == 0
+        assert rows[(lv, "oracle")]["rmse_vs_wrench"] < TOL["oracle_member_ratio"]

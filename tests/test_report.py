@@ -32,6 +32,7 @@ HEADINGS = (
     "Closed-loop results",
     "High-fidelity plant: models trained on its own data",
     "Learned against nominal on plants with unmodelled physics",
+    "Command levels: wrench, ctbr and ctatt side by side",
     "Learning from flown flights",
     "Other plants and vehicles",
     "Real flights: the nano-drone benchmark",

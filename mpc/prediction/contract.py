@@ -354,6 +354,19 @@ def check_model(path) -> ModelInfo:
                      extra_scale=extra_scale, **fields)
 
 
+def declared_level(path) -> str:
+    """The command level the model file ``path`` declares (metadata ``level``; ``wrench`` when absent), read without
+    the contract's other checks (:func:`check_model` makes them; an unknown level is one of them).
+
+    Raises
+    ------
+    ModelContractError
+        The file is missing or not a readable ONNX file.
+    """
+    path = Path(path)
+    return _metadata(_load(path), str(path)).get("level", DEFAULT_LEVEL)
+
+
 def _with_extra_at_rest(session, x: np.ndarray, u: np.ndarray, extra: tuple, where: str, what: str) -> np.ndarray:
     """The test states ``x`` (b, 12) with the model's extra states at rest appended (b, 12 + E).
 

@@ -17,6 +17,8 @@ Layout of a results folder ``DIR``::
     DIR/versus.json         learned models against the nominal equations on plants with unmodelled physics
                             (copied from models/versus/versus.json, produced by ``pinnmpc versus``; also too
                             long for the main job)
+    DIR/levels.json         the three command levels side by side (copied from models/levels/levels.json, produced
+                            by ``pinnmpc levels``)
     DIR/learn_<plant>.json  learning from flown flights (copied from models/learn/<plant>/learn.json, produced by
                             ``pinnmpc learn --publish``; its final models fly in the main job's high-fidelity and
                             RotorPy runs)
@@ -56,8 +58,9 @@ import sys
 import time
 from pathlib import Path
 
-from mpc.prediction.contract import model_files
+from mpc.prediction.contract import declared_level, model_files
 from sim.files import write_json
+from sim.levels import DEFAULT_LEVEL, check_level
 from sim.plants.named import rotorpy_available
 
 from ..errors import ScenarioError
@@ -242,8 +245,42 @@ def estimator_plan(models: list[str], names: list[str], scenarios_given: bool,
     return specs
 
 
+def at_level(specs: list[RunSpec], level: str) -> list[RunSpec]:
+    """``specs`` flown at the command ``level`` (:mod:`sim.levels`): a model file that declares another level is
+    left out (:func:`left_out_at_level` names them), the oracle becomes the nominal equations where it does not
+    exist at that level (any plant but ``sim``'s nominal set-up), and runs made equal by that are flown once."""
+    import dataclasses
+
+    from mpc.prediction.models import is_equation_model
+
+    from ..closed_loop.library import get_scenario
+
+    check_level(level)
+    out, seen, levels = [], set(), {}
+    for s in specs:
+        if not is_equation_model(s.model):
+            if s.model not in levels:
+                levels[s.model] = declared_level(s.model)
+            if levels[s.model] != level:
+                continue
+        model = s.model
+        if model == "oracle" and level != DEFAULT_LEVEL and (s.plant != "sim" or get_scenario(s.scenario).high_fidelity):
+            model = "nominal"
+        t = dataclasses.replace(s, model=model, level=level)
+        if t.run_id not in seen:
+            seen.add(t.run_id)
+            out.append(t)
+    return out
+
+
+def left_out_at_level(models: list[str], level: str) -> dict[str, str]:
+    """Of the model files ``models``, those that declare another level than ``level``: ``{path: their level}``."""
+    return {m: lv for m in models if (lv := declared_level(m)) != level}
+
+
 def main_plan(models_dir="models", full: bool = False, scenarios: list[str] | None = None, plant: str = "sim",
-              vehicle: str | None = None, estimator: str | None = None, qp: str = "osqp") -> list[RunSpec]:
+              vehicle: str | None = None, estimator: str | None = None, qp: str = "osqp",
+              level: str = DEFAULT_LEVEL) -> list[RunSpec]:
     """The closed-loop runs of the main job (see the module docstring).
 
     With another ``plant`` or ``vehicle`` the same runs fly there (the oracle becoming the nominal equations
@@ -252,8 +289,11 @@ def main_plan(models_dir="models", full: bool = False, scenarios: list[str] | No
     setting; by default (None) every run flies without an estimator and the disturbance and noise cases with
     and without (:func:`estimator_plan`). ``qp``: the QP solver of every run
     (:attr:`scenarios.closed_loop.runner.RunSpec.qp`),
-    which the LTV-MPC's and the SQP's runs use and the others leave alone.
+    which the LTV-MPC's and the SQP's runs use and the others leave alone. ``level``: every run flies at that
+    command level (:func:`at_level`: the models of another level are left out).
     """
+    if level != DEFAULT_LEVEL:
+        return at_level(main_plan(models_dir, full, scenarios, plant, vehicle, estimator, qp), level)
     if qp != "osqp":
         import dataclasses
 
@@ -461,7 +501,7 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
                  progress: bool = True, scenarios: list[str] | None = None, engine: str = "process",
                  address: str | None = None, resume: bool = True, plant: str = "sim",
                  vehicle: str | None = None, estimator: str | None = None, qp: str = "osqp",
-                 report=None) -> dict:
+                 report=None, level: str = DEFAULT_LEVEL) -> dict:
     """Run everything and build the report; returns ``{"results": [...], "report": path}``.
 
     ``report(out_dir) -> path`` builds the report once the runs are saved (the command line passes
@@ -476,7 +516,11 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
     """
     out = Path(out_dir)
     jobs = max(1, os.cpu_count() or 1) if jobs is None else jobs
-    specs = main_plan(models_dir, full, scenarios, plant, vehicle, estimator, qp)   # validates names and files first
+    specs = main_plan(models_dir, full, scenarios, plant, vehicle, estimator, qp, level)   # validates names, files
+    left_out = {} if level == DEFAULT_LEVEL else left_out_at_level(shipped_models(models_dir), level)
+    if progress and left_out:
+        print(f"{len(left_out)} models take commands at another level than {level!r}, so they are left out: "
+              + ", ".join(f"{Path(m).stem} ({lv})" for m, lv in left_out.items()), file=sys.stderr)
     if progress and plant == "sim" and vehicle is None and scenarios is None and not rotorpy_available():
         print("RotorPy is not installed: the runs on other plants are left out (pip install -e '.[rotorpy]')",
               file=sys.stderr)
@@ -523,7 +567,8 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
         shutil.copyfile(ablation, out / "ablation.json")
     for src, name in ((Path(models_dir) / "zoo" / "study.json", "study.json"),
                       (Path(models_dir) / "zoo" / "study_ekf.json", "study_ekf.json"),
-                      (Path(models_dir) / "versus" / "versus.json", "versus.json")):
+                      (Path(models_dir) / "versus" / "versus.json", "versus.json"),
+                      (Path(models_dir) / "levels" / "levels.json", "levels.json")):
         if src.is_file():
             shutil.copyfile(src, out / name)
         elif (out / name).is_file():
@@ -539,6 +584,9 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
     from sim.vehicles.vehicle import load_vehicle
 
     write_json(out / "results.json", {"plan": {"full": full, "models_dir": str(models_dir), "plant": plant, "qp": qp,
+                                           **({} if level == DEFAULT_LEVEL else
+                                              {"level": level, "left_out": {Path(m).stem: lv
+                                                                            for m, lv in left_out.items()}}),
                                            "vehicle": None if vehicle is None else load_vehicle(vehicle).name,
                                            "rotorpy": rotorpy_available(),
                                            "specs": [spec_dict(s) for s in specs]}, "runs": results})
