@@ -129,7 +129,9 @@ def report_markdown(run_dir) -> str:
     body["High-fidelity plant: models trained on its own data"] = highfi_table(
         inp.runs + members, inp.evaluation)
     body["Learned against nominal on plants with unmodelled physics"] = versus_section(inp.versus)
-    body["Command levels: wrench, ctbr and ctatt side by side"] = levels_section(inp.levels)
+    body["Command levels: wrench, ctbr and ctatt side by side"] = "\n\n".join(
+        [levels_section(inp.levels)] + [f"**Learned against nominal at the `{lv}` level**\n\n" + versus_section(v)
+                                        for lv, v in inp.versus_levels.items()])
     body["Learning from flown flights"] = learn_section(inp.learn, d, _figure_md)
     body["Other plants and vehicles"] = plants_section(inp.runs, other_plants)
     body["Real flights: the nano-drone benchmark"] = realdata_section(inp.realdata)

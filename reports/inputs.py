@@ -119,6 +119,8 @@ class Inputs:
         ``learn_<plant>.json`` by plant (``pinnmpc learn``: learning from flown flights), None when there is none.
     levels : dict or None
         ``levels.json`` (``pinnmpc levels``: the three command levels side by side), None when absent.
+    versus_levels : dict
+        ``versus_<level>.json`` by level (``pinnmpc versus --level``), empty when there is none.
     """
 
     run_dir: Path
@@ -134,6 +136,7 @@ class Inputs:
     realdata: dict | None = None
     learn: dict | None = None
     levels: dict | None = None
+    versus_levels: dict = field(default_factory=dict)
     _traces: dict = field(default_factory=dict, repr=False)
 
     def models_by_name(self) -> dict:
@@ -188,11 +191,18 @@ def load_inputs(run_dir) -> Inputs:
     if provenance is not None and not isinstance(provenance, dict):
         provenance = None
     study, study_ekf = (_read_study(d, name) for name in ("study.json", "study_ekf.json"))
-    versus = _read_json(d / "versus.json", False)
-    if versus is not None:
-        missing = [k for k in VERSUS_KEYS if not isinstance(versus, dict) or k not in versus]
+    versus, versus_levels = None, {}
+    for name in ("versus.json", "versus_ctbr.json", "versus_ctatt.json"):
+        v = _read_json(d / name, False)
+        if v is None:
+            continue
+        missing = [k for k in VERSUS_KEYS if not isinstance(v, dict) or k not in v]
         if missing:
-            raise ReportError(f"'versus.json': not the output of pinnmpc versus (lacks {', '.join(missing)})")
+            raise ReportError(f"{name!r}: not the output of pinnmpc versus (lacks {', '.join(missing)})")
+        if name == "versus.json":
+            versus = v
+        else:
+            versus_levels[name[len("versus_"):-len(".json")]] = v
     levels = _read_json(d / "levels.json", False)
     if levels is not None:
         missing = [k for k in LEVELS_KEYS if not isinstance(levels, dict) or k not in levels]
@@ -212,7 +222,7 @@ def load_inputs(run_dir) -> Inputs:
         learn[st["plant"]] = st
     plan = results.get("plan") if isinstance(results.get("plan"), dict) else {}
     return Inputs(d, runs, plan, evaluation, fisher, ablation, provenance, study, versus, study_ekf, realdata,
-                  learn or None, levels)
+                  learn or None, levels, versus_levels)
 
 
 def _read_study(d: Path, name: str) -> dict | None:

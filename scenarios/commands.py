@@ -182,6 +182,8 @@ def register(sub) -> None:
     p.add_argument("--select", default=None, metavar="NAMES",
                    help="comma-separated zoo models to fly (default: all)")
     _qp_option(p, "every LTV-MPC and SQP run")
+    _level_option(p, ". The zoo's models that declare another level are recorded as not flown; a zoo with none at "
+                     "it is refused (the shipped zoo takes wrenches)")
     p.set_defaults(handler=cmd_study)
 
     p = sub.add_parser("versus", help="learned against nominal: fly the models trained on plants with unmodelled "
@@ -204,6 +206,9 @@ def register(sub) -> None:
                         "crazyflie (RotorPy's Crazyflie preset: no open-loop model is trained on it)")
     _sweep_options(p, "versus.json", "--models/versus")
     _qp_option(p, "every SQP run")
+    _level_option(p, ". At ctbr and ctatt: the nominal model of that level and the learned models that declare it "
+                     "(no true equations: they would need the inner loop with the plant's lag); writes and publishes "
+                     "versus_LEVEL.json beside the wrench level's versus.json, and the report shows both")
     p.set_defaults(handler=cmd_versus)
 
     p = sub.add_parser("levels", help="the three command levels side by side: the nominal model (and the oracle) "
@@ -454,8 +459,9 @@ def cmd_study(args: argparse.Namespace) -> int:
         raise ValueError(f"--jobs and --members must be >= 1; found {jobs} and {args.members}")
     if args.address is not None and args.engine != "ray":
         raise ValueError("--address needs --engine ray")
-    if (args.plant != "sim" or args.vehicle is not None) and not args.no_publish and args.models == Path("models/zoo"):
-        raise ValueError("a study on another plant or vehicle would replace the shipped zoo's study.json; give "
+    if (args.plant != "sim" or args.vehicle is not None or args.level != "wrench") and not args.no_publish \
+            and args.models == Path("models/zoo"):
+        raise ValueError("a study on another plant, vehicle or level would replace the shipped zoo's study.json; give "
                          "--no-publish (or another --models folder)")
     from .studies.zoo import study_file
 
@@ -466,7 +472,7 @@ def cmd_study(args: argparse.Namespace) -> int:
         raise ValueError("a study of some models would replace the zoo's study.json; give --no-publish")
     out = run_study(args.models, args.out, args.members, jobs, progress=True, publish=not args.no_publish,
                     engine=args.engine, address=args.address, resume=not args.fresh, plant=args.plant,
-                    vehicle=args.vehicle, estimator=args.estimator, select=select, qp=args.qp)
+                    vehicle=args.vehicle, estimator=args.estimator, select=select, qp=args.qp, level=args.level)
     print(format_study(out))
     name = study_file(args.estimator)
     print(f"wrote {args.out / name}" + ("" if args.no_publish else f" and {args.models / name}"))
@@ -482,7 +488,7 @@ def cmd_versus(args: argparse.Namespace) -> int:
     """Handler of ``pinnmpc versus``."""
     import os
 
-    from .studies.versus import format_versus, parse_plants, run_versus
+    from .studies.versus import format_versus, parse_plants, published_name, run_versus
 
     _check_qp(args.qp)
     jobs = args.jobs if args.jobs is not None else (os.cpu_count() or 1)
@@ -494,10 +500,10 @@ def cmd_versus(args: argparse.Namespace) -> int:
     check_writable(args.out, "--out", folder=True)
     out = run_versus(args.models, args.out, args.members, args.ladder_members, parse_plants(args.plants), jobs,
                      progress=True, publish=not args.no_publish, engine=args.engine, address=args.address,
-                     resume=not args.fresh, qp=args.qp)
+                     resume=not args.fresh, qp=args.qp, level=args.level)
     print(format_versus(out))
-    print(f"wrote {args.out / 'versus.json'}"
-          + ("" if args.no_publish else f" and {args.models / 'versus' / 'versus.json'}"))
+    name = published_name(args.level)
+    print(f"wrote {args.out / name}" + ("" if args.no_publish else f" and {args.models / 'versus' / name}"))
     return 0
 
 

@@ -275,3 +275,28 @@ def test_the_levels_study_on_our_plant_in_one_run(tmp_path):
     for lv in ("ctbr", "ctatt"):
         assert rows[(lv, "oracle")]["ensemble"]["crashes"] == 0
         assert rows[(lv, "oracle")]["rmse_vs_wrench"] < TOL["oracle_member_ratio"]
+
+
+def test_versus_at_a_level_flies_the_nominal_model_there_and_its_own_file():
+    from pathlib import Path
+
+    from scenarios.studies.versus import plant_models, published_name, versus_specs
+
+    models = Path(__file__).resolve().parents[1] / "models"
+    assert plant_models("highfi", models)[:2] == ["nominal", "oracle"] and len(plant_models("highfi", models)) > 2
+    # at ctbr: the shipped models take wrenches and the true equations have no inner loop with the plant's lag
+    assert plant_models("highfi", models, "ctbr") == ["nominal"] == plant_models("rotorpy", models, "ctatt")
+    specs = versus_specs("highfi", ["nominal"], members=2, ladder_members=1, level="ctbr")
+    assert {s.level for s in specs["ensemble"]["nominal"]} == {"ctbr"}
+    assert all(s.level == "ctbr" for runs in specs["ladder"]["nominal"].values() for s in runs)
+    assert (published_name(), published_name("ctbr")) == ("versus.json", "versus_ctbr.json")
+
+
+def test_a_study_of_a_zoo_with_no_model_at_the_level_is_refused_before_anything_is_written(tmp_path, capsys):
+    from scenarios.cli import main
+
+    out = tmp_path / "zoo"
+    assert main(["study", "--level", "ctbr", "--no-publish", "--members", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "no model can be flown at the 'ctbr' level: every model takes commands at the 'wrench' level" in err
+    assert err.count("\n") == 1 and not out.exists()

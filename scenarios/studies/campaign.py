@@ -17,6 +17,7 @@ Layout of a results folder ``DIR``::
     DIR/versus.json         learned models against the nominal equations on plants with unmodelled physics
                             (copied from models/versus/versus.json, produced by ``pinnmpc versus``; also too
                             long for the main job)
+    DIR/versus_<level>.json the same study at the ctbr or ctatt command level (``pinnmpc versus --level``)
     DIR/levels.json         the three command levels side by side (copied from models/levels/levels.json, produced
                             by ``pinnmpc levels``)
     DIR/learn_<plant>.json  learning from flown flights (copied from models/learn/<plant>/learn.json, produced by
@@ -568,6 +569,8 @@ def run_main_job(out_dir, models_dir="models", jobs: int | None = None, full: bo
     for src, name in ((Path(models_dir) / "zoo" / "study.json", "study.json"),
                       (Path(models_dir) / "zoo" / "study_ekf.json", "study_ekf.json"),
                       (Path(models_dir) / "versus" / "versus.json", "versus.json"),
+                      (Path(models_dir) / "versus" / "versus_ctbr.json", "versus_ctbr.json"),
+                      (Path(models_dir) / "versus" / "versus_ctatt.json", "versus_ctatt.json"),
                       (Path(models_dir) / "levels" / "levels.json", "levels.json")):
         if src.is_file():
             shutil.copyfile(src, out / name)

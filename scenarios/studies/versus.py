@@ -29,8 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
+from mpc.prediction.contract import declared_level
 from mpc.prediction.models import model_name
 from sim.files import write_json
+from sim.levels import DEFAULT_LEVEL, check_level
 
 from ..errors import ScenarioError
 from ..sweeps.lock import locks_out_dir
@@ -108,19 +110,28 @@ def parse_plants(text: str | None) -> list[str]:
     return list(dict.fromkeys(keys))
 
 
-def plant_models(key: str, models_dir) -> list[str]:
-    """The models plant ``key`` flies: the equations first, then the learned models present under ``models_dir``."""
+def plant_models(key: str, models_dir, level: str = DEFAULT_LEVEL) -> list[str]:
+    """The models plant ``key`` flies at ``level``: the equations first (the true ones only at the wrench level: at
+    ``ctbr`` and ``ctatt`` this project has no equations of these plants' inner loops with their lag), then the
+    learned models present under ``models_dir`` that declare that level."""
     p = VERSUS_PLANTS[key]
-    eq = ["nominal"] + (["oracle"] if p.oracle else [])
-    return eq + [str(Path(models_dir) / m) for m in p.models if (Path(models_dir) / m).is_file()]
+    eq = ["nominal"] + (["oracle"] if p.oracle and level == DEFAULT_LEVEL else [])
+    files = [str(Path(models_dir) / m) for m in p.models if (Path(models_dir) / m).is_file()]
+    return eq + [m for m in files if declared_level(m) == level]
+
+
+def published_name(level: str = DEFAULT_LEVEL) -> str:
+    """The file the study writes and publishes: ``versus.json`` at the wrench level, ``versus_<level>.json`` at
+    another."""
+    return "versus.json" if level == DEFAULT_LEVEL else f"versus_{level}.json"
 
 
 def versus_specs(key: str, models: list[str], members: int = 10, ladder_members: int = 10,
-                 qp: str = "osqp") -> dict:
+                 qp: str = "osqp", level: str = DEFAULT_LEVEL) -> dict:
     """The runs of one plant: ``{"ensemble": {model: [RunSpec]}, "ladder": {model: {rung: [RunSpec]}}}``.
 
     The ladder's :data:`VERSUS_SCENARIO` rung is the ensemble itself (no run is flown twice). ``qp``: the QP
-    solver of every run (:attr:`scenarios.closed_loop.runner.RunSpec.qp`).
+    solver of every run (:attr:`scenarios.closed_loop.runner.RunSpec.qp`); ``level`` the command level of every run.
     """
     _count("members", members)
     _count("ladder_members", ladder_members)
@@ -128,10 +139,10 @@ def versus_specs(key: str, models: list[str], members: int = 10, ladder_members:
     ens, lad = {}, {}
     for m in models:
         ens[m] = [RunSpec(p.scenario(VERSUS_SCENARIO), VERSUS_CONTROLLER, m, member=k, plant=p.plant,
-                          vehicle=p.vehicle, qp=qp) for k in range(members)]
+                          vehicle=p.vehicle, qp=qp, level=level) for k in range(members)]
         lad[m] = {r: (ens[m] if r == VERSUS_SCENARIO else
                       [RunSpec(p.scenario(r), VERSUS_CONTROLLER, m, member=k, plant=p.plant, vehicle=p.vehicle,
-                               qp=qp)
+                               qp=qp, level=level)
                        for k in range(ladder_members)]) for r in ladder_names()}
     return {"ensemble": ens, "ladder": lad}
 
@@ -164,7 +175,7 @@ def _ladder_row(rungs: dict, speeds: dict) -> dict:
     return {"rungs": out, "max_speed": max_trackable_speed(pseudo, ladder_names(), speeds)}
 
 
-def summarize_plant(key: str, models: list[str], results: dict, speeds: dict) -> dict:
+def summarize_plant(key: str, models: list[str], results: dict, speeds: dict, level: str = DEFAULT_LEVEL) -> dict:
     """One plant's rows and verdict from its flown runs.
 
     ``results`` maps any key to a run's result with two more keys: ``_model`` (the model as given in ``models``)
@@ -177,7 +188,7 @@ def summarize_plant(key: str, models: list[str], results: dict, speeds: dict) ->
         ens = [results[i] for i in sorted(results) if results[i]["_model"] == m and results[i]["_rung"] is None]
         s = summarize(ens)
         facts = _model_facts(RunSpec(p.scenario(VERSUS_SCENARIO), VERSUS_CONTROLLER, m, plant=p.plant,
-                                     vehicle=p.vehicle))
+                                     vehicle=p.vehicle, level=level))
         solve = [r["solve_ms"]["median"] for r in ens if isinstance(r.get("solve_ms"), dict)
                  and r["solve_ms"].get("median") is not None]
         row = {"model": model_name(m), "path": None if m in ("nominal", "oracle") else m, **facts,
@@ -229,7 +240,7 @@ def summarize_plant(key: str, models: list[str], results: dict, speeds: dict) ->
 @locks_out_dir
 def run_versus(models_dir="models", out_dir="results/versus", members: int = 10, ladder_members: int = 10,
                plants=None, jobs: int = 1, progress: bool = True, publish: bool = True, qp: str = "osqp",
-               **sweep_kwargs) -> dict:
+               level: str = DEFAULT_LEVEL, **sweep_kwargs) -> dict:
     """Fly the study (a resumable sweep) and write ``versus.json`` (see the module docstring).
 
     Parameters
@@ -246,10 +257,14 @@ def run_versus(models_dir="models", out_dir="results/versus", members: int = 10,
         Also copy ``versus.json`` into ``models_dir/versus`` (where the main job finds it for the report).
     qp : {"osqp", "daqp"}
         The QP solver of every run (:attr:`scenarios.closed_loop.runner.RunSpec.qp`).
+    level : str
+        The command level of every run (:mod:`sim.levels`); at ``ctbr`` and ``ctatt`` the study writes and publishes
+        ``versus_<level>.json`` (:func:`published_name`) beside the wrench level's.
     sweep_kwargs
         ``engine``, ``address``, ``resume`` of :func:`scenarios.sweeps.sweep.sweep`.
     """
     keys = parse_plants(None if plants is None else ",".join(plants))
+    check_level(level)
     if not Path(models_dir).is_dir():
         raise ScenarioError(f"models folder {str(models_dir)!r} does not exist")
     if any(VERSUS_PLANTS[k].plant == "rotorpy" for k in keys):
@@ -259,9 +274,9 @@ def run_versus(models_dir="models", out_dir="results/versus", members: int = 10,
             raise ScenarioError("plants rotorpy and crazyflie need RotorPy (pip install -e '.[rotorpy]'), or fly "
                                 "--plants highfi")
     all_specs, tags = [], []
-    models = {k: plant_models(k, models_dir) for k in keys}
+    models = {k: plant_models(k, models_dir, level) for k in keys}
     for k in keys:
-        sp = versus_specs(k, models[k], members, ladder_members, qp)
+        sp = versus_specs(k, models[k], members, ladder_members, qp, level)
         for m, runs in sp["ensemble"].items():
             all_specs += runs
             tags += [(k, m, None)] * len(runs)
@@ -280,20 +295,21 @@ def run_versus(models_dir="models", out_dir="results/versus", members: int = 10,
         for i, ((kk, m, rung), r) in enumerate(zip(tags, results)):
             if kk == k:
                 mine[i] = {**r, "_model": m, "_rung": rung}
-        out_plants[k] = summarize_plant(k, models[k], mine, speeds)
+        out_plants[k] = summarize_plant(k, models[k], mine, speeds, level)
     out = {"scenario": VERSUS_SCENARIO, "controller": VERSUS_CONTROLLER, "members": members,
            "ladder_members": ladder_members,
            "ladder": {"rungs": ladder_names(), "speeds_mps": speeds, "rmse_bound_m": LADDER_RMSE_BOUND_M},
            "goal": WIN_FRACTION, "plants": out_plants, "runs": len(results), "code_version": code_version(),
-           "qp": qp,
+           "qp": qp, "level": level,
            "command": f"pinnmpc versus --models {models_dir} --out {out_dir} --members {members} "
                       f"--ladder-members {ladder_members} --plants {','.join(keys)}"
-                      + ("" if qp == "osqp" else f" --qp {qp}"),
+                      + ("" if qp == "osqp" else f" --qp {qp}") + ("" if level == DEFAULT_LEVEL else f" --level {level}"),
            "wall_time_s": wall, "date": time.strftime("%Y-%m-%d")}
-    path = write_json(Path(out_dir) / "versus.json", out)
+    name = published_name(level)
+    path = write_json(Path(out_dir) / name, out)
     if publish:
         (Path(models_dir) / VERSUS_DIR).mkdir(exist_ok=True)
-        shutil.copyfile(path, Path(models_dir) / VERSUS_DIR / "versus.json")
+        shutil.copyfile(path, Path(models_dir) / VERSUS_DIR / name)
     return out
 
 
@@ -303,8 +319,9 @@ def _mm(v) -> str:
 
 def format_versus(out: dict) -> str:
     """The study as plain text: one block per plant, one line per model."""
+    level = out.get("level", DEFAULT_LEVEL)
     lines = [f"{out['scenario']} with the {out['controller'].upper()}, {out['members']} members "
-             f"(ladder: {out['ladder_members']} per rung)"]
+             f"(ladder: {out['ladder_members']} per rung)" + ("" if level == DEFAULT_LEVEL else f", at the {level} level")]
     for k, p in out["plants"].items():
         lines.append(f"\n{p['label']} ({p['scenario']}):")
         for name, row in p["models"].items():

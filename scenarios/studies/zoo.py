@@ -136,20 +136,22 @@ def refused_models(models_dir) -> dict[str, dict]:
 
 def study_specs(models: dict[str, dict], members: int = 10, controllers=STUDY_CONTROLLERS, plant: str = "sim",
                 vehicle: str | None = None, estimator: str = "none",
-                qp: str = "osqp") -> tuple[RunSpec, list[RunSpec], list[RunSpec]]:
+                qp: str = "osqp", level: str = "wrench") -> tuple[RunSpec, list[RunSpec], list[RunSpec]]:
     """(oracle reference run, ensemble runs, speed-ladder runs) of the study, on ``plant`` flying ``vehicle``.
 
     The reference run is the oracle's, or on a plant without known equations (``rotorpy``) the nominal
     equations', without an estimator (its trace scores the open-loop candidates). With ``estimator``
     (``"ekf"``) the ensembles fly with the state estimator and there is no ladder (the study of the threshold).
-    ``qp``: the QP solver of every run (:attr:`scenarios.closed_loop.runner.RunSpec.qp`).
+    ``qp``: the QP solver of every run (:attr:`scenarios.closed_loop.runner.RunSpec.qp`); ``level`` the command level
+    of every run (the reference run is the oracle's at that level only on our plant's nominal set-up).
     """
     if isinstance(members, bool) or not isinstance(members, int) or members < 1:
         raise ScenarioError(f"members must be an integer >= 1; found {members!r}")
     from sim.plants.named import KNOWN_EQUATIONS
 
-    where = {"plant": plant, "vehicle": vehicle, "qp": qp}
-    oracle = RunSpec(STUDY_SCENARIO, "sqp", "oracle" if plant in KNOWN_EQUATIONS else "nominal", **where)
+    where = {"plant": plant, "vehicle": vehicle, "qp": qp, "level": level}
+    known = plant in KNOWN_EQUATIONS if level == "wrench" else plant == "sim"
+    oracle = RunSpec(STUDY_SCENARIO, "sqp", "oracle" if known else "nominal", **where)
     ens = [RunSpec(STUDY_SCENARIO, c, m["path"], member=k, estimator=estimator, **where) for m in models.values()
            for c in controllers for k in range(members)]
     ladder = [] if estimator != "none" else \
@@ -215,7 +217,7 @@ def _candidates(name: str, entry: dict, oracle_trace: dict) -> dict:
 def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10, jobs: int = 1,
               controllers=STUDY_CONTROLLERS, progress: bool = True, publish: bool = True, plant: str = "sim",
               vehicle: str | None = None, estimator: str = "none", select=None, qp: str = "osqp",
-              **sweep_kwargs) -> dict:
+              level: str = "wrench", **sweep_kwargs) -> dict:
     """Fly the study (a resumable sweep), score the predictors and write ``study.json``.
 
     Parameters
@@ -238,10 +240,18 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
         Fly only these models of the zoo (default: all).
     qp : {"osqp", "daqp"}
         The QP solver of every LTV-MPC and SQP run (:attr:`scenarios.closed_loop.runner.RunSpec.qp`).
+    level : str
+        The command level of every run (:mod:`sim.levels`); a model of the zoo that declares another is recorded as
+        not flown, and a zoo with none at that level is refused.
     sweep_kwargs
         ``engine``, ``address``, ``resume`` of :func:`scenarios.sweeps.sweep.sweep`.
     """
+    from mpc.prediction.contract import declared_level
+    from sim.levels import check_level
+
     from ..closed_loop.runner import ESTIMATORS
+
+    check_level(level)
 
     if estimator not in ESTIMATORS:
         raise ScenarioError(f"estimator must be one of {', '.join(ESTIMATORS)}; found {estimator!r}")
@@ -255,12 +265,19 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
         if name not in failed:
             try:
                 load_model(entry["path"])
+                other = declared_level(entry["path"])
+                if other != level:
+                    failed[name] = f"takes commands at the {other!r} level, not {level!r}"
             except ValueError as e:
                 failed[name] = " ".join(str(e).split())
     models = {n: e for n, e in models.items() if n not in failed}
     if not models:
-        raise ScenarioError(f"{models_dir}: no model can be flown: " + "; ".join(f"{n}: {w}" for n, w in failed.items()))
-    oracle, ens, ladder = study_specs(models, members, controllers, plant, vehicle, estimator, qp)
+        why = sorted(set(failed.values()))
+        raise ScenarioError(f"{models_dir}: no model can be flown" + (f" at the {level!r} level" if level != "wrench"
+                                                                      else "") + ": "
+                            + ("; ".join(f"{n}: {w}" for n, w in failed.items()) if len(why) > 1
+                               else f"every model {why[0]}" if why else "the zoo is empty"))
+    oracle, ens, ladder = study_specs(models, members, controllers, plant, vehicle, estimator, qp, level)
     t0 = time.perf_counter()
     results = sweep([oracle, *ens, *ladder], out_dir, jobs=jobs, progress=progress, **sweep_kwargs)
     wall = time.perf_counter() - t0
@@ -297,12 +314,12 @@ def run_study(models_dir="models/zoo", out_dir="results/zoo", members: int = 10,
            "refused": refused_models(models_dir), "failed": failed,
            "runs": len(results), "code_version": code_version(), "plant": plant,
            "vehicle": oracle.vehicle_data.name,
-           "estimator": estimator, "qp": qp,
+           "estimator": estimator, "qp": qp, "level": level,
            "command": f"pinnmpc study --models {models_dir} --out {out_dir} --members {members}"
                       + ("" if plant == "sim" else f" --plant {plant}") + ("" if vehicle is None else f" --vehicle {vehicle}")
                       + ("" if estimator == "none" else f" --estimator {estimator}")
                       + ("" if select is None else f" --select {','.join(models)}")
-                      + ("" if qp == "osqp" else f" --qp {qp}"),
+                      + ("" if qp == "osqp" else f" --qp {qp}") + ("" if level == "wrench" else f" --level {level}"),
            "wall_time_s": wall, "date": time.strftime("%Y-%m-%d")}
     path = write_json(Path(out_dir) / study_file(estimator), out)
     if publish:
