@@ -478,8 +478,8 @@ def test_a_rerun_with_other_settings_is_refused(tmp_path, monkeypatch):
 # ------------------------------------------------------------------ resume (the real command, killed)
 def _learn_cmd(out: Path) -> list[str]:
     return [sys.executable, "-m", "scenarios.cli", "learn", "--plant", "highfi", "--out", str(out), "--iterations",
-            "2", "--per-level", "1", "--members", "2", "--ladder-members", "1", "--profile", "smoke",
-            "--no-controls", "--jobs", "2"]
+            "2", "--per-level", "1", "--members", "2", "--curve-members", "1", "--ladder-members", "1", "--profile",
+            "smoke", "--no-controls", "--jobs", "2"]
 
 
 @pytest.mark.slow
