@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from ..tables import MISSING, fmt, md_table
-from .versus import mm_ci
+from ..tables import MISSING, md_table
+from .versus import mm_ci, study_head
 
 #: Shown when the results folder has no levels.json.
 NO_LEVELS = ("No `levels.json` in this folder: `pinnmpc levels` flies the nominal model (and the oracle where it "
@@ -19,10 +19,7 @@ def levels_section(levels: dict | None) -> str:
     """Markdown: where the numbers come from, then one table per plant with a row per level and model."""
     if levels is None:
         return NO_LEVELS
-    head = (f"From `{levels.get('command', 'pinnmpc levels')}` ({levels.get('date', 'undated')}, "
-            f"{levels.get('runs', MISSING)} closed-loop runs in {fmt(levels.get('wall_time_s', 0) / 60, '.0f')} min), "
-            f"copied into this folder by `pinnmpc run`. `{levels['scenario']}` with the "
-            f"{levels['controller'].upper()} from {levels['members']} ensemble members per row: median position RMSE "
+    head = (study_head(levels, "pinnmpc levels") + " per row: median position RMSE "
             f"in mm with its bootstrap 95 % interval, crashes, and the median over the members of each run's median "
             f"solve time; at ctbr and ctatt, in brackets, each as a multiple of the wrench level's. At ctbr the "
             f"controller sends thrust and body rates, at ctatt thrust, roll, pitch and a yaw rate; the vehicle's "

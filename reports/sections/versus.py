@@ -42,14 +42,20 @@ def verdict_text(p: dict, goal: float) -> str:
             f"(bootstrap 95 % {100 * lo:.0f} to {100 * hi:.0f} %); {apart}; {tail}.")
 
 
+def study_head(study: dict, command: str) -> str:
+    """The opening of a flown study's section: its command, date, runs and minutes, its scenario, controller and
+    members ("... from N ensemble members"; the caller goes on)."""
+    return (f"From `{study.get('command', command)}` ({study.get('date', 'undated')}, "
+            f"{study.get('runs', MISSING)} closed-loop runs in {fmt(study.get('wall_time_s', 0) / 60, '.0f')} min), "
+            f"copied into this folder by `pinnmpc run`. `{study['scenario']}` with the "
+            f"{study['controller'].upper()} from {study['members']} ensemble members")
+
+
 def versus_section(versus: dict | None) -> str:
     """Markdown: where the numbers come from, one table and one verdict per plant."""
     if versus is None:
         return NO_VERSUS
-    head = (f"From `{versus.get('command', 'pinnmpc versus')}` ({versus.get('date', 'undated')}, "
-            f"{versus.get('runs', MISSING)} closed-loop runs in {fmt(versus.get('wall_time_s', 0) / 60, '.0f')} min), "
-            f"copied into this folder by `pinnmpc run`. `{versus['scenario']}` with the "
-            f"{versus['controller'].upper()} from {versus['members']} ensemble members: median position RMSE in mm "
+    head = (study_head(versus, "pinnmpc versus") + ": median position RMSE in mm "
             f"with its bootstrap 95 % interval, and the improvement over the nominal equations "
             f"(1 − median / nominal median) with its own. The maximum trackable speed climbs the figure-8 speed "
             f"ladder ({versus['ladder_members']} members per rung): the fastest rung without a crash and with a "

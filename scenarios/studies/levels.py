@@ -33,6 +33,7 @@ from ..errors import ScenarioError
 from ..sweeps.lock import locks_out_dir
 from ..sweeps.sweep import sweep
 from .stats import summarize
+from .versus import parse_keys
 
 #: Sub-folder of the models folder where the study publishes levels.json.
 LEVELS_DIR = "levels"
@@ -78,13 +79,7 @@ DEFAULT_LEVELS_PLANTS = tuple(LEVELS_PLANTS)
 
 def parse_level_plants(text: str | None) -> list[str]:
     """Plant keys from a comma-separated list (None: :data:`DEFAULT_LEVELS_PLANTS`)."""
-    if text is None:
-        return list(DEFAULT_LEVELS_PLANTS)
-    keys = [k.strip() for k in str(text).split(",") if k.strip()]
-    bad = [k for k in keys if k not in LEVELS_PLANTS]
-    if bad or not keys:
-        raise ScenarioError(f"--plants must be a comma-separated list of {', '.join(LEVELS_PLANTS)}; found {text!r}")
-    return list(dict.fromkeys(keys))
+    return parse_keys(text, LEVELS_PLANTS, DEFAULT_LEVELS_PLANTS, "--plants")
 
 
 def levels_specs(key: str, members: int, qp: str = "osqp") -> dict:

@@ -99,15 +99,21 @@ def _count(name: str, v) -> int:
     return v
 
 
+def parse_keys(text: str | None, known, default, name: str = "plants") -> list[str]:
+    """Keys of ``known`` from the comma-separated list ``text``, each once, in its order (None: ``default``); else a
+    ScenarioError naming ``name`` and the known keys."""
+    if text is None:
+        return list(default)
+    keys = [k.strip() for k in str(text).split(",") if k.strip()]
+    bad = [k for k in keys if k not in known]
+    if bad or not keys:
+        raise ScenarioError(f"{name} must be a comma-separated list of {', '.join(known)}; found {text!r}")
+    return list(dict.fromkeys(keys))
+
+
 def parse_plants(text: str | None) -> list[str]:
     """Plant keys from a comma-separated list (None: :data:`DEFAULT_VERSUS_PLANTS`)."""
-    if text is None:
-        return list(DEFAULT_VERSUS_PLANTS)
-    keys = [k.strip() for k in str(text).split(",") if k.strip()]
-    bad = [k for k in keys if k not in VERSUS_PLANTS]
-    if bad or not keys:
-        raise ScenarioError(f"plants must be a comma-separated list of {', '.join(VERSUS_PLANTS)}; found {text!r}")
-    return list(dict.fromkeys(keys))
+    return parse_keys(text, VERSUS_PLANTS, DEFAULT_VERSUS_PLANTS)
 
 
 def plant_models(key: str, models_dir, level: str = DEFAULT_LEVEL) -> list[str]:
