@@ -55,3 +55,28 @@ class NaNJacobiansAfter(PredictionModel):
 def nan_jacobians_after():
     """``nan_jacobians_after(base, n)``: ``base`` wrapped so that its Jacobians turn NaN after ``n`` calls."""
     return NaNJacobiansAfter
+
+
+# ---- the slower checks' order on two processes ------------------------------------------------------------
+#: Files of the slower checks that hold a test of several minutes, longest first. `pytest -m slow -n 2 --dist
+#: loadfile` hands whole files to the two processes; by default pytest-xdist sends the files with the most tests
+#: first, which left the 11-minute learning test to start last, alone on one process while the other idled (35.1 min
+#: for the slower checks, measured). Started first, it runs beside the rest.
+LONG_SLOW_FILES = ("test_learn.py", "test_sqp.py", "test_evaluation_reuse.py", "test_your_model.py")
+
+
+def _slow_run(config) -> bool:
+    """True for a run of the slower checks (``-m slow``)."""
+    expr = config.getoption("markexpr", default="") or ""
+    return "slow" in expr and "not slow" not in expr
+
+
+def pytest_configure(config):
+    if _slow_run(config) and hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False      # keep the order below
+
+
+def pytest_collection_modifyitems(config, items):
+    if _slow_run(config):
+        rank = {name: i for i, name in enumerate(LONG_SLOW_FILES)}
+        items.sort(key=lambda item: rank.get(item.path.name, len(rank)))    # stable: the rest keep their order
