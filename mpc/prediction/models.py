@@ -558,13 +558,18 @@ def flown_model(model: str, plant: str, vehicle, high_fidelity: bool = False,
                          inner_loop=loop, exact_loop=exact)
 
 
+def level_oracle_exists(plant: str, level: str, high_fidelity: bool = False) -> bool:
+    """False where the oracle at ``level`` does not exist: at ``ctbr`` and ``ctatt`` it is this project's simulator
+    with its own inner loop, so only on plant ``sim`` without the high-fidelity set-up (at the wrench level this
+    says nothing: there the plant's known equations decide, :func:`model_params`)."""
+    return level == "wrench" or (plant == "sim" and not high_fidelity)
+
+
 def check_level_oracle(plant: str, level: str, high_fidelity: bool = False) -> None:
-    """Raise :class:`ConfigurationError` where the oracle at ``level`` does not exist: at ``ctbr`` and ``ctatt`` it
-    is this project's simulator with its own inner loop, so only on plant ``sim`` without the high-fidelity
-    set-up (the wrench level's oracle is :func:`model_params`')."""
+    """Raise :class:`ConfigurationError` where the oracle at ``level`` does not exist (:func:`level_oracle_exists`)."""
     from ..errors import ConfigurationError
 
-    if level != "wrench" and (plant != "sim" or high_fidelity):
+    if not level_oracle_exists(plant, level, high_fidelity):
         raise ConfigurationError(
             f"the oracle at the {level!r} level is this project's plant with its own inner loop, nominal set-up: "
             f"{'the high-fidelity set-up' if plant == 'sim' else f'plant {plant!r}'} has no such equations here; "

@@ -252,7 +252,7 @@ def at_level(specs: list[RunSpec], level: str) -> list[RunSpec]:
     exist at that level (any plant but ``sim``'s nominal set-up), and runs made equal by that are flown once."""
     import dataclasses
 
-    from mpc.prediction.models import is_equation_model
+    from mpc.prediction.models import is_equation_model, level_oracle_exists
 
     from ..closed_loop.library import get_scenario
 
@@ -265,7 +265,7 @@ def at_level(specs: list[RunSpec], level: str) -> list[RunSpec]:
             if levels[s.model] != level:
                 continue
         model = s.model
-        if model == "oracle" and level != DEFAULT_LEVEL and (s.plant != "sim" or get_scenario(s.scenario).high_fidelity):
+        if model == "oracle" and not level_oracle_exists(s.plant, level, get_scenario(s.scenario).high_fidelity):
             model = "nominal"
         t = dataclasses.replace(s, model=model, level=level)
         if t.run_id not in seen:

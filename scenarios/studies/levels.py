@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mpc.prediction.models import level_oracle_exists
 from sim.files import write_json
 from sim.levels import DEFAULT_LEVEL, LEVELS
 
@@ -59,7 +60,7 @@ class LevelsPlant:
     def models(self, level: str) -> list[str]:
         """The models flown at ``level``: the nominal one, and the oracle where it exists there (at ``ctbr`` and
         ``ctatt`` only on our plant's nominal set-up, whose inner loop the oracle steps exactly)."""
-        oracle = self.oracle and (level == DEFAULT_LEVEL or (self.plant == "sim" and not self.suffix))
+        oracle = self.oracle and level_oracle_exists(self.plant, level, bool(self.suffix))
         return ["nominal"] + (["oracle"] if oracle else [])
 
 

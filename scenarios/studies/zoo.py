@@ -150,7 +150,9 @@ def study_specs(models: dict[str, dict], members: int = 10, controllers=STUDY_CO
     from sim.plants.named import KNOWN_EQUATIONS
 
     where = {"plant": plant, "vehicle": vehicle, "qp": qp, "level": level}
-    known = plant in KNOWN_EQUATIONS if level == "wrench" else plant == "sim"
+    from mpc.prediction.models import level_oracle_exists
+
+    known = plant in KNOWN_EQUATIONS and level_oracle_exists(plant, level)
     oracle = RunSpec(STUDY_SCENARIO, "sqp", "oracle" if known else "nominal", **where)
     ens = [RunSpec(STUDY_SCENARIO, c, m["path"], member=k, estimator=estimator, **where) for m in models.values()
            for c in controllers for k in range(members)]
