@@ -135,9 +135,25 @@ def test_the_exact_hessian_needs_a_graph_casadi_can_rebuild():
 
 
 @pytest.mark.parametrize("kwargs,match", [
-    (dict(horizon=0), "horizon"), (dict(time_limit_s=0.0), "time_limit_s"), (dict(max_iter=0), "max_iter"),
+    (dict(horizon=0), "horizon"), (dict(time_limit_s=-1.0), "time_limit_s"), (dict(max_iter=0), "max_iter"),
     (dict(hessian="bfgs"), "hessian"),
 ])
 def test_bad_settings_are_clear_errors(kwargs, match):
     with pytest.raises(ConfigurationError, match=match):
         NMPCSettings(**kwargs)
+
+
+def test_no_cpu_time_limit_in_ideal_timing():
+    """A period cut by IPOPT's CPU-time limit depends on the machine (measured: the proposed PINN's hardest
+    figure-8 period takes about 1 s, so a 1 s limit stopped it in some runs and not others). 0 means no limit, and
+    the ideal-timing controller has none; real-time timing keeps it."""
+    from mpc.controllers.factory import make_controller
+
+    x = offset_state()
+    cut = NMPC(AnalyticModel(), settings=NMPCSettings(horizon=10, time_limit_s=1e-9))
+    free = NMPC(AnalyticModel(), settings=NMPCSettings(horizon=10, time_limit_s=0.0))
+    assert "CpuTime" in cut(x, 0.0)[1].extra["ipopt_status"]
+    assert free(x, 0.0)[1].is_optimal()
+    ideal = make_controller("nmpc", AnalyticModel(), None, horizon=10, timing="ideal")
+    realtime = make_controller("nmpc", AnalyticModel(), None, horizon=10, timing="realtime")
+    assert (ideal.s.time_limit_s, realtime.s.time_limit_s) == (0.0, NMPCSettings().time_limit_s)

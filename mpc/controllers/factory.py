@@ -34,8 +34,8 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
     only: its vehicle spec comes from the model and the datasheet of
     ``vehicle`` (:meth:`mpc.prediction.spec.VehicleSpec.from_model`; the default vehicle
     when None), never from the plant. With ``ideal`` timing the SQP runs
-    without its wall-clock budget (at most its iteration limit), so that the
-    run is reproducible bit for bit; with ``realtime`` timing the budget applies, less
+    without its wall-clock budget and the NMPC without IPOPT's CPU-time limit (each at most its iteration
+    limit), so that the run is reproducible bit for bit; with ``realtime`` timing the budget applies, less
     :data:`ESTIMATOR_RESERVE_S` with a state ``estimator`` (its time counts against the same period).
     ``sqp``: other :class:`mpc.controllers.sqp.SQPSettings` values for the SQP (for example ``{"jacobian_refresh":
     "full"}``;
@@ -49,7 +49,9 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
 
     spec = VehicleSpec.from_model(model, vehicle)
     if kind == "nmpc":
-        return NMPC(model, reference, NMPCSettings(horizon=horizon), spec=spec)
+        # Ideal timing: no CPU-time limit (a period cut by it would depend on the machine), as the SQP's budget.
+        limit = {} if timing != "ideal" else {"time_limit_s": 0.0}
+        return NMPC(model, reference, NMPCSettings(horizon=horizon, **limit), spec=spec)
     if kind == "sqp":
         import dataclasses
 
