@@ -95,19 +95,23 @@ def write_npz(path, arrays: dict) -> Path:
     return _replace_from_temp(Path(path), lambda f: np.savez_compressed(f, **arrays))
 
 
-def source_digest(entries, root=None):
+def source_digest(entries, root=None, exclude=()):
     """A ``hashlib.sha256`` over the project's version and the Python source of ``entries`` (folders, searched
     recursively, or single files, under ``root``: the project's root by default), each file's path and bytes in
-    sorted order: the identity of code, for a cache key."""
+    sorted order: the identity of code, for a cache key. ``exclude``: folders under ``root`` left out (code the
+    keyed computation never imports)."""
     import hashlib
 
     from ._version import __version__
 
     root = Path(__file__).resolve().parents[1] if root is None else Path(root)
+    skipped = [root / e for e in exclude]
     h = hashlib.sha256(__version__.encode())
     for entry in entries:
         p = root / entry
         for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
+            if any(f.is_relative_to(d) for d in skipped):
+                continue
             h.update(str(f.relative_to(root)).encode())
             h.update(f.read_bytes())
     return h

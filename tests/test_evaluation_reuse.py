@@ -167,3 +167,23 @@ def test_the_shipped_evaluation_is_what_the_evaluation_computes_again(tmp_path):
         assert set(d["models"]) <= set(datasets[key(d)]["models"]), where
         _compare({k: v for k, v in d.items() if k != "models"},
                  {k: v for k, v in datasets[key(d)].items() if k != "models"}, where)
+
+
+def test_the_keys_leave_out_only_code_the_evaluation_and_the_fisher_table_never_import():
+    """Every project module the evaluation or the Fisher table can import (inside functions too, with the packages
+    that hold them) is under the keys: none lies in what they leave out."""
+    from pinn.evaluate import KEY_EXCLUDES
+    from test_layout import import_graph
+
+    graph = import_graph(ROOT)
+    reached, todo = set(), ["pinn.evaluate", "sim.identification.fisher", "sim.identification.excitation"]
+    while todo:
+        m = todo.pop()
+        if m in reached:
+            continue
+        reached.add(m)
+        parts = m.split(".")
+        todo += [".".join(parts[:k]) for k in range(1, len(parts))] + list(graph.get(m, {}))
+    left_out = [e.removesuffix(".py").replace("/", ".") for e in KEY_EXCLUDES]
+    assert {"pinn.evaluate", "sim.identification.fisher", "mpc.prediction.contract"} <= reached
+    assert not [m for m in reached if any(m == e or m.startswith(e + ".") for e in left_out)]

@@ -21,6 +21,8 @@ pytest.importorskip("pyarrow")
 # tolerances of this module
 EXACT = 1e-9           # the plant's own equations on its noise-free flights
 RATIO_RTOL = 2e-3      # identified ratios against the vehicle's
+CTBR_H1_M = 1e-5       # the plant's own equations at ctbr, given the achieved rates: position error after 10 ms, m
+CTBR_H50_M = 1e-4      # and after 0.5 s, m (measured 2.3e-6 on similar flights)
 FLIGHTS = ["melon_20251017_run1", "melon_20251017_run2", "square_20251017_run1", "square_20251017_run2",
            "random1_20251017_run1", "random1_20251017_run4"]
 
@@ -86,7 +88,7 @@ def test_learned_models_keep_the_epoch_their_validation_score_chose(bench):
     for n, m in learned.items():
         t = m["training"]
         assert t["epoch"] == int(np.argmin(t["validation_scores"])) + 1, n
-    scores = {n: m["validation_score"] for n, m in r["models"].items()}
+    scores = {n: m["validation_score"] for n, m in r["models"].items() if m["level"] == "wrench"}
     assert r["best_on_validation"] == min(scores, key=scores.get)
     flyable = {n: s for n, s in scores.items() if n in learned and r["models"][n]["flyable"]}
     assert r["best_flyable_learned_on_validation"] == min(flyable, key=flyable.get)
@@ -97,6 +99,24 @@ def test_learned_models_keep_the_epoch_their_validation_score_chose(bench):
     met = r["goal_met_by_best"]
     best = r["models"][r["best_on_validation"]]["raw"]
     assert all(met[q] == (best[q][-1] <= r["goal_h50"][q]) for q in met)
+
+
+def test_the_ctbr_models_are_given_the_rates_and_chosen_among_themselves(bench):
+    """At ctbr the achieved body rates are the input: the predicted rates are the logged ones at every horizon, the
+    plant's own translational equations predict its flights closely (the rate path within a period is not a ramp, so
+    not exactly), and the choice is made among the ctbr models on the validation flights."""
+    r, out = bench
+    ctbr = {n: m for n, m in r["models"].items() if m["level"] == "ctbr"}
+    assert set(ctbr) == {"nominal physics, ctbr", "identified physics, ctbr"}
+    for n, m in ctbr.items():
+        assert max(m["raw"]["angular_velocity"]) <= EXACT, n
+        assert m["flyable"] is True, n
+    nominal = ctbr["nominal physics, ctbr"]["raw"]
+    assert nominal["position"][0] <= CTBR_H1_M and nominal["position"][-1] <= CTBR_H50_M, nominal["position"]
+    scores = {n: m["validation_score"] for n, m in ctbr.items()}
+    assert r["best_ctbr_on_validation"] == min(scores, key=scores.get)
+    md = (out / "realdata.md").read_text()
+    assert "## At the ctbr level" in md and md.count("physics, ctbr, raw test flights (all)") == 2
 
 
 def test_a_model_that_holds_the_rates_cannot_fly_and_says_why(bench):
@@ -208,10 +228,16 @@ def test_the_report_section_shows_every_model_beside_the_published_rows(bench):
     sec = realdata_section(r)
     assert sec.count("(published, melon run 1 filtered)") == 4 and "\n# " not in "\n" + sec
     assert "### h = 50 (0.5 s), mean error over every window" in sec
+    quantities = ("position", "velocity", "rotation", "angular_velocity")
     for name, m in r["models"].items():
-        row = next(ln for ln in sec.splitlines() if ln.startswith(f"| {name} ({m['kind']}), raw test flights (all) |"))
-        assert row.endswith(" | ".join(f"{m['raw'][q][-1]:.4f}" for q in ("position", "velocity", "rotation",
-                                                                            "angular_velocity")) + " |")
+        if m["level"] == "wrench":
+            row = next(ln for ln in sec.splitlines()
+                       if ln.startswith(f"| {name} ({m['kind']}), raw test flights (all) |"))
+            assert row.endswith(" | ".join(f"{m['raw'][q][-1]:.4f}" for q in quantities) + " |")
+        else:       # in the level's own table, every horizon
+            row = next(ln for ln in sec.splitlines() if ln.startswith(f"| {name}, raw test flights (all) |"))
+            assert row.endswith(" | ".join(f"{v:.4f}" for q in quantities for v in m["raw"][q]) + " |")
+    assert "### At the ctbr level" in sec
     assert realdata_section(None) == NO_REALDATA
 
 
@@ -288,3 +314,23 @@ def test_a_split_with_no_flight_is_refused_naming_its_pattern(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and needle in err, err
         assert not (out / "realdata.json").exists()
+
+
+def test_a_ctbr_model_flies_when_its_rate_commands_turn_it_and_not_when_they_do_not():
+    """At ctbr a rate command is replaced by the next, so what it must move is the attitude it turned."""
+    from scenarios.studies.realdata import why_not_flyable
+    from sim.flightlogs.logbench import ctbr_physics_step
+
+    p = load_vehicle("crazyflie").params
+    step = ctbr_physics_step(p)
+    u0, du = np.array([p.m * p.g, 0.0, 0.0, 0.0]), np.array([0.01, 0.1, 0.1, 0.1])
+    assert why_not_flyable(step, None, u0, du, level="ctbr") == ""
+
+    def ignores_rates(x, u):
+        held = np.asarray(u, dtype=float).copy()
+        held[:, 1:] = x[:, 6:9]
+        return step(x, held)
+
+    assert why_not_flyable(ignores_rates, None, u0, du, level="ctbr") == "holds the body rates: no input turns it"
+    # the wrench level's rule (the rates must still differ) would call the good model dead
+    assert "holds the body rates" in why_not_flyable(step, None, u0, du, level="wrench")

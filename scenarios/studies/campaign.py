@@ -454,10 +454,12 @@ SHIPPED_FISHER = "fisher.json"
 
 
 def fisher_key() -> str:
-    """The key of a Fisher table: the digest of ``sim/``'s code, the only code it reads (it reads no file)."""
+    """The key of a Fisher table: the digest of ``sim/``'s code, the only code it reads (it reads no file), but the
+    flight-log import, which it does not import (:data:`pinn.evaluate.KEY_EXCLUDES`)."""
+    from pinn.evaluate import KEY_EXCLUDES
     from sim.files import source_digest
 
-    return source_digest(("sim",)).hexdigest()
+    return source_digest(("sim",), exclude=[e for e in KEY_EXCLUDES if e.startswith("sim/")]).hexdigest()
 
 
 def _reusable(paths, key) -> tuple[Path, dict] | None:

@@ -22,7 +22,8 @@ import numpy as np
 from sim.errors import SimInputError
 from sim.files import write_json, write_text
 from sim.flightlogs.flightlog import assign_splits, read_flight
-from sim.flightlogs.logbench import GOAL_H50, HORIZONS, QUANTITIES, goal_score, physics_step, prediction_errors
+from sim.flightlogs.logbench import (GOAL_H50, HORIZONS, QUANTITIES, ctbr_inputs, ctbr_physics_step, goal_score,
+                                     physics_step, prediction_errors)
 from sim.flightlogs.logformat import load_format
 from sim.flightlogs.logident import fisher_table, identified_model, identified_vehicle, identify
 from sim.vehicles.vehicle import load_vehicle
@@ -126,6 +127,23 @@ def _physics_candidates(ident, vehicle):
     return out
 
 
+def _ctbr_candidates(ident, vehicle):
+    """Physics models at the ``ctbr`` level: name -> :func:`sim.flightlogs.logbench.ctbr_physics_step` keyword
+    arguments (the vehicle file's rigid body, and the identified one: thrust ratio, drags and biases)."""
+    kw = identified_model(ident, vehicle)
+    identified = {"p": kw["p"], "linear_drag": kw["linear_drag"], "quadratic_drag": kw["quadratic_drag"],
+                  "accel_bias": kw["accel_bias"], "thrust_gain": kw["wrench_gain"][0]}
+    return {"nominal physics, ctbr": {"p": vehicle.params}, "identified physics, ctbr": identified}
+
+
+def at_level(flights, level: str):
+    """``flights`` with the inputs of ``level``: unchanged at ``wrench``; thrust and achieved body rates at ``ctbr``
+    (:func:`sim.flightlogs.logbench.ctbr_inputs`)."""
+    if level == "wrench":
+        return list(flights)
+    return [dataclasses.replace(f, u=ctbr_inputs(f)) for f in flights]
+
+
 #: The closed-loop check: the scenario flown by the SQP, on each plant.
 CLOSED_LOOP_SCENARIO = "figure8-fast"
 #: Periods over which a perturbed input must move the body rates (or, for the thrust, the velocity), and the
@@ -135,9 +153,17 @@ RESPONSE_TOL = 1e-9
 INPUT_LABELS = ("thrust", "roll torque", "pitch torque", "yaw torque")
 
 
-def why_not_flyable(step, start, u0, du) -> str:
-    """Empty when each input moves the model: a torque the body rates, the thrust the velocity, within
-    :data:`RESPONSE_PERIODS` periods from rest at the mean logged input; else the reason.
+#: What each input is called, by level.
+INPUT_LABELS_AT = {"wrench": INPUT_LABELS, "ctbr": ("thrust", "roll rate", "pitch rate", "yaw rate")}
+#: The states an input other than the thrust must move, by level: a torque the body rates; a rate command (whose
+#: rates the next command replaces) the attitude it turned.
+TURNED_STATES = {"wrench": slice(6, 9), "ctbr": slice(3, 6)}
+
+
+def why_not_flyable(step, start, u0, du, level: str = "wrench") -> str:
+    """Empty when each input moves the model within :data:`RESPONSE_PERIODS` periods from rest at the mean logged
+    input: the thrust the velocity, every other input the states of :data:`TURNED_STATES` at ``level``; else the
+    reason.
 
     ``u0``, ``du``: the input held and the size of the perturbation of each input (4,), in the log's units.
     """
@@ -152,12 +178,13 @@ def why_not_flyable(step, start, u0, du) -> str:
         if k == 0:
             u[1:] += np.diag(du)
         z = step(z, u)
-    moved = [np.max(np.abs(z[j + 1, 9:12] - z[0, 9:12])) if j == 0 else np.max(np.abs(z[j + 1, 6:9] - z[0, 6:9]))
+    turned, labels = TURNED_STATES[level], INPUT_LABELS_AT[level]
+    moved = [np.max(np.abs(z[j + 1, 9:12] - z[0, 9:12])) if j == 0 else np.max(np.abs(z[j + 1, turned] - z[0, turned]))
              for j in range(4)]
-    dead = [INPUT_LABELS[j] for j in range(4) if not moved[j] > RESPONSE_TOL]
+    dead = [labels[j] for j in range(4) if not moved[j] > RESPONSE_TOL]
     if not dead:
         return ""
-    if all(d in dead for d in INPUT_LABELS[1:]):
+    if all(d in dead for d in labels[1:]):
         return "holds the body rates: no input turns it"
     return "does not respond to its " + ", ".join(dead)
 
@@ -276,33 +303,46 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
     filtered = [benchmark_filter(f) for f in melon1]
     # the published figures are the benchmark's own test flights': shown beside ours only when ours are those
     published = {f.name for f in by_split["test"]} <= set(BENCHMARK_TEST) and melon1[0].name == BENCHMARK_FILTERED
-    train_u = np.concatenate([f.u[f.rotor_ok] for f in by_split["train"]])
-    u0, du = train_u.mean(0), 0.1 * train_u.std(0)
-    # (name, kind, step, start, learned-model record or None)
-    candidates = [(name, "physics", physics_step(**kw), None, None)
+    levels = ("wrench", "ctbr")
+    split_at = {lv: {k: at_level(fl, lv) for k, fl in by_split.items()} for lv in levels}
+    filtered_at = {lv: at_level(filtered, lv) for lv in levels}
+    perturb = {}
+    for lv in levels:
+        train_u = np.concatenate([f.u[f.rotor_ok] for f in split_at[lv]["train"]])
+        perturb[lv] = (train_u.mean(0), 0.1 * train_u.std(0))
+    # (name, kind, level, step, start, learned-model record or None)
+    candidates = [(name, "physics", "wrench", physics_step(**kw), None, None)
                   for name, kw in _physics_candidates(ident, vehicle).items()]
+    candidates += [(name, "physics", "ctbr", ctbr_physics_step(**kw), None, None)
+                   for name, kw in _ctbr_candidates(ident, vehicle).items()]
     if learn != "none":
         from pinn.flights import learned_models
 
-        candidates += [(m.name, "learned", m.step, m.start, m)
+        candidates += [(m.name, "learned", "wrench", m.step, m.start, m)
                        for m in learned_models(by_split, vehicle, ident, fmt, learn, progress)]
     models, validation = {}, {}
-    for name, kind, step, start, rec in candidates:
+    for name, kind, level, step, start, rec in candidates:
         progress(f"evaluating {name}")
-        validation[name] = prediction_errors(step, by_split["val"], start=start).to_dict()
-        why = why_not_flyable(step, start, u0, du)
-        models[name] = {"kind": kind, "raw": prediction_errors(step, by_split["test"], start=start).to_dict(),
-                        "filtered_run1": prediction_errors(step, filtered, start=start).to_dict(),
+        fl = split_at[level]
+        validation[name] = prediction_errors(step, fl["val"], start=start).to_dict()
+        why = why_not_flyable(step, start, *perturb[level], level=level)
+        models[name] = {"kind": kind, "level": level,
+                        "raw": prediction_errors(step, fl["test"], start=start).to_dict(),
+                        "filtered_run1": prediction_errors(step, filtered_at[level], start=start).to_dict(),
                         "flyable": not why, **({"why_not_flyable": why} if why else {}),
                         "validation_score": goal_score(validation[name])}
         if rec is not None:
             models[name]["training"] = {"epoch": rec.epoch, "epochs": rec.epochs, "seconds": round(rec.seconds, 1),
                                         "validation_scores": rec.validation_scores}
-    # every choice is made on the validation flights only
-    best_physics = min((n for n in validation if models[n]["kind"] == "physics"),
+    # every choice is made on the validation flights only, among the models of one level: a ctbr model is given
+    # the achieved body rates, so its errors answer another question than the wrench level's
+    wrench = [n for n in validation if models[n]["level"] == "wrench"]
+    best_physics = min((n for n in wrench if models[n]["kind"] == "physics"),
                        key=lambda n: validation[n]["position"][-1])
-    best = min(validation, key=lambda n: models[n]["validation_score"])
-    flyable_learned = [n for n in validation if models[n]["kind"] == "learned" and models[n]["flyable"]]
+    best = min(wrench, key=lambda n: models[n]["validation_score"])
+    best_ctbr = min((n for n in validation if models[n]["level"] == "ctbr"),
+                    key=lambda n: models[n]["validation_score"])
+    flyable_learned = [n for n in wrench if models[n]["kind"] == "learned" and models[n]["flyable"]]
     best_flyable = min(flyable_learned, key=lambda n: models[n]["validation_score"]) if flyable_learned else None
     out = Path(out_dir)
     flown = []
@@ -313,7 +353,7 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
         write_text(stated_file, vehicle.to_toml())
         rows = [("stated", "nominal", stated_file), ("identified", "nominal", ident_file)]
         if best_flyable is not None:
-            rec = next(c[4] for c in candidates if c[0] == best_flyable)
+            rec = next(c[5] for c in candidates if c[0] == best_flyable)
             onnx = rec.export(out / "best-learned.onnx")
             rows.append((f"identified, flying the learned model ({best_flyable})", onnx, ident_file))
         scenarios = [CLOSED_LOOP_SCENARIO]
@@ -331,6 +371,7 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
         "best_physics_on_validation": best_physics,
         "best_on_validation": best,
         "best_flyable_learned_on_validation": best_flyable,
+        "best_ctbr_on_validation": best_ctbr,
         "goal_met_by_best": {q: models[best]["raw"][q][-1] <= g for q, g in GOAL_H50.items()},
         # the benchmark's published figures, when the test flights are its own (else None)
         "published_h50": {k: dict(zip(QUANTITIES, v)) for k, v in PUBLISHED_H50.items()} if published else None,
@@ -372,7 +413,9 @@ def realdata_markdown(r: dict) -> str:
              "| model | position (m) | velocity (m/s) | rotation (rad) | angular velocity (rad/s) |",
              "|---|---|---|---|---|"]
     filtered = r.get("filtered_flight", "melon run 1")
-    for name, m in r["models"].items():
+    wrench = {n: m for n, m in r["models"].items() if m.get("level", "wrench") == "wrench"}
+    ctbr = {n: m for n, m in r["models"].items() if m.get("level") == "ctbr"}
+    for name, m in wrench.items():
         lines.append(_row(f"{name} ({m.get('kind', 'physics')}), raw test flights (all)", m["raw"]))
         if m["filtered_run1"]:
             lines.append(_row(f"{name}, {filtered} filtered", m["filtered_run1"]))
@@ -405,8 +448,24 @@ def realdata_markdown(r: dict) -> str:
     lines += ["", "## Every horizon, raw test flights", "",
               "| model | " + " | ".join(f"{q} h={h}" for q in QUANTITIES for h in r["horizons"]) + " |",
               "|---|" + "---|" * (len(QUANTITIES) * len(r["horizons"]))]
-    for name, m in r["models"].items():
+    for name, m in wrench.items():
         lines.append(f"| {name} | " + " | ".join(_num(v, ".4f") for q in QUANTITIES for v in m["raw"][q]) + " |")
+    if ctbr:
+        lines += ["", "## At the ctbr level: given the thrust and the body rates the vehicle reached", "",
+                  "Each model is given the logged collective thrust and, as its rate command, the body rates logged at "
+                  "the end of each period (a log holds no rate setpoint). This asks how the vehicle moves once its "
+                  "rate loop has done its work, which is what a controller at this level needs; it is not the "
+                  "benchmark's question (its models must predict the rates from the rotor speeds), so these rows are "
+                  "not comparable with the table above. Chosen on the validation flights: "
+                  f"**{r.get('best_ctbr_on_validation') or 'none'}**.", "",
+                  "| model | " + " | ".join(f"{q} h={h}" for q in QUANTITIES for h in r["horizons"]) + " |",
+                  "|---|" + "---|" * (len(QUANTITIES) * len(r["horizons"]))]
+        for name, m in ctbr.items():
+            lines.append(f"| {name}, raw test flights (all) | "
+                         + " | ".join(_num(v, ".4f") for q in QUANTITIES for v in m["raw"][q]) + " |")
+            if m["filtered_run1"]:
+                lines.append(f"| {name}, {filtered} filtered | "
+                             + " | ".join(_num(v, ".4f") for q in QUANTITIES for v in m["filtered_run1"][q]) + " |")
     if r.get("closed_loop"):
         lines += ["", "## Flown with the SQP, each plant set up with the vehicle", "",
                   "| scenario | vehicle | prediction model | plant | RMSE (m) | crashed | median solve (ms) | "

@@ -141,3 +141,54 @@ def physics_step(p: QuadParams, hold_rates: bool = False, linear_drag=(0.0, 0.0,
         return rk4_step(lambda z: f(z, u), x, DT / substeps, substeps)
 
     return step
+
+
+# ------------------------------------------------------------------ the ctbr level: thrust and body rates as inputs
+def ctbr_inputs(flight) -> np.ndarray:
+    """The inputs (n, 4) of ``flight`` at the ``ctbr`` level: the logged (delay-aligned) collective thrust, N, and
+    the body rates the onboard loop achieved by the end of each period (the next sample's), rad/s.
+
+    A log holds no rate setpoint, so the achieved rates stand for the command: a model at this level is asked how
+    the vehicle moves given the rates it reached, which is not the benchmark's question (its models are given the
+    rotor speeds and must predict the rates too). The last row repeats the last rates.
+    """
+    x, u = np.asarray(flight.x, dtype=float), np.asarray(flight.u, dtype=float)
+    out = np.empty((len(x), 4))
+    out[:, 0] = u[:, 0]
+    out[:-1, 1:] = x[1:, 6:9]
+    out[-1, 1:] = x[-1, 6:9]
+    return out
+
+
+def ctbr_physics_step(p: QuadParams, linear_drag=(0.0, 0.0, 0.0), quadratic_drag=(0.0, 0.0, 0.0),
+                      accel_bias=(0.0, 0.0, 0.0), thrust_gain: float = 1.0, substeps: int = 10):
+    """A batched one-step predictor at the ``ctbr`` level: ``step(x (B, 12), u (B, 4)) -> x_next (B, 12)``.
+
+    ``u`` is the collective thrust (N, the logged one, scaled by ``thrust_gain``) and the body rates reached at the
+    period's end (rad/s): within the period the rates move from the state's to the input's at a constant angular
+    acceleration, so the next state's rates are the input's exactly, and the attitude integrates that path. The
+    translational equations are those of :func:`physics_step` (mass and gravity of ``p``, its world-frame drag
+    ``p.c_d``, and the body-frame drags and bias). RK4 with ``substeps`` substeps over the 10 ms period.
+    """
+    k, c, b = (np.asarray(a, dtype=float) for a in (linear_drag, quadratic_drag, accel_bias))
+    extra = bool(np.any(k) or np.any(c) or np.any(b))
+
+    def step(x, u):
+        u = np.asarray(u, dtype=float)
+        alpha = (u[:, 1:4] - x[:, 6:9]) / DT
+        thrust = np.zeros_like(u)
+        thrust[:, 0] = thrust_gain * u[:, 0]
+
+        def f(z):
+            accel = None
+            if extra:
+                R = rotation_matrix(z[:, 3], z[:, 4], z[:, 5])
+                vb = np.einsum("nji,nj->ni", R, z[:, 9:12])
+                accel = np.einsum("nij,nj->ni", R, -k * vb - c * vb * np.abs(vb) + b)
+            d = rates(z, thrust, p, accel=accel)
+            d[:, 6:9] = alpha
+            return d
+
+        return rk4_step(f, x, DT / substeps, substeps)
+
+    return step
