@@ -107,6 +107,38 @@ class HeldRatesPhysics(nn.Module):
         return x
 
 
+class CtbrPhysics(HeldRatesPhysics):
+    """:func:`sim.flightlogs.logbench.ctbr_physics_step` in torch: the translational equations of
+    :class:`HeldRatesPhysics` with the thrust scaled by ``thrust_gain``, and the body rates moving from the state's to
+    the input's (the rates reached at the period's end) at a constant angular acceleration. ``u`` is
+    ``(T, p_cmd, q_cmd, r_cmd)`` (N, rad/s), the ``ctbr`` level's input. RK4 with ``substeps`` substeps.
+    """
+
+    def __init__(self, m: float, g: float, c_d: float, linear_drag, quadratic_drag, accel_bias,
+                 thrust_gain: float = 1.0, substeps: int = 10):
+        super().__init__(m, g, c_d, linear_drag, quadratic_drag, accel_bias)
+        self.register_buffer("gain", torch.tensor(float(thrust_gain), dtype=torch.float64))
+        self.substeps = int(substeps)
+
+    def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """The state one period later (B, 12)."""
+        alpha = (u[:, 1:4] - x[:, 6:9]) / DT
+        thrust = torch.cat([u[:, :1] * self.gain.to(x.dtype), torch.zeros_like(u[:, 1:])], -1)
+
+        def f(z):
+            d = self.rates(z, thrust)
+            return torch.cat([d[:, :6], alpha, d[:, 9:]], -1)
+
+        h = DT / self.substeps
+        for _ in range(self.substeps):
+            k1 = f(x)
+            k2 = f(x + 0.5 * h * k1)
+            k3 = f(x + 0.5 * h * k2)
+            k4 = f(x + h * k3)
+            x = x + (h / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
+        return x
+
+
 def register_names(history: int) -> tuple[str, ...]:
     """Names of the extra states of a model with ``history`` periods of wrenches and body rates."""
     return (tuple(f"u{k}_{n}" for k in range(1, history + 1) for n in ("T", "tx", "ty", "tz"))
@@ -341,7 +373,7 @@ def train_flight_model(train_flights, val_flights, physics_kw: dict, config: Fli
                              seconds=time.perf_counter() - t0)
 
 
-def export_flight_model(model: FlightModel, path, theta: dict, description: str) -> Path:
+def export_flight_model(model: FlightModel, path, theta: dict, description: str, level: str = "wrench") -> Path:
     """Write ``model`` as an ONNX file of the model contract (float64; no derivative graph: the controllers take
     central differences through onnxruntime).
 
@@ -351,37 +383,46 @@ def export_flight_model(model: FlightModel, path, theta: dict, description: str)
 
     Parameters
     ----------
-    model : FlightModel
+    model : FlightModel or CtbrPhysics
     path : path
         The ``.onnx`` file to write (its folder is created).
     theta : dict
         ``{m, Jxx, Jyy, Jzz, kt, kq}`` of the identified vehicle (the controllers' vehicle spec).
     description : str
         Stored as the file's ``architecture``.
+    level : str
+        The command level the model takes (:data:`sim.levels.LEVELS`), stored as the metadata ``level`` with that
+        level's ``input_names``.
     """
     import json
 
     from mpc.prediction.contract import CONTRACT_VERSION
     from sim import __version__ as code_version
-    from sim.params import INPUT_NAMES, STATE_NAMES
+    from sim.levels import DEFAULT_LEVEL, LEVEL_INPUTS, check_level
+    from sim.params import STATE_NAMES
+
+    check_level(level)
 
     from .export import _Next, _set_metadata
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     m64 = copy.deepcopy(model).double().eval()
-    nx = 12 + len(m64.extra_states)
+    extra = tuple(getattr(m64, "extra_states", ()))
+    nx = 12 + len(extra)
     args = (torch.zeros(3, nx, dtype=torch.float64), torch.zeros(3, 4, dtype=torch.float64))
     with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
         warnings.simplefilter("ignore")     # the exporter's deprecation notice
         torch.onnx.export(_Next(m64), args, str(path), input_names=["x", "u"], output_names=["x_next"],
                           dynamic_axes={"x": {0: "batch"}, "u": {0: "batch"}, "x_next": {0: "batch"}}, dynamo=False)
     meta = {"pinnmpc.contract": CONTRACT_VERSION, "architecture": description, "dt": repr(DT),
-            "state_names": json.dumps(list(STATE_NAMES)), "input_names": json.dumps(list(INPUT_NAMES)),
+            "state_names": json.dumps(list(STATE_NAMES)), "input_names": json.dumps(list(LEVEL_INPUTS[level])),
             "theta": json.dumps({k: float(v) for k, v in theta.items()}), "code_version": code_version,
             "torch_version": torch.__version__}
-    if m64.extra_states:
-        meta["extra_states"] = json.dumps(list(m64.extra_states))
+    if level != DEFAULT_LEVEL:
+        meta["level"] = level
+    if extra:
+        meta["extra_states"] = json.dumps(list(extra))
     _set_metadata(path, meta)
     return path
 

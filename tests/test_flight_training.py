@@ -1,6 +1,7 @@
 """Training on imported flight logs: samples a log did not measure never enter a model."""
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ from pinn.flights import (FlightModel, FlightTrainConfig, HeldRatesPhysics, flig
 from pinn.train import _TrainData, make_config, train, training_stats
 from scenarios.studies.realdata import why_not_flyable
 from sim.identification.excitation import make_dataset
-from sim.flightlogs.logbench import physics_step, prediction_errors
+from sim.flightlogs.logbench import ctbr_physics_step, physics_step, prediction_errors
 from sim.params import QuadParams
 
 torch.set_num_threads(1)
@@ -170,3 +171,38 @@ def test_the_exported_model_is_the_torch_model(tmp_path):
     want = m.double()(torch.as_tensor(z), torch.as_tensor(f.u[idx])).detach().numpy()
     np.testing.assert_allclose(got, want, rtol=0, atol=ONNX_TOL)
     assert check_model(path).extra_states == m.extra_states
+
+
+def test_torch_ctbr_physics_is_the_protocols(rng=np.random.default_rng(4)):
+    from pinn.flights import CtbrPhysics
+
+    x = rng.normal(size=(64, 12)) * np.r_[1, 1, 1, 0.4, 0.4, 3, 2, 2, 2, 2, 2, 2]
+    u = np.c_[rng.uniform(0.2, 0.8, 64), rng.normal(size=(64, 3))]
+    want = ctbr_physics_step(P, thrust_gain=1.1, **DRAGS)(x, u)
+    got = CtbrPhysics(P.m, P.g, P.c_d, thrust_gain=1.1, **DRAGS).double()(torch.as_tensor(x),
+                                                                            torch.as_tensor(u)).numpy()
+    np.testing.assert_allclose(got, want, rtol=0, atol=PHYSICS_TOL)
+    np.testing.assert_allclose(got[:, 6:9], u[:, 1:], rtol=0, atol=PHYSICS_TOL)    # the rates reached
+
+
+def test_a_ctbr_model_round_trips_through_the_contract_at_its_level(tmp_path):
+    """Exported at ctbr, the file declares the level and its inputs, the contract's loader finds them, and the
+    model that the controllers load predicts as the protocol's numpy step does."""
+    from mpc.prediction.contract import check_model, declared_level
+    from mpc.prediction.models import OnnxModel
+    from pinn.flights import CtbrPhysics, export_flight_model
+    from sim.levels import LEVEL_INPUTS
+
+    theta = {"m": P.m, "Jxx": P.Jxx, "Jyy": P.Jyy, "Jzz": P.Jzz, "kt": P.kt, "kq": P.kq}
+    path = export_flight_model(CtbrPhysics(P.m, P.g, P.c_d, thrust_gain=0.9, **DRAGS), tmp_path / "c.onnx", theta,
+                               "identified physics, ctbr", level="ctbr")
+    info = check_model(path)
+    assert declared_level(path) == "ctbr" and info.level == "ctbr"
+    assert tuple(json.loads(info.metadata["input_names"])) == LEVEL_INPUTS["ctbr"]
+    model = OnnxModel(path)
+    assert model.level == "ctbr"
+    rng = np.random.default_rng(5)
+    x = rng.normal(size=(32, 12)) * np.r_[1, 1, 1, 0.3, 0.3, 3, 1, 1, 1, 1, 1, 1]
+    u = np.c_[rng.uniform(0.3, 0.6, 32), rng.normal(size=(32, 3))]
+    np.testing.assert_allclose(model.step(x, u), ctbr_physics_step(P, thrust_gain=0.9, **DRAGS)(x, u), rtol=0,
+                               atol=ONNX_TOL)
