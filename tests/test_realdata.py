@@ -23,6 +23,7 @@ EXACT = 1e-9           # the plant's own equations on its noise-free flights
 RATIO_RTOL = 2e-3      # identified ratios against the vehicle's
 CTBR_H1_M = 1e-5       # the plant's own equations at ctbr, given the achieved rates: position error after 10 ms, m
 CTBR_H50_M = 1e-4      # and after 0.5 s, m (measured 2.3e-6 on similar flights)
+CTBR_FLOWN_M = 0.05    # the best ctbr model learned from real logs, flown: RMSE at most, m
 FLIGHTS = ["melon_20251017_run1", "melon_20251017_run2", "square_20251017_run1", "square_20251017_run2",
            "random1_20251017_run1", "random1_20251017_run4"]
 
@@ -101,6 +102,22 @@ def test_learned_models_keep_the_epoch_their_validation_score_chose(bench):
     assert all(met[q] == (best[q][-1] <= r["goal_h50"][q]) for q in met)
 
 
+def test_the_best_ctbr_model_is_flown_at_ctbr_with_the_identified_vehicles_inner_loop(bench):
+    """The chosen ctbr model, written as a model file at ctbr, flies figure8-fast and the test flight's whole logged
+    reference on the plant through the identified vehicle's inner loop; each row has the keys a reader looks for."""
+    from mpc.prediction.contract import declared_level
+
+    r, out = bench
+    rows = [row for row in r["closed_loop"] if row["level"] == "ctbr"]
+    assert [(row["scenario"], row["plant"]) for row in rows] == [
+        ("figure8-fast", "sim"), ("melon_20251017_run1-reference-whole", "sim")]
+    assert declared_level(out / "best-ctbr.onnx") == "ctbr"
+    for row in rows:
+        assert {"scenario", "plant", "level", "model", "rmse_m", "crashed", "median_solve_ms"} <= set(row)
+        assert not row["crashed"] and row["rmse_m"] <= CTBR_FLOWN_M, row
+    assert all(row["level"] == "wrench" for row in r["closed_loop"] if row not in rows)
+
+
 def test_the_ctbr_models_are_given_the_rates_and_chosen_among_themselves(bench):
     """At ctbr the achieved body rates are the input: the predicted rates are the logged ones at every horizon, the
     plant's own translational equations predict its flights closely (the rate path within a period is not a ramp, so
@@ -167,7 +184,13 @@ def test_the_study_on_the_real_benchmark(tmp_path):
     learned = [n for n, m in r["models"].items() if m["kind"] == "learned"]
     assert len(learned) == 7 and r["best_on_validation"] in r["models"]
     assert all(len(r["models"][n]["raw"][q]) == 3 for n in r["models"] for q in held)
-    assert {row["scenario"] for row in r["closed_loop"]} == {"figure8-fast", "melon_20251017_run1-reference"}
+    assert {row["scenario"] for row in r["closed_loop"]} == {"figure8-fast", "melon_20251017_run1-reference",
+                                                             "melon_20251017_run1-reference-whole"}
+    ctbr = [row for row in r["closed_loop"] if row["level"] == "ctbr"]
+    assert {(row["scenario"], row["plant"]) for row in ctbr} == {
+        (sc, plant) for sc in ("figure8-fast", "melon_20251017_run1-reference-whole") for plant in ("sim", "rotorpy")}
+    # the best ctbr model flies both without a crash within 50 mm, on both plants
+    assert all(not row["crashed"] and row["rmse_m"] <= CTBR_FLOWN_M for row in ctbr), ctbr
 
 
 def test_a_model_that_holds_its_rates_is_refused_by_every_controller_with_the_reason():

@@ -238,30 +238,70 @@ def reference_scenario(flight, path, every_s: float = MELON_SAMPLE_S,
     return Path(path)
 
 
-def fly_models(rows: list[tuple[str, str, Path, str]], plants, progress=print) -> list[dict]:
-    """Fly with the SQP each ``(label, model, vehicle file, scenario)`` (model: ``nominal``, the vehicle's own
-    equations, or an ONNX file; scenario: a name or a file), on each plant set up with that vehicle; a plant that is
-    not installed is recorded as skipped."""
+def fly_models(rows, plants, progress=print) -> list[dict]:
+    """Fly with the SQP each ``(label, model, vehicle file, scenario)`` or ``(label, model, vehicle file, scenario,
+    level)`` (model: ``nominal``, the vehicle's own equations, or an ONNX file; scenario: a name or a file; level:
+    the command level, ``wrench`` when not given), on each plant set up with that vehicle; a plant that is not
+    installed is recorded as skipped.
+
+    Each row holds ``scenario``, ``plant``, ``level``, ``model``, ``rmse_m``, ``crashed`` and ``median_solve_ms``
+    (with the run's other figures beside them)."""
     from sim.errors import PlantUnavailableError
 
     from ..closed_loop.runner import RunSpec, fly
 
     out = []
-    for label, model, vehicle, scenario in rows:
+    for row_in in rows:
+        label, model, vehicle, scenario = row_in[:4]
+        level = row_in[4] if len(row_in) > 4 else "wrench"
         for plant in plants:
             name = Path(scenario).stem
-            progress(f"flying {name}: {label} on {plant}")
-            row = {"vehicle": label, "plant": plant, "scenario": name, "controller": "sqp",
+            progress(f"flying {name}: {label} on {plant}" + ("" if level == "wrench" else f" at {level}"))
+            row = {"vehicle": label, "plant": plant, "scenario": name, "controller": "sqp", "level": level,
                    "model": "nominal equations of the vehicle" if model == "nominal" else Path(model).name}
             try:
-                result, _ = fly(RunSpec(str(scenario), "sqp", str(model), plant=plant, vehicle=str(vehicle)))
+                result, _ = fly(RunSpec(str(scenario), "sqp", str(model), plant=plant, vehicle=str(vehicle),
+                                        level=level))
             except (PlantUnavailableError, ValueError) as e:
                 # a plant not installed, a scenario or model a controller refuses: recorded, the rest stays
                 out.append({**row, "skipped": str(e)})
                 continue
-            out.append({**row, **{k: result[k] for k in ("rmse_position_m", "crashed", "crash_time_s",
-                                                          "crash_reason", "solve_ms", "deadline_misses")}})
+            out.append({**row, "rmse_m": result["rmse_position_m"], "crashed": result["crashed"],
+                        "median_solve_ms": result["solve_ms"]["median"],
+                        **{k: result[k] for k in ("rmse_position_m", "crash_time_s", "crash_reason", "solve_ms",
+                                                  "deadline_misses")}})
     return out
+
+
+def export_ctbr_physics(kw: dict, vehicle, path, name: str) -> Path:
+    """Write the ctbr physics of :func:`sim.flightlogs.logbench.ctbr_physics_step` keyword arguments ``kw`` as an
+    ONNX model file at the ``ctbr`` level (torch is needed to write it), with ``vehicle``'s rigid body as its
+    ``theta``."""
+    from pinn.flights import CtbrPhysics, export_flight_model
+
+    p = kw["p"]
+    module = CtbrPhysics(p.m, p.g, p.c_d, kw.get("linear_drag", (0.0,) * 3), kw.get("quadratic_drag", (0.0,) * 3),
+                         kw.get("accel_bias", (0.0,) * 3), kw.get("thrust_gain", 1.0))
+    theta = {"m": vehicle.m, "Jxx": vehicle.Jxx, "Jyy": vehicle.Jyy, "Jzz": vehicle.Jzz, "kt": vehicle.kt,
+             "kq": vehicle.kq}
+    return export_flight_model(module, path, theta, name, level="ctbr")
+
+
+def _fly_ctbr(name: str, kw: dict, vehicle_file, melon, out: Path, plants, progress) -> list[dict]:
+    """The best ctbr model on :data:`CLOSED_LOOP_SCENARIO` and on the whole of ``melon``'s logged reference, at
+    the ctbr level, on each plant set up with the identified vehicle and its inner loop; recorded as skipped when
+    torch (to write the model file) is missing."""
+    scenarios = [CLOSED_LOOP_SCENARIO]
+    if melon.reference is not None:
+        scenarios.append(reference_scenario(melon, out / f"{melon.name}-reference-whole.toml", length_s=None))
+    try:
+        onnx = export_ctbr_physics(kw, load_vehicle(vehicle_file), out / "best-ctbr.onnx", name)
+    except ImportError as e:
+        return [{"vehicle": "identified", "plant": plant, "scenario": Path(sc).stem, "controller": "sqp",
+                 "level": "ctbr", "model": "best-ctbr.onnx", "skipped": f"the model file needs torch ({e})"}
+                for sc in scenarios for plant in plants]
+    return fly_models([(f"identified, flying the best ctbr model ({name})", onnx, vehicle_file, sc, "ctbr")
+                       for sc in scenarios], plants, progress)
 
 
 def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=print,
@@ -360,6 +400,8 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
         if melon1[0].reference is not None:
             scenarios.append(reference_scenario(melon1[0], out / f"{melon1[0].name}-reference.toml"))
         flown = fly_models([r + (sc,) for sc in scenarios for r in rows], plants, progress)
+        flown += _fly_ctbr(best_ctbr, _ctbr_candidates(ident, vehicle)[best_ctbr], ident_file, melon1[0], out,
+                           plants, progress)
     result = {
         "source": {"logs": str(root), "commit": logs_commit(logs), "format": fmt.name, "vehicle": vehicle.name},
         "horizons": list(HORIZONS),
@@ -468,17 +510,17 @@ def realdata_markdown(r: dict) -> str:
                              + " | ".join(_num(v, ".4f") for q in QUANTITIES for v in m["filtered_run1"][q]) + " |")
     if r.get("closed_loop"):
         lines += ["", "## Flown with the SQP, each plant set up with the vehicle", "",
-                  "| scenario | vehicle | prediction model | plant | RMSE (m) | crashed | median solve (ms) | "
-                  "deadline misses |", "|---|---|---|---|---|---|---|---|"]
+                  "| scenario | vehicle | prediction model | level | plant | RMSE (m) | crashed | median solve (ms) | "
+                  "deadline misses |", "|---|---|---|---|---|---|---|---|---|"]
         for row in r["closed_loop"]:
+            head = (f"| {row['scenario']} | {row['vehicle']} | {row['model']} | {row.get('level', 'wrench')} | "
+                    f"{row['plant']} | ")
             if "skipped" in row:
-                lines.append(f"| {row['scenario']} | {row['vehicle']} | {row['model']} | {row['plant']} | skipped: "
-                             f"{row['skipped']} | | | |")
+                lines.append(head + f"skipped: {row['skipped']} | | | |")
                 continue
             crash = f"at {row['crash_time_s']:.2f} s ({row['crash_reason']})" if row["crashed"] else "no"
-            lines.append(f"| {row['scenario']} | {row['vehicle']} | {row['model']} | {row['plant']} | "
-                         f"{row['rmse_position_m']:.4g} | "
-                         f"{crash} | {row['solve_ms']['median']:.3g} | {row['deadline_misses']} |")
+            lines.append(head + f"{row['rmse_position_m']:.4g} | {crash} | {row['solve_ms']['median']:.3g} | "
+                                f"{row['deadline_misses']} |")
     lines += ["", "## Models that cannot be flown", ""]
     lines += [f"- {n}: {m['why_not_flyable']}" for n, m in r["models"].items() if not m["flyable"]] or ["- none"]
     ident = r["identification"]
