@@ -106,6 +106,13 @@ def prediction_errors(step, flights, horizons=HORIZONS, batch: int = 4096, start
     return PredictionErrors(**means, windows=tuple(int(c) for c in counts))
 
 
+def _body_drag(x, k, c, b) -> np.ndarray:
+    """World-frame acceleration (B, 3) of the body-frame terms ``-k v - c v |v| + b`` at states ``x`` (B, 12)."""
+    R = rotation_matrix(x[:, 3], x[:, 4], x[:, 5])
+    vb = np.einsum("nji,nj->ni", R, x[:, 9:12])
+    return np.einsum("nij,nj->ni", R, -k * vb - c * vb * np.abs(vb) + b)
+
+
 def physics_step(p: QuadParams, hold_rates: bool = False, linear_drag=(0.0, 0.0, 0.0),
                  quadratic_drag=(0.0, 0.0, 0.0), accel_bias=(0.0, 0.0, 0.0), wrench_gain=(1.0, 1.0, 1.0, 1.0),
                  substeps: int = 10):
@@ -125,12 +132,7 @@ def physics_step(p: QuadParams, hold_rates: bool = False, linear_drag=(0.0, 0.0,
     extra = bool(np.any(k) or np.any(c) or np.any(b))
 
     def f(x, u):
-        accel = None
-        if extra:
-            R = rotation_matrix(x[:, 3], x[:, 4], x[:, 5])
-            vb = np.einsum("nji,nj->ni", R, x[:, 9:12])
-            accel = np.einsum("nij,nj->ni", R, -k * vb - c * vb * np.abs(vb) + b)
-        d = rates(x, u, p, accel=accel)
+        d = rates(x, u, p, accel=_body_drag(x, k, c, b) if extra else None)
         if hold_rates:
             d[:, 6:9] = 0.0
         return d
@@ -180,12 +182,7 @@ def ctbr_physics_step(p: QuadParams, linear_drag=(0.0, 0.0, 0.0), quadratic_drag
         thrust[:, 0] = thrust_gain * u[:, 0]
 
         def f(z):
-            accel = None
-            if extra:
-                R = rotation_matrix(z[:, 3], z[:, 4], z[:, 5])
-                vb = np.einsum("nji,nj->ni", R, z[:, 9:12])
-                accel = np.einsum("nij,nj->ni", R, -k * vb - c * vb * np.abs(vb) + b)
-            d = rates(z, thrust, p, accel=accel)
+            d = rates(z, thrust, p, accel=_body_drag(z, k, c, b) if extra else None)
             d[:, 6:9] = alpha
             return d
 
