@@ -102,9 +102,9 @@ def test_learned_models_keep_the_epoch_their_validation_score_chose(bench):
     assert all(met[q] == (best[q][-1] <= r["goal_h50"][q]) for q in met)
 
 
-def test_the_best_ctbr_model_is_flown_at_ctbr_with_the_identified_vehicles_inner_loop(bench):
+def test_the_best_ctbr_model_is_flown_at_ctbr_with_the_stated_vehicles_inner_loop(bench):
     """The chosen ctbr model, written as a model file at ctbr, flies figure8-fast and the test flight's whole logged
-    reference on the plant through the identified vehicle's inner loop; each row has the keys a reader looks for."""
+    reference on the plant through the stated vehicle's inner loop; each row has the keys a reader looks for."""
     from mpc.prediction.contract import declared_level
 
     r, out = bench
@@ -113,6 +113,7 @@ def test_the_best_ctbr_model_is_flown_at_ctbr_with_the_identified_vehicles_inner
         ("figure8-fast", "sim"), ("melon_20251017_run1-reference-whole", "sim")]
     assert declared_level(out / "best-ctbr.onnx") == "ctbr"
     for row in rows:
+        assert row["vehicle"].startswith("stated, flying the best ctbr model")
         assert {"scenario", "plant", "level", "model", "rmse_m", "crashed", "median_solve_ms"} <= set(row)
         assert not row["crashed"] and row["rmse_m"] <= CTBR_FLOWN_M, row
     assert all(row["level"] == "wrench" for row in r["closed_loop"] if row not in rows)
