@@ -97,14 +97,19 @@ class HeldRatesPhysics(nn.Module):
 
     def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """The state one period later (B, 12)."""
-        h = DT / PHYSICS_SUBSTEPS
-        for _ in range(PHYSICS_SUBSTEPS):
-            k1 = self.rates(x, u)
-            k2 = self.rates(x + 0.5 * h * k1, u)
-            k3 = self.rates(x + 0.5 * h * k2, u)
-            k4 = self.rates(x + h * k3, u)
-            x = x + (h / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
-        return x
+        return _rk4(lambda z: self.rates(z, u), x, PHYSICS_SUBSTEPS)
+
+
+def _rk4(f, x: torch.Tensor, substeps: int) -> torch.Tensor:
+    """``x`` advanced over one period ``DT`` by ``substeps`` classical RK4 steps of ``x' = f(x)``."""
+    h = DT / substeps
+    for _ in range(substeps):
+        k1 = f(x)
+        k2 = f(x + 0.5 * h * k1)
+        k3 = f(x + 0.5 * h * k2)
+        k4 = f(x + h * k3)
+        x = x + (h / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
+    return x
 
 
 class CtbrPhysics(HeldRatesPhysics):
@@ -113,6 +118,8 @@ class CtbrPhysics(HeldRatesPhysics):
     the input's (the rates reached at the period's end) at a constant angular acceleration. ``u`` is
     ``(T, p_cmd, q_cmd, r_cmd)`` (N, rad/s), the ``ctbr`` level's input. RK4 with ``substeps`` substeps.
     """
+
+    extra_states: tuple[str, ...] = ()      # the rigid body's state only (as a FlightModel without history)
 
     def __init__(self, m: float, g: float, c_d: float, linear_drag, quadratic_drag, accel_bias,
                  thrust_gain: float = 1.0, substeps: int = 10):
@@ -129,14 +136,7 @@ class CtbrPhysics(HeldRatesPhysics):
             d = self.rates(z, thrust)
             return torch.cat([d[:, :6], alpha, d[:, 9:]], -1)
 
-        h = DT / self.substeps
-        for _ in range(self.substeps):
-            k1 = f(x)
-            k2 = f(x + 0.5 * h * k1)
-            k3 = f(x + 0.5 * h * k2)
-            k4 = f(x + h * k3)
-            x = x + (h / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
-        return x
+        return _rk4(f, x, self.substeps)
 
 
 def register_names(history: int) -> tuple[str, ...]:
@@ -401,14 +401,13 @@ def export_flight_model(model: FlightModel, path, theta: dict, description: str,
     from sim.levels import DEFAULT_LEVEL, LEVEL_INPUTS, check_level
     from sim.params import STATE_NAMES
 
-    check_level(level)
-
     from .export import _Next, _set_metadata
 
+    check_level(level)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     m64 = copy.deepcopy(model).double().eval()
-    extra = tuple(getattr(m64, "extra_states", ()))
+    extra = tuple(m64.extra_states)
     nx = 12 + len(extra)
     args = (torch.zeros(3, nx, dtype=torch.float64), torch.zeros(3, 4, dtype=torch.float64))
     with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):

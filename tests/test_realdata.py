@@ -24,6 +24,7 @@ RATIO_RTOL = 2e-3      # identified ratios against the vehicle's
 CTBR_H1_M = 1e-5       # the plant's own equations at ctbr, given the achieved rates: position error after 10 ms, m
 CTBR_H50_M = 1e-4      # and after 0.5 s, m (measured 2.3e-6 on similar flights)
 CTBR_FLOWN_M = 0.05    # the best ctbr model learned from real logs, flown: RMSE at most, m
+CTBR_OWN_FLOWN_M = 5e-3  # the same learned from the plant's own flights (measured 1.7 and 0.8 mm), m
 FLIGHTS = ["melon_20251017_run1", "melon_20251017_run2", "square_20251017_run1", "square_20251017_run2",
            "random1_20251017_run1", "random1_20251017_run4"]
 
@@ -72,7 +73,7 @@ def test_the_identified_vehicle_flies_like_the_stated_one(bench):
     rows = {row["vehicle"]: row for row in r["closed_loop"]
             if row["model"] == "nominal equations of the vehicle" and row["scenario"] == "figure8-fast"}
     assert set(rows) == {"stated", "identified"} and all(row["plant"] == "sim" for row in rows.values())
-    assert all(not row["crashed"] and row["rmse_position_m"] < 1e-3 for row in rows.values())
+    assert all(not row["crashed"] and row["rmse_m"] < 1e-3 for row in rows.values())
     v = load_vehicle(out / "identified-vehicle.toml")
     c = r["identification"]["coefficients"]
     assert v.kt / v.m == pytest.approx(c["kt/m"]["value"], rel=1e-12)
@@ -115,7 +116,7 @@ def test_the_best_ctbr_model_is_flown_at_ctbr_with_the_stated_vehicles_inner_loo
     for row in rows:
         assert row["vehicle"].startswith("stated, flying the best ctbr model")
         assert {"scenario", "plant", "level", "model", "rmse_m", "crashed", "median_solve_ms"} <= set(row)
-        assert not row["crashed"] and row["rmse_m"] <= CTBR_FLOWN_M, row
+        assert not row["crashed"] and row["rmse_m"] <= CTBR_OWN_FLOWN_M, row
     assert all(row["level"] == "wrench" for row in r["closed_loop"] if row not in rows)
 
 

@@ -459,7 +459,7 @@ def fisher_key() -> str:
     from pinn.evaluate import KEY_EXCLUDES
     from sim.files import source_digest
 
-    return source_digest(("sim",), exclude=[e for e in KEY_EXCLUDES if e.startswith("sim/")]).hexdigest()
+    return source_digest(("sim",), exclude=KEY_EXCLUDES).hexdigest()
 
 
 def _reusable(paths, key) -> tuple[Path, dict] | None:

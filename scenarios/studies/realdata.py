@@ -255,10 +255,8 @@ def fly_models(rows, plants, progress=print) -> list[dict]:
         label, model, vehicle, scenario = row_in[:4]
         level = row_in[4] if len(row_in) > 4 else "wrench"
         for plant in plants:
-            name = Path(scenario).stem
-            progress(f"flying {name}: {label} on {plant}" + ("" if level == "wrench" else f" at {level}"))
-            row = {"vehicle": label, "plant": plant, "scenario": name, "controller": "sqp", "level": level,
-                   "model": "nominal equations of the vehicle" if model == "nominal" else Path(model).name}
+            row = _flight_row(label, model, plant, scenario, level)
+            progress(f"flying {row['scenario']}: {label} on {plant}" + ("" if level == "wrench" else f" at {level}"))
             try:
                 result, _ = fly(RunSpec(str(scenario), "sqp", str(model), plant=plant, vehicle=str(vehicle),
                                         level=level))
@@ -268,9 +266,14 @@ def fly_models(rows, plants, progress=print) -> list[dict]:
                 continue
             out.append({**row, "rmse_m": result["rmse_position_m"], "crashed": result["crashed"],
                         "median_solve_ms": result["solve_ms"]["median"],
-                        **{k: result[k] for k in ("rmse_position_m", "crash_time_s", "crash_reason", "solve_ms",
-                                                  "deadline_misses")}})
+                        **{k: result[k] for k in ("crash_time_s", "crash_reason", "solve_ms", "deadline_misses")}})
     return out
+
+
+def _flight_row(label: str, model, plant: str, scenario, level: str) -> dict:
+    """What names one flight of :func:`fly_models` (its figures are added beside)."""
+    return {"vehicle": label, "plant": plant, "scenario": Path(scenario).stem, "controller": "sqp", "level": level,
+            "model": "nominal equations of the vehicle" if model == "nominal" else Path(model).name}
 
 
 def export_ctbr_physics(kw: dict, vehicle, path, name: str) -> Path:
@@ -300,14 +303,13 @@ def _fly_ctbr(name: str, kw: dict, vehicle_file, melon, out: Path, plants, progr
     scenarios = [CLOSED_LOOP_SCENARIO]
     if melon.reference is not None:
         scenarios.append(reference_scenario(melon, out / f"{melon.name}-reference-whole.toml", length_s=None))
+    label, onnx = f"stated, flying the best ctbr model ({name})", out / "best-ctbr.onnx"
     try:
-        onnx = export_ctbr_physics(kw, load_vehicle(vehicle_file), out / "best-ctbr.onnx", name)
+        export_ctbr_physics(kw, load_vehicle(vehicle_file), onnx, name)
     except ImportError as e:
-        return [{"vehicle": "stated", "plant": plant, "scenario": Path(sc).stem, "controller": "sqp",
-                 "level": "ctbr", "model": "best-ctbr.onnx", "skipped": f"the model file needs torch ({e})"}
+        return [{**_flight_row(label, onnx, plant, sc, "ctbr"), "skipped": f"the model file needs torch ({e})"}
                 for sc in scenarios for plant in plants]
-    return fly_models([(f"stated, flying the best ctbr model ({name})", onnx, vehicle_file, sc, "ctbr")
-                       for sc in scenarios], plants, progress)
+    return fly_models([(label, onnx, vehicle_file, sc, "ctbr") for sc in scenarios], plants, progress)
 
 
 def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=print,
@@ -359,8 +361,8 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
     # (name, kind, level, step, start, learned-model record or None)
     candidates = [(name, "physics", "wrench", physics_step(**kw), None, None)
                   for name, kw in _physics_candidates(ident, vehicle).items()]
-    candidates += [(name, "physics", "ctbr", ctbr_physics_step(**kw), None, None)
-                   for name, kw in _ctbr_candidates(ident, vehicle).items()]
+    ctbr_kw = _ctbr_candidates(ident, vehicle)
+    candidates += [(name, "physics", "ctbr", ctbr_physics_step(**kw), None, None) for name, kw in ctbr_kw.items()]
     if learn != "none":
         from pinn.flights import learned_models
 
@@ -406,8 +408,7 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
         if melon1[0].reference is not None:
             scenarios.append(reference_scenario(melon1[0], out / f"{melon1[0].name}-reference.toml"))
         flown = fly_models([r + (sc,) for sc in scenarios for r in rows], plants, progress)
-        flown += _fly_ctbr(best_ctbr, _ctbr_candidates(ident, vehicle)[best_ctbr], stated_file, melon1[0], out,
-                           plants, progress)
+        flown += _fly_ctbr(best_ctbr, ctbr_kw[best_ctbr], stated_file, melon1[0], out, plants, progress)
     result = {
         "source": {"logs": str(root), "commit": logs_commit(logs), "format": fmt.name, "vehicle": vehicle.name},
         "horizons": list(HORIZONS),
@@ -448,6 +449,16 @@ def _num(v, spec: str) -> str:
 
 def _row(label, d, h=-1):
     return f"| {label} | " + " | ".join(_num(d[q][h], ".4f") for q in QUANTITIES) + " |"
+
+
+def _horizons_row(label, d):
+    """A row of every quantity at every horizon."""
+    return f"| {label} | " + " | ".join(_num(v, ".4f") for q in QUANTITIES for v in d[q]) + " |"
+
+
+def _horizons_head(horizons) -> list[str]:
+    return ["| model | " + " | ".join(f"{q} h={h}" for q in QUANTITIES for h in horizons) + " |",
+            "|---|" + "---|" * (len(QUANTITIES) * len(horizons))]
 
 
 def realdata_markdown(r: dict) -> str:
@@ -493,11 +504,8 @@ def realdata_markdown(r: dict) -> str:
             t = m["training"]
             lines.append(f"| {n} | {t['epoch']} ({t['epochs']}) | {t['seconds']:.0f} | {_num(m['validation_score'], '.3f')} | "
                          f"{_num(m['raw']['position'][0], '.4f')} | {_num(m['raw']['position'][-1], '.4f')} |")
-    lines += ["", "## Every horizon, raw test flights", "",
-              "| model | " + " | ".join(f"{q} h={h}" for q in QUANTITIES for h in r["horizons"]) + " |",
-              "|---|" + "---|" * (len(QUANTITIES) * len(r["horizons"]))]
-    for name, m in wrench.items():
-        lines.append(f"| {name} | " + " | ".join(_num(v, ".4f") for q in QUANTITIES for v in m["raw"][q]) + " |")
+    lines += ["", "## Every horizon, raw test flights", "", *_horizons_head(r["horizons"])]
+    lines += [_horizons_row(name, m["raw"]) for name, m in wrench.items()]
     if ctbr:
         lines += ["", "## At the ctbr level: given the thrust and the body rates the vehicle reached", "",
                   "Each model is given the logged collective thrust and, as its rate command, the body rates logged at "
@@ -505,15 +513,11 @@ def realdata_markdown(r: dict) -> str:
                   "rate loop has done its work, which is what a controller at this level needs; it is not the "
                   "benchmark's question (its models must predict the rates from the rotor speeds), so these rows are "
                   "not comparable with the table above. Chosen on the validation flights: "
-                  f"**{r.get('best_ctbr_on_validation') or 'none'}**.", "",
-                  "| model | " + " | ".join(f"{q} h={h}" for q in QUANTITIES for h in r["horizons"]) + " |",
-                  "|---|" + "---|" * (len(QUANTITIES) * len(r["horizons"]))]
+                  f"**{r.get('best_ctbr_on_validation') or 'none'}**.", "", *_horizons_head(r["horizons"])]
         for name, m in ctbr.items():
-            lines.append(f"| {name}, raw test flights (all) | "
-                         + " | ".join(_num(v, ".4f") for q in QUANTITIES for v in m["raw"][q]) + " |")
+            lines.append(_horizons_row(f"{name}, raw test flights (all)", m["raw"]))
             if m["filtered_run1"]:
-                lines.append(f"| {name}, {filtered} filtered | "
-                             + " | ".join(_num(v, ".4f") for q in QUANTITIES for v in m["filtered_run1"][q]) + " |")
+                lines.append(_horizons_row(f"{name}, {filtered} filtered", m["filtered_run1"]))
     if r.get("closed_loop"):
         lines += ["", "## Flown with the SQP, each plant set up with the vehicle", "",
                   "| scenario | vehicle | prediction model | level | plant | RMSE (m) | crashed | median solve (ms) | "
@@ -525,8 +529,8 @@ def realdata_markdown(r: dict) -> str:
                 lines.append(head + f"skipped: {row['skipped']} | | | |")
                 continue
             crash = f"at {row['crash_time_s']:.2f} s ({row['crash_reason']})" if row["crashed"] else "no"
-            lines.append(head + f"{row['rmse_position_m']:.4g} | {crash} | {row['solve_ms']['median']:.3g} | "
-                                f"{row['deadline_misses']} |")
+            rmse = row.get("rmse_m", row.get("rmse_position_m"))     # (the key of a realdata.json before levels)
+            lines.append(head + f"{rmse:.4g} | {crash} | {row['solve_ms']['median']:.3g} | {row['deadline_misses']} |")
     lines += ["", "## Models that cannot be flown", ""]
     lines += [f"- {n}: {m['why_not_flyable']}" for n, m in r["models"].items() if not m["flyable"]] or ["- none"]
     ident = r["identification"]

@@ -147,11 +147,10 @@ def study_specs(models: dict[str, dict], members: int = 10, controllers=STUDY_CO
     """
     if isinstance(members, bool) or not isinstance(members, int) or members < 1:
         raise ScenarioError(f"members must be an integer >= 1; found {members!r}")
+    from mpc.prediction.models import level_oracle_exists
     from sim.plants.named import KNOWN_EQUATIONS
 
     where = {"plant": plant, "vehicle": vehicle, "qp": qp, "level": level}
-    from mpc.prediction.models import level_oracle_exists
-
     known = plant in KNOWN_EQUATIONS and level_oracle_exists(plant, level)
     oracle = RunSpec(STUDY_SCENARIO, "sqp", "oracle" if known else "nominal", **where)
     ens = [RunSpec(STUDY_SCENARIO, c, m["path"], member=k, estimator=estimator, **where) for m in models.values()
