@@ -332,7 +332,8 @@ class Absolute(ResidualPINN):
     def forward_jacobian(self, x, u):
         f = (torch.cat([x, u], dim=-1) - self.abs_in_mean) / self.abs_in_std
         n = x.shape[0]
-        T0 = torch.diag(1.0 / self.abs_in_std).expand(n, NX + NU, NX + NU)
+        # diag(1 / std) as the identity scaled by columns (the TorchScript exporter has no aten::diag)
+        T0 = (torch.eye(NX + NU, dtype=f.dtype) / self.abs_in_std).expand(n, NX + NU, NX + NU)
         y, T = self.mlp.forward_tangent(f, T0)
         J = self.abs_out_std.unsqueeze(-1) * T
         return self.abs_out_mean + self.abs_out_std * y, J[..., :NX], J[..., NX:]

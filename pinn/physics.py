@@ -17,6 +17,16 @@ from sim.params import DT, SUBSTEPS, QuadParams
 from sim.vehicles.rotors import mixer
 
 
+def _inertia_differences(theta: torch.Tensor):
+    """``(Jyy - Jzz, Jzz - Jxx, Jxx - Jyy)`` of ``theta`` (6,), each a 0-dim tensor of its dtype.
+
+    Taken as one subtraction of 3-element slices: torch's TorchScript ONNX exporter computes an operation between
+    two 0-dim tensors in float32, which would put a float32 rounding into a float64 export.
+    """
+    d = theta[[2, 3, 1]] - theta[[3, 1, 2]]
+    return d[0], d[1], d[2]
+
+
 def dynamics_torch(x: torch.Tensor, u: torch.Tensor, theta: torch.Tensor, g: float, c_d: float) -> torch.Tensor:
     """``dx/dt`` of the nominal model.
 
@@ -38,6 +48,7 @@ def dynamics_torch(x: torch.Tensor, u: torch.Tensor, theta: torch.Tensor, g: flo
     vx, vy, vz = x[..., 9], x[..., 10], x[..., 11]
     thrust, tx, ty, tz = u[..., 0], u[..., 1], u[..., 2], u[..., 3]
     m, Jxx, Jyy, Jzz = theta[0], theta[1], theta[2], theta[3]
+    dJx, dJy, dJz = _inertia_differences(theta)
 
     sphi, cphi = torch.sin(phi), torch.cos(phi)
     sth, cth = torch.sin(th), torch.cos(th)
@@ -48,9 +59,9 @@ def dynamics_torch(x: torch.Tensor, u: torch.Tensor, theta: torch.Tensor, g: flo
     thd = wq * cphi - wr * sphi
     psid = qs_rc / cth
 
-    pd = ((Jyy - Jzz) * wq * wr + tx) / Jxx
-    qd = ((Jzz - Jxx) * wp * wr + ty) / Jyy
-    rd = ((Jxx - Jyy) * wp * wq + tz) / Jzz
+    pd = (dJx * wq * wr + tx) / Jxx
+    qd = (dJy * wp * wr + ty) / Jyy
+    rd = (dJz * wp * wq + tz) / Jzz
 
     tm = thrust / m
     ax = -tm * (cpsi * sth * cphi + spsi * sphi) - c_d * vx * vx.abs()
@@ -111,6 +122,7 @@ def dynamics_tangent_torch(x: torch.Tensor, u: torch.Tensor, theta: torch.Tensor
     phi, th, psi = x[..., 3:4], x[..., 4:5], x[..., 5:6]
     wp, wq, wr = x[..., 6:7], x[..., 7:8], x[..., 8:9]
     m, Jxx, Jyy, Jzz = theta[0], theta[1], theta[2], theta[3]
+    dJx, dJy, dJz = _inertia_differences(theta)
     d = [dx[:, i] for i in range(12)]          # each (B, k)
     dT, dtx, dty, dtz = du[:, 0], du[:, 1], du[:, 2], du[:, 3]
     sphi, cphi = torch.sin(phi), torch.cos(phi)
@@ -125,9 +137,9 @@ def dynamics_tangent_torch(x: torch.Tensor, u: torch.Tensor, theta: torch.Tensor
     d_thd = -qs_rc * dphi + cphi * d[7] - sphi * d[8]
     d_psid = qc_rs * sec * dphi + qs_rc * tth * sec * dth + sphi * sec * d[7] + cphi * sec * d[8]
     # Euler's equations
-    d_pd = ((Jyy - Jzz) * (wr * d[7] + wq * d[8]) + dtx) / Jxx
-    d_qd = ((Jzz - Jxx) * (wr * d[6] + wp * d[8]) + dty) / Jyy
-    d_rd = ((Jxx - Jyy) * (wq * d[6] + wp * d[7]) + dtz) / Jzz
+    d_pd = (dJx * (wr * d[7] + wq * d[8]) + dtx) / Jxx
+    d_qd = (dJy * (wr * d[6] + wp * d[8]) + dty) / Jyy
+    d_rd = (dJz * (wq * d[6] + wp * d[7]) + dtz) / Jzz
     # translation: a = -T/m b(phi, theta, psi) + g e_z - c_d v|v|
     tm = u[..., 0:1] / m
     bx = cpsi * sth * cphi + spsi * sphi
@@ -136,7 +148,7 @@ def dynamics_tangent_torch(x: torch.Tensor, u: torch.Tensor, theta: torch.Tensor
     bx_phi, bx_th, bx_psi = -cpsi * sth * sphi + spsi * cphi, cpsi * cth * cphi, -spsi * sth * cphi + cpsi * sphi
     by_phi, by_th, by_psi = -spsi * sth * sphi - cpsi * cphi, spsi * cth * cphi, cpsi * sth * cphi + spsi * sphi
     bz_phi, bz_th = -cth * sphi, -sth * cphi
-    drag = -2.0 * c_d * x[..., 9:12].abs()     # d(-c_d v|v|)/dv
+    drag = -2.0 * (c_d * x[..., 9:12].abs())   # d(-c_d v|v|)/dv (c_d may be a 0-dim tensor: see _inertia_differences)
     d_ax = -(bx * dT / m + tm * (bx_phi * dphi + bx_th * dth + bx_psi * dpsi)) + drag[..., 0:1] * d[9]
     d_ay = -(by * dT / m + tm * (by_phi * dphi + by_th * dth + by_psi * dpsi)) + drag[..., 1:2] * d[10]
     d_az = -(bz * dT / m + tm * (bz_phi * dphi + bz_th * dth)) + drag[..., 2:3] * d[11]
@@ -287,11 +299,16 @@ def lagged_rotor_increment(x: torch.Tensor, n: torch.Tensor, u: torch.Tensor, th
     c, free = rotor_command_torch(u, theta, consts)
     scale = torch.stack([theta[4], theta[4], theta[4], theta[5]])
     S0_inv = consts["mixer_unit_inv"]
-    h = torch.tensor(dt / substeps, dtype=x.dtype, device=x.device)
+    h_s = dt / substeps
+    h = torch.tensor(h_s, dtype=x.dtype, device=x.device)
     sixth = torch.tensor(1.0 / 6.0, dtype=x.dtype, device=x.device)
 
-    def rotors(t):
-        return torch.exp(-t / tau)
+    tau_1 = tau.reshape(1)
+
+    def rotors(t: float):
+        # exp(-t / tau), shape (1,). The time (s) is a constant of the state's dtype and both operands have one
+        # element, not none: torch's TorchScript ONNX exporter computes arithmetic between 0-dim tensors in float32.
+        return torch.exp(torch.tensor([-t], dtype=x.dtype, device=x.device) / tau_1)
 
     def wrench(nt):
         return (nt * nt) @ S0.T * scale
@@ -307,8 +324,8 @@ def lagged_rotor_increment(x: torch.Tensor, n: torch.Tensor, u: torch.Tensor, th
     z = torch.zeros_like(x)
     dz = torch.zeros(B_, 12, 20, dtype=x.dtype, device=x.device) if tangent else None
     for i in range(substeps):
-        t0 = h * i
-        times = (t0, t0 + 0.5 * h, t0 + 0.5 * h, t0 + h)
+        t0 = h_s * i
+        times = (t0, t0 + 0.5 * h_s, t0 + 0.5 * h_s, t0 + h_s)
         a = [rotors(t) for t in times]
         ns = [c + (n - c) * ai for ai in a]
         ws = [wrench(nt) for nt in ns]
@@ -329,7 +346,7 @@ def lagged_rotor_increment(x: torch.Tensor, n: torch.Tensor, u: torch.Tensor, th
             k3 = dynamics_torch(s + 0.5 * h * k2, ws[2], theta, g, c_d)
             k4 = dynamics_torch(s + h * k3, ws[3], theta, g, c_d)
         z = z + h * sixth * (k1 + 2.0 * (k2 + k3) + k4)
-    a_end = rotors(h * substeps)
+    a_end = rotors(h_s * substeps)
     inc_n = (c - n) * (1.0 - a_end)
     if not tangent:
         return z, inc_n

@@ -67,6 +67,8 @@ MODEL_CASES = (
     ("figure8-2.0s", "ltv", "rmse_position_m"),
     ("figure8-fast", "sqp", "rmse_position_m"),
 )
+#: The scenarios of every case, in order: ``pinnmpc run --scenarios`` these flies every case with every model.
+BOUND_SCENARIOS = tuple(dict.fromkeys(sc for sc, _, _ in ORACLE_CASES + MODEL_CASES))
 
 
 @dataclass(frozen=True)
@@ -273,7 +275,8 @@ def generate(results: list[dict], models: list[str], source: str = "") -> str:
                                   f"(the tests' cases): give the results of a `pinnmpc run` without --plant and "
                                   f"--vehicle")
             raise BoundsError(f"the results have no run of {model} on {scenario} with {controller} "
-                              f"(or of the oracle there); run `pinnmpc run` first")
+                              f"(or of the oracle there); give the results of `pinnmpc run --scenarios "
+                              f"{' '.join(BOUND_SCENARIOS)}`, which flies every case with every model")
         for run, who in ((r, model), (o, "the oracle")):
             if run.get("error") is not None:    # never flew: nothing was measured, so nothing to exempt
                 raise BoundsError(f"the run of {who} on {scenario} with {controller} never flew "
