@@ -1,5 +1,8 @@
 """CI check of closed-loop error bounds (``scenarios/studies/bounds.toml``) and its negative controls.
 
+The flights (about 4 minutes of two processes) are among CI's slower checks (``pytest -m slow``); the checks of
+the file and of the comparison run by default.
+
 Flies every case of the bounds file with the oracle beside it, and the true
 equations with wrong parameters on the oracle's cases until each fails one
 (two processes, once per module). Every shipped model must pass all of its
@@ -89,6 +92,7 @@ def test_bounds_file_is_well_formed_and_covers_the_required_cases():
             assert b.tolerance_m == pytest.approx(excess * (1 + MARGIN) + MODEL_FLOOR[b.metric], rel=1e-5)
 
 
+@pytest.mark.slow
 def test_every_shipped_model_and_the_oracle_stay_within_their_bounds(flown):
     _, bounds = load_bounds()
     rows = check(bounds, flown)
@@ -98,6 +102,7 @@ def test_every_shipped_model_and_the_oracle_stay_within_their_bounds(flown):
         pytest.fail("closed-loop bounds exceeded:\n" + table, pytrace=False)
 
 
+@pytest.mark.slow
 def test_each_wrong_parameter_model_fails_at_least_one_bound(flown):
     _, bounds = load_bounds()
     oracle = [b for b in bounds if b.model == "oracle"]
