@@ -363,13 +363,14 @@ def highfi_plan(models_dir="models", full: bool = False) -> list[RunSpec]:
     (:data:`HIGHFI_DEFAULT_MEMBERS` without ``full``)."""
     d = Path(models_dir)
     # The oracle is the plant's true equations (lag, drag, gyro); the nominal rigid-body equations fly beside it.
-    models = ["oracle", "nominal"] + [str(d / m) for m in HIGHFI_MODELS if (d / m).is_file()]
+    equations = ["oracle", "nominal"]
+    models = equations + [str(d / m) for m in HIGHFI_MODELS if (d / m).is_file()]
     models += learned_models(models_dir, "highfi")    # the learning study's final model (its report's cases)
     specs = []
     for sc, members in HIGHFI_SCENARIOS.items():
         members = members if full else min(members, HIGHFI_DEFAULT_MEMBERS)
         for c in HIGHFI_CONTROLLERS:
-            for m in models if full or sc == HIGHFI_EVERY_MODEL_SCENARIO else models[:2]:
+            for m in models if full or sc == HIGHFI_EVERY_MODEL_SCENARIO else equations:
                 if members == 1:
                     specs.append(RunSpec(sc, c, m))
                 else:
