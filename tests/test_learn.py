@@ -478,25 +478,40 @@ def test_a_rerun_with_other_settings_is_refused(tmp_path, monkeypatch):
 # ------------------------------------------------------------------ resume (the real command, killed)
 def _learn_cmd(out: Path) -> list[str]:
     return [sys.executable, "-m", "scenarios.cli", "learn", "--plant", "highfi", "--out", str(out), "--iterations",
-            "2", "--per-level", "1", "--members", "2", "--curve-members", "1", "--ladder-members", "1", "--profile",
+            "1", "--per-level", "1", "--members", "2", "--curve-members", "1", "--ladder-members", "1", "--profile",
             "smoke", "--no-controls", "--jobs", "2"]
 
 
-@pytest.mark.slow
-def test_pinnmpc_learn_killed_in_iteration_2_and_rerun_equals_an_uninterrupted_run(tmp_path):
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    subprocess.run(_learn_cmd(tmp_path / "whole"), check=True, cwd=ROOT, env=env, capture_output=True)
-    proc = subprocess.Popen(_learn_cmd(tmp_path / "killed"), cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
-    for line in proc.stdout:                    # kill it as iteration 2's training starts
-        if line.startswith("iteration 2: training"):
+def _run_until(cmd: list[str], env: dict, line_start: str) -> None:
+    """Run ``cmd`` and SIGKILL its whole process group as it prints a line starting with ``line_start``."""
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
+    for line in proc.stdout:
+        if line.startswith(line_start):
             os.killpg(proc.pid, signal.SIGKILL)
             break
     proc.wait(timeout=60)
-    assert proc.returncode == -signal.SIGKILL
-    assert not (tmp_path / "killed" / "highfi" / "learn.json").exists()
+    assert proc.returncode == -signal.SIGKILL, f"never printed {line_start!r}"
     time.sleep(1.0)
-    subprocess.run(_learn_cmd(tmp_path / "killed"), check=True, cwd=ROOT, env=env, capture_output=True)
+
+
+@pytest.mark.slow
+def test_pinnmpc_learn_killed_twice_and_rerun_equals_an_uninterrupted_run(tmp_path):
+    """The real command (one iteration, the smoke profile: about 5 minutes of two processes), killed with SIGKILL
+    as iteration 1's training starts (the rerun trains on the flights already flown), then again as the evaluation
+    starts (the rerun reuses the trained model and the curve), and run to the end. The same kill points with more
+    iterations are held by the faked study above."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    subprocess.run(_learn_cmd(tmp_path / "whole"), check=True, cwd=ROOT, env=env, capture_output=True)
+    killed, folder = _learn_cmd(tmp_path / "killed"), tmp_path / "killed" / "highfi"
+    done = []
+    for line_start, stages in (("iteration 1: training", ["curve 0", "fly 0"]),
+                               ("evaluation:", ["curve 0", "fly 0", "train 1", "curve 1"])):
+        _run_until(killed, env, line_start)
+        assert not (folder / "learn.json").exists()
+        done.append(json.loads((folder / learn.STAGE_TIMES).read_text()))
+        assert list(done[-1]) == stages
+    subprocess.run(killed, check=True, cwd=ROOT, env=env, capture_output=True)
     a = json.loads((tmp_path / "whole" / "highfi" / "learn.json").read_text())
     b = json.loads((tmp_path / "killed" / "highfi" / "learn.json").read_text())
 
@@ -507,7 +522,10 @@ def test_pinnmpc_learn_killed_in_iteration_2_and_rerun_equals_an_uninterrupted_r
         return [strip(v) for v in d] if isinstance(d, list) else d
 
     assert strip(a) == strip(b)
-    assert strip(a)["curve"][2]["ensemble"]["median"] is not None
+    assert strip(a)["curve"][1]["ensemble"]["median"] is not None
+    # each rerun kept the stages done before its kill (their seconds are those of the run that did them)
+    assert {k: b["stage_seconds"][k] for k in done[1]} == done[1]
+    assert {k: done[1][k] for k in done[0]} == done[0]
 
 
 # ------------------------------------------------------------------ the report's section

@@ -2,6 +2,8 @@
 cold start and failure handling."""
 
 import functools
+import math
+import os
 import time
 from pathlib import Path
 
@@ -25,7 +27,7 @@ TOL = {
     "objective_rel": 1e-4,      # |J_sqp - J_ipopt| / J_ipopt at the converged solutions
     "defect_abs": 1e-7,         # largest dynamics defect |f(X_k, U_k) - X_{k+1}| of the SQP's plan
     "merit_rel": 1e-12,         # an accepted step never raises the merit by more than rounding
-    "proposed_min_within": 38,  # states (of 50) within objective_rel with the Proposed PINN (measured 39-44)
+    "proposed_min_within": 0.76,  # share of states within objective_rel with the Proposed PINN (measured 0.78-0.88)
     "exact_hessian_rel": 1e-6,  # central-difference Hessian vs CasADi's symbolic one (measured 7e-9)
     "fixed_point_rel": 1e-9,    # converged objective with Jacobians every iteration vs every other (measured 1e-15)
     "stationarity": 1e-6,       # Lagrangian gradient / cost gradient at a plan called converged (measured 1.3e-9)
@@ -39,8 +41,11 @@ ERROR_SCALE = np.array([0.02, 0.02, 0.02, 0.03, 0.03, 0.03, 0.2, 0.2, 0.2, 0.1, 
 CONVERGED = SQPSettings(time_budget_s=None, cold_start_budget_s=None, max_sqp_iter=400, step_tol=1e-7, defect_tol=0.0,
                         eps_abs=1e-10, eps_rel=1e-10, max_iter=100000, polish=True, hessian="exact",
                         jacobians="float64")
-#: States along figure8-fast: every 12th period of the SQP's own two-lap flight (50 states).
-N_STATES, EVERY = 50, 12
+#: States along figure8-fast: every EVERY-th period of the SQP's own two-lap flight (600 periods). Every 24th (25
+#: states) keeps the slow run's time; ``PINNMPC_SQP_EVERY=12`` compares the 50 states the documentation's figures
+#: were measured on (twice as long).
+EVERY = int(os.environ.get("PINNMPC_SQP_EVERY", "24"))
+N_STATES = 600 // EVERY
 
 
 def sampled_states(n, seed):
@@ -207,13 +212,13 @@ def checked_within(found):
     assert_strict_local_minima(found["sqp"], "SQP")
     assert_strict_local_minima(found["ipopt"], "IPOPT")
     within = int(np.sum(gaps <= TOL["objective_rel"]))
-    assert within >= TOL["proposed_min_within"], within
+    assert within >= math.ceil(TOL["proposed_min_within"] * N_STATES), (within, N_STATES)
     return within
 
 
 @pytest.mark.slow
 def test_sqp_reaches_ipopts_optimal_objective_with_the_proposed_pinn():
-    """About 1.8 minutes (50 IPOPT solves through the network): in the slow run, beside the oracle's in the default."""
+    """About 5 minutes (25 states, each solved by the SQP and by IPOPT with both Hessians): in the slow run."""
     found = proposed_from_the_cold_guess()["limited-memory"]
     within = checked_within(found)
     if within < N_STATES:
@@ -229,8 +234,8 @@ def test_sqp_against_ipopt_from_the_controllers_own_warm_start_on_the_proposed_p
     """The same comparison from the guess the flying controller started each period from (its shifted plan), not
     the cold-start rollout: is the miss an artefact of a guess far from the plan the controller carries?
 
-    About 1.5 minutes. Measured: no; 43 of 50 within 1e-4 (4 lower, 3 higher, worst 2.9e-2), against 44 of 50 from
-    the cold guess, and the differing states are mostly other states than the cold guess's.
+    About 2.5 minutes. Measured (50 states): no; 43 of 50 within 1e-4 (4 lower, 3 higher, worst 2.9e-2), against
+    44 of 50 from the cold guess, and the differing states are mostly other states than the cold guess's.
     """
     found = objective_gaps(OnnxModel(PROPOSED), guess="warm")
     within = checked_within(found)
@@ -243,9 +248,10 @@ def test_sqp_against_ipopt_from_the_controllers_own_warm_start_on_the_proposed_p
 def test_sqp_against_ipopt_with_the_exact_hessian_on_the_proposed_pinn():
     """The same comparison with IPOPT converged properly: exact Hessian (the PINN rebuilt in CasADi), tol 1e-10.
 
-    About 3-4 minutes. Measured: IPOPT converges on all 50 states; the SQP ends at IPOPT's point on 39 of them
-    (objectives equal to about 1e-14) and at other local minima on 11 (6 lower, 5 higher, worst 1.7e-2). For scale,
-    IPOPT with its limited-memory Hessian, from the same guess, ends at the exact-Hessian IPOPT's point on 42.
+    Shares its solves with the limited-memory check above. Measured (50 states): IPOPT converges on all 50; the SQP
+    ends at IPOPT's point on 39 of them (objectives equal to about 1e-14) and at other local minima on 11 (6 lower,
+    5 higher, worst 1.7e-2). For scale, IPOPT with its limited-memory Hessian, from the same guess, ends at the
+    exact-Hessian IPOPT's point on 42.
     """
     both = proposed_from_the_cold_guess()
     found = both["exact"]
