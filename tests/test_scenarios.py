@@ -385,10 +385,10 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     from scenarios.studies.campaign import (EVERY_MODEL_SCENARIOS, LTV_EVERY_MODEL_SCENARIOS, LTV_SCENARIOS,
                                             SUBSET_MODELS, SUBSET_SCENARIOS)
 
-    # Every model on the cases the report compares models on, the oracle and the paper's Baseline and Proposed on
-    # the disturbances, the oracle alone on the others (all with --full).
+    # Every model on the cases the report compares models on, the oracle and the paper's Proposed on the
+    # disturbances, the oracle alone on the others (all with --full).
     pair = {"oracle"} | {Path(m).stem for m in SUBSET_MODELS}
-    assert pair == {"oracle", "baseline", "proposed"} and pair <= models
+    assert pair == {"oracle", "proposed"} and pair <= models
     assert sqp == {(sc, m) for sc, _ in sqp for m in (models if sc in EVERY_MODEL_SCENARIOS
                                                       else pair if sc in SUBSET_SCENARIOS else {"oracle"})}
     ltv = {(s.scenario, s.model_name) for s in ideal if s.controller == "ltv"}
@@ -420,7 +420,7 @@ def test_run_and_report_reject_bad_input_before_anything_runs(tmp_path, capsys):
     every = {sc for sc in variants if sc.split("+", 1)[1] in ESTIMATOR_VARIANTS_SUBSET}
     assert every and cases == ({(sc, m) for sc in every for m in pair}
                                | {(sc, "oracle") for sc in (variants - every) | set(OFFSET_FREE_SCENARIOS)})
-    assert every <= {sc for sc, m in sqp if m == "baseline"}       # each beside its twin without the estimator
+    assert every <= {sc for sc, m in sqp if m == "proposed"}       # each beside its twin without the estimator
     assert {(s.scenario, s.model_name) for s in main_plan(MODELS, full=True) if s.estimator == "ekf"} >= {
         (sc, m) for sc in every for m in models}
     hovers = {(s.scenario, s.model_name, s.estimator) for s in main_plan(MODELS) if s.scenario in OFFSET_FREE_SCENARIOS}
