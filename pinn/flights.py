@@ -136,9 +136,13 @@ class CtbrPhysics(HeldRatesPhysics):
         return _rk4(f, x, self.substeps)
 
 
-def register_names(history: int) -> tuple[str, ...]:
-    """Names of the extra states of a model with ``history`` periods of wrenches and body rates."""
-    return (tuple(f"u{k}_{n}" for k in range(1, history + 1) for n in ("T", "tx", "ty", "tz"))
+#: Names of the inputs in a register's extra states, by command level.
+REGISTER_INPUTS = {"wrench": ("T", "tx", "ty", "tz"), "ctbr": ("T", "p", "q", "r")}
+
+
+def register_names(history: int, level: str = "wrench") -> tuple[str, ...]:
+    """Names of the extra states of a model with ``history`` periods of inputs (at ``level``) and body rates."""
+    return (tuple(f"u{k}_{n}" for k in range(1, history + 1) for n in REGISTER_INPUTS[level])
             + tuple(f"{n}{k}" for k in range(1, history + 1) for n in ("p", "q", "r")))
 
 
@@ -151,9 +155,13 @@ def raw_features(z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
 
 
 class FlightModel(nn.Module):
-    """Identified held-rates physics plus a network, optionally with a register of ``history`` past periods.
+    """Identified physics plus a network, optionally with a register of ``history`` past periods.
 
-    State ``z`` (B, 12 + 7 H): the rigid body, then the last ``H`` wrenches (newest first) and the last ``H``
+    With :class:`HeldRatesPhysics` (the wrench level) the network corrects the body rates and the velocity; with
+    :class:`CtbrPhysics` (the ``ctbr`` level, whose input is the rates reached) only the velocity, the translational
+    dynamics: the next rates stay the input's.
+
+    State ``z`` (B, 12 + 7 H): the rigid body, then the last ``H`` inputs (newest first) and the last ``H``
     body rates (newest first). ``forward(z, u)`` gives the next ``z``.
     """
 
@@ -163,17 +171,21 @@ class FlightModel(nn.Module):
         super().__init__()
         self.physics = physics
         self.history = int(history)
-        self.extra_states = register_names(self.history)
+        self.level = "ctbr" if isinstance(physics, CtbrPhysics) else "wrench"
+        self.extra_states = register_names(self.history, self.level)
         n_in = 2 + 3 + 3 + 4 + 7 * self.history
+        # at ctbr the network's outputs are the velocity corrections alone (the last three of the statistics')
+        outputs = slice(3, 6) if self.level == "ctbr" else slice(0, 6)
         self.register_buffer("in_mean", torch.as_tensor(stats["in_mean"], dtype=torch.float32).clone())
         self.register_buffer("in_std", torch.as_tensor(stats["in_std"], dtype=torch.float32).clone())
-        self.register_buffer("out_scale", torch.as_tensor(stats["out_scale"], dtype=torch.float32).clone())
+        self.register_buffer("out_scale",
+                             torch.as_tensor(np.asarray(stats["out_scale"])[outputs], dtype=torch.float32).clone())
         mods, w = [], n_in
         for _ in range(layers):
             mods += [nn.Linear(w, hidden), nn.Tanh()]
             w = hidden
         self.body = nn.Sequential(*mods)
-        self.out = nn.Linear(w, 6)
+        self.out = nn.Linear(w, outputs.stop - outputs.start)
         with torch.no_grad():    # start as the physics
             self.out.weight.zero_()
             self.out.bias.zero_()
@@ -184,8 +196,9 @@ class FlightModel(nn.Module):
         y = self.out(self.body(f)) * self.out_scale.to(z.dtype)
         R = rotation_torch(x[:, 3:6])
         nxt = self.physics(x, u)
-        dv = torch.einsum("nij,nj->ni", R, y[:, 3:6])
-        nxt = torch.cat([nxt[:, :6], nxt[:, 6:9] + y[:, :3], nxt[:, 9:12] + dv], -1)
+        dv = torch.einsum("nij,nj->ni", R, y[:, -3:])
+        rates = nxt[:, 6:9] if self.level == "ctbr" else nxt[:, 6:9] + y[:, :3]
+        nxt = torch.cat([nxt[:, :6], rates, nxt[:, 9:12] + dv], -1)
         if not self.history:
             return nxt
         H = self.history
@@ -314,27 +327,40 @@ def rollout_loss(model: FlightModel, z0, xs, us, ok) -> torch.Tensor:
 
 
 def train_flight_model(train_flights, val_flights, physics_kw: dict, config: FlightTrainConfig,
-                       progress=None) -> FlightTrainResult:
+                       progress=None, level: str = "wrench") -> FlightTrainResult:
     """Fit a :class:`FlightModel` on ``train_flights``; keep the epoch whose validation score is lowest.
 
     Parameters
     ----------
     train_flights, val_flights : sequence of :class:`sim.flightlogs.flightlog.Flight`
-        Imported flights (their ``x``, ``u``, ``x_ok``).
+        Imported flights (their ``x``, ``u``, ``x_ok``), with the inputs of ``level`` (at ``ctbr``:
+        :func:`sim.flightlogs.logbench.ctbr_inputs`).
     physics_kw : dict
-        :func:`sim.flightlogs.logident.identified_model` with ``hold_rates=True``: ``p``, the drags, the bias and
-        ``wrench_gain``.
+        At ``wrench``, :func:`sim.flightlogs.logident.identified_model` with ``hold_rates=True``: ``p``, the drags,
+        the bias and ``wrench_gain`` (:class:`HeldRatesPhysics`). At ``ctbr``, the keyword arguments of
+        :func:`sim.flightlogs.logbench.ctbr_physics_step` (``p``, the drags, the bias, ``thrust_gain``;
+        :class:`CtbrPhysics`).
     progress : callable, optional
         Called with one line per epoch.
+    level : str
+        ``"wrench"`` or ``"ctbr"``.
     """
     from sim.flightlogs.logbench import prediction_errors
 
     torch.manual_seed(config.seed)
     gen = np.random.default_rng(config.seed)
     p = physics_kw["p"]
-    gain = np.asarray(physics_kw.get("wrench_gain", (1.0,) * 4), dtype=float)
-    physics = HeldRatesPhysics(p.m, p.g, p.c_d, physics_kw["linear_drag"], physics_kw["quadratic_drag"],
-                               physics_kw["accel_bias"])
+    drags = [physics_kw.get(k, (0.0,) * 3) for k in ("linear_drag", "quadratic_drag", "accel_bias")]
+    if level == "ctbr":
+        gain = np.ones(4)
+        # one RK4 substep, as the wrench level's held-rates physics: the network answers for what it leaves
+        physics = CtbrPhysics(p.m, p.g, p.c_d, *drags, thrust_gain=physics_kw.get("thrust_gain", 1.0),
+                              substeps=PHYSICS_SUBSTEPS)
+    elif level == "wrench":
+        gain = np.asarray(physics_kw.get("wrench_gain", (1.0,) * 4), dtype=float)
+        physics = HeldRatesPhysics(p.m, p.g, p.c_d, *drags)
+    else:
+        raise ValueError(f"level must be 'wrench' or 'ctbr'; found {level!r}")
     model = FlightModel(physics, flight_stats(train_flights, gain, config.history), config.history, config.hidden,
                         config.layers)
     windows = _Windows(train_flights, gain, config.history)
@@ -504,6 +530,47 @@ def learned_models(flights: dict, vehicle, ident, fmt, budget: str = "full", pro
 
         def export(path, model=res.model, name=name):
             return export_flight_model(model, path, theta, name)
+
+        out.append(LearnedModel(name, step, start, res.best_epoch, res.config.epochs, res.scores, res.seconds,
+                                export))
+    return out
+
+
+def ctbr_learned_models(flights: dict, physics_kw: dict, theta: dict, budget: str = "full",
+                        progress=print) -> list[LearnedModel]:
+    """The real-data study's learned models at the ``ctbr`` level: the identified translational physics
+    (:class:`CtbrPhysics`, given the thrust and the body rates reached) plus a network on the translational dynamics,
+    without and with a register of :data:`HISTORY` periods; each at the epoch chosen on ``flights["val"]``.
+
+    Parameters
+    ----------
+    flights : dict
+        ``{"train": [...], "val": [...]}``: imported flights with the ``ctbr`` inputs
+        (:func:`sim.flightlogs.logbench.ctbr_inputs`).
+    physics_kw : dict
+        :func:`sim.flightlogs.logbench.ctbr_physics_step`'s keyword arguments of the identified physics.
+    theta : dict
+        ``{m, Jxx, Jyy, Jzz, kt, kq}`` written into the model file (the vehicle the model is flown with).
+    budget : str
+        A key of :data:`BUDGETS`.
+    """
+    if budget not in BUDGETS:
+        raise ValueError(f"budget must be one of {', '.join(BUDGETS)}; found {budget!r}")
+    if not flights["val"]:
+        raise ValueError("the learned models need validation flights (their epoch is chosen on them)")
+    torch.set_num_threads(1)
+    out = []
+    for history in (0, HISTORY):
+        name = "identified physics, ctbr + network" + (f", history {history}" if history else "")
+        if progress:
+            progress(f"training {name} on the training flights")
+        res = train_flight_model(flights["train"], flights["val"], physics_kw,
+                                 FlightTrainConfig(history=history, **BUDGETS[budget]["flight"]), progress,
+                                 level="ctbr")
+        step, start = flight_step(res.model, np.ones(4))
+
+        def export(path, model=res.model, name=name):
+            return export_flight_model(model, path, theta, name, level="ctbr")
 
         out.append(LearnedModel(name, step, start, res.best_epoch, res.config.epochs, res.scores, res.seconds,
                                 export))

@@ -206,3 +206,66 @@ def test_a_ctbr_model_round_trips_through_the_contract_at_its_level(tmp_path):
     u = np.c_[rng.uniform(0.3, 0.6, 32), rng.normal(size=(32, 3))]
     np.testing.assert_allclose(model.step(x, u), ctbr_physics_step(P, thrust_gain=0.9, **DRAGS)(x, u), rtol=0,
                                atol=ONNX_TOL)
+
+
+# ---- the ctbr level: a network on the translational dynamics, given the rates reached
+def _ctbr_flights(n, seed=0):
+    """Our plant's flights with the ctbr inputs (the thrust and the body rates reached)."""
+    from sim.flightlogs.logbench import ctbr_inputs
+
+    flights = _flights(n, seed=seed)
+    for f in flights:
+        f.u = ctbr_inputs(f)
+    return flights
+
+
+def test_a_ctbr_flight_model_corrects_the_velocity_alone_and_names_its_register():
+    from pinn.flights import CtbrPhysics
+
+    flights = _ctbr_flights(1)
+    f = flights[0]
+    physics = CtbrPhysics(P.m, P.g, P.c_d, thrust_gain=0.9, **DRAGS)
+    m = FlightModel(physics, flight_stats(flights, np.ones(4), 2), history=2, hidden=16, layers=2).double()
+    assert m.extra_states == ("u1_T", "u1_p", "u1_q", "u1_r", "u2_T", "u2_p", "u2_q", "u2_r", "p1", "q1", "r1",
+                              "p2", "q2", "r2")
+    idx = np.arange(5, 60)
+    z = torch.as_tensor(np.concatenate([f.x[idx], register(f.x, f.u, idx, 2)], axis=1))
+    u = torch.as_tensor(f.u[idx])
+    want = ctbr_physics_step(P, thrust_gain=0.9, **DRAGS)(f.x[idx], f.u[idx])
+    np.testing.assert_allclose(m(z, u).detach().numpy()[:, :12], want, rtol=0, atol=PHYSICS_TOL)   # untrained
+    torch.manual_seed(1)
+    with torch.no_grad():
+        m.out.weight.normal_(0.0, 0.3)
+    nxt = m(z, u).detach().numpy()
+    np.testing.assert_array_equal(nxt[:, :9], (physics.double()(z[:, :12], u)).numpy()[:, :9])  # rates, attitude
+    assert np.max(np.abs(nxt[:, 9:12] - want[:, 9:12])) > 1e-3                                   # the velocity moves
+    np.testing.assert_array_equal(nxt[:, 12:], register(f.x, f.u, idx + 1, 2))
+
+
+def test_a_ctbr_flight_model_learns_a_thrust_its_physics_has_wrong_and_exports_at_ctbr(tmp_path):
+    """The physics given 10 % too little thrust: the network, on the translational dynamics alone, makes up for it
+    (validation score below the physics'), and the file written at ctbr runs as torch does."""
+    import onnxruntime as ort
+
+    from mpc.prediction.contract import check_model
+    from pinn.flights import ctbr_learned_models
+    from sim.flightlogs.logbench import goal_score as score
+
+    flights = _ctbr_flights(4)
+    kw = {"p": QuadParams(), "thrust_gain": 0.9}          # the plant's own equations but for the thrust
+    cfg = FlightTrainConfig(history=0, epochs=3, steps_per_epoch=30, windows=64, hidden=32, layers=2,
+                            validation_stride=5)
+    res = train_flight_model(flights[:3], flights[3:], kw, cfg, level="ctbr")
+    physics = score(prediction_errors(ctbr_physics_step(**kw), flights[3:], stride=5).to_dict())
+    assert min(res.scores) < LEARNED_GAIN * physics, (res.scores, physics)
+    theta = {"m": P.m, "Jxx": P.Jxx, "Jyy": P.Jyy, "Jzz": P.Jzz, "kt": P.kt, "kq": P.kq}
+    models = ctbr_learned_models({"train": flights[:3], "val": flights[3:]}, kw, theta, "quick", progress=None)
+    assert [m.name for m in models] == ["identified physics, ctbr + network",
+                                        "identified physics, ctbr + network, history 4"]
+    path = models[1].export(tmp_path / "c.onnx")
+    info = check_model(path)
+    assert info.level == "ctbr" and len(info.extra_states) == 28
+    f, idx = flights[0], np.arange(6, 50)
+    z = models[1].start(f, idx)
+    got = ort.InferenceSession(str(path)).run(None, {"x": z, "u": f.u[idx]})[0]
+    np.testing.assert_allclose(got, models[1].step(z, f.u[idx]), rtol=0, atol=ONNX_TOL)

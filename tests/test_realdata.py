@@ -86,7 +86,8 @@ def test_learned_models_keep_the_epoch_their_validation_score_chose(bench):
     r, out = bench
     learned = {n: m for n, m in r["models"].items() if m["kind"] == "learned"}
     assert set(learned) == {"baseline", "modular", "fourier", "proposed", "hybrid", "identified physics + network",
-                            "identified physics + network, history 4"}
+                            "identified physics + network, history 4", "identified physics, ctbr + network",
+                            "identified physics, ctbr + network, history 4"}
     for n, m in learned.items():
         t = m["training"]
         assert t["epoch"] == int(np.argmin(t["validation_scores"])) + 1, n
@@ -126,14 +127,19 @@ def test_the_ctbr_models_are_given_the_rates_and_chosen_among_themselves(bench):
     not exactly), and the choice is made among the ctbr models on the validation flights."""
     r, out = bench
     ctbr = {n: m for n, m in r["models"].items() if m["level"] == "ctbr"}
-    assert set(ctbr) == {"nominal physics, ctbr", "identified physics, ctbr"}
+    assert set(ctbr) == {"nominal physics, ctbr", "identified physics, ctbr", "identified physics, ctbr + network",
+                         "identified physics, ctbr + network, history 4"}
     for n, m in ctbr.items():
+        # the learned ones too: their network corrects the translational dynamics only
         assert max(m["raw"]["angular_velocity"]) <= EXACT, n
         assert m["flyable"] is True, n
     nominal = ctbr["nominal physics, ctbr"]["raw"]
     assert nominal["position"][0] <= CTBR_H1_M and nominal["position"][-1] <= CTBR_H50_M, nominal["position"]
     scores = {n: m["validation_score"] for n, m in ctbr.items()}
     assert r["best_ctbr_on_validation"] == min(scores, key=scores.get)
+    for n in ("identified physics, ctbr + network", "identified physics, ctbr + network, history 4"):
+        t = ctbr[n]["training"]
+        assert t["epoch"] == int(np.argmin(t["validation_scores"])) + 1, n
     md = (out / "realdata.md").read_text()
     assert "## At the ctbr level" in md and md.count("physics, ctbr, raw test flights (all)") == 2
 

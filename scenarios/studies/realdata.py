@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import subprocess
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -276,6 +277,12 @@ def _flight_row(label: str, model, plant: str, scenario, level: str) -> dict:
             "model": "nominal equations of the vehicle" if model == "nominal" else Path(model).name}
 
 
+def _theta(vehicle) -> dict:
+    """The vehicle's rigid body as a model file's ``theta``."""
+    return {"m": vehicle.m, "Jxx": vehicle.Jxx, "Jyy": vehicle.Jyy, "Jzz": vehicle.Jzz, "kt": vehicle.kt,
+            "kq": vehicle.kq}
+
+
 def export_ctbr_physics(kw: dict, vehicle, path, name: str) -> Path:
     """Write the ctbr physics of :func:`sim.flightlogs.logbench.ctbr_physics_step` keyword arguments ``kw`` as an
     ONNX model file at the ``ctbr`` level (torch is needed to write it), with ``vehicle``'s rigid body as its
@@ -285,15 +292,14 @@ def export_ctbr_physics(kw: dict, vehicle, path, name: str) -> Path:
     p = kw["p"]
     module = CtbrPhysics(p.m, p.g, p.c_d, kw.get("linear_drag", (0.0,) * 3), kw.get("quadratic_drag", (0.0,) * 3),
                          kw.get("accel_bias", (0.0,) * 3), kw.get("thrust_gain", 1.0))
-    theta = {"m": vehicle.m, "Jxx": vehicle.Jxx, "Jyy": vehicle.Jyy, "Jzz": vehicle.Jzz, "kt": vehicle.kt,
-             "kq": vehicle.kq}
-    return export_flight_model(module, path, theta, name, level="ctbr")
+    return export_flight_model(module, path, _theta(vehicle), name, level="ctbr")
 
 
-def _fly_ctbr(name: str, kw: dict, vehicle_file, melon, out: Path, plants, progress) -> list[dict]:
-    """The best ctbr model on :data:`CLOSED_LOOP_SCENARIO` and on the whole of ``melon``'s logged reference, at
-    the ctbr level, on each plant set up with the vehicle file (``vehicle_file``: the stated vehicle) and its inner
-    loop; recorded as skipped when torch (to write the model file) is missing.
+def _fly_ctbr(name: str, write, vehicle_file, melon, out: Path, plants, progress) -> list[dict]:
+    """The best ctbr model (``name``; ``write(path)`` writes its model file) on :data:`CLOSED_LOOP_SCENARIO` and on
+    the whole of ``melon``'s logged reference, at the ctbr level, on each plant set up with the vehicle file
+    (``vehicle_file``: the stated vehicle) and its inner loop; recorded as skipped when torch (to write the model
+    file) is missing.
 
     The stated vehicle, not the identified one: a ctbr model carries no inertia (the rate loop on board answers for
     the rotation), and the inertias identified from real logs are those of a torque fit whose regressor the logs
@@ -305,7 +311,7 @@ def _fly_ctbr(name: str, kw: dict, vehicle_file, melon, out: Path, plants, progr
         scenarios.append(reference_scenario(melon, out / f"{melon.name}-reference-whole.toml", length_s=None))
     label, onnx = f"stated, flying the best ctbr model ({name})", out / "best-ctbr.onnx"
     try:
-        export_ctbr_physics(kw, load_vehicle(vehicle_file), onnx, name)
+        write(onnx)
     except ImportError as e:
         return [{**_flight_row(label, onnx, plant, sc, "ctbr"), "skipped": f"the model file needs torch ({e})"}
                 for sc in scenarios for plant in plants]
@@ -364,10 +370,13 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
     ctbr_kw = _ctbr_candidates(ident, vehicle)
     candidates += [(name, "physics", "ctbr", ctbr_physics_step(**kw), None, None) for name, kw in ctbr_kw.items()]
     if learn != "none":
-        from pinn.flights import learned_models
+        from pinn.flights import ctbr_learned_models, learned_models
 
         candidates += [(m.name, "learned", "wrench", m.step, m.start, m)
                        for m in learned_models(by_split, vehicle, ident, fmt, learn, progress)]
+        candidates += [(m.name, "learned", "ctbr", m.step, m.start, m)
+                       for m in ctbr_learned_models(split_at["ctbr"], ctbr_kw["identified physics, ctbr"],
+                                                    _theta(vehicle), learn, progress)]
     models, validation = {}, {}
     for name, kind, level, step, start, rec in candidates:
         progress(f"evaluating {name}")
@@ -388,7 +397,8 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
     best_physics = min((n for n in wrench if models[n]["kind"] == "physics"),
                        key=lambda n: validation[n]["position"][-1])
     best = min(wrench, key=lambda n: models[n]["validation_score"])
-    best_ctbr = min((n for n in validation if models[n]["level"] == "ctbr"),
+    at_ctbr = [n for n in validation if models[n]["level"] == "ctbr"]
+    best_ctbr = min([n for n in at_ctbr if models[n]["flyable"]] or at_ctbr,
                     key=lambda n: models[n]["validation_score"])
     flyable_learned = [n for n in wrench if models[n]["kind"] == "learned" and models[n]["flyable"]]
     best_flyable = min(flyable_learned, key=lambda n: models[n]["validation_score"]) if flyable_learned else None
@@ -408,7 +418,10 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
         if melon1[0].reference is not None:
             scenarios.append(reference_scenario(melon1[0], out / f"{melon1[0].name}-reference.toml"))
         flown = fly_models([r + (sc,) for sc in scenarios for r in rows], plants, progress)
-        flown += _fly_ctbr(best_ctbr, ctbr_kw[best_ctbr], stated_file, melon1[0], out, plants, progress)
+        rec = next(c[5] for c in candidates if c[0] == best_ctbr)
+        write = rec.export if rec is not None else partial(export_ctbr_physics, ctbr_kw[best_ctbr], vehicle,
+                                                            name=best_ctbr)
+        flown += _fly_ctbr(best_ctbr, write, stated_file, melon1[0], out, plants, progress)
     result = {
         "source": {"logs": str(root), "commit": logs_commit(logs), "format": fmt.name, "vehicle": vehicle.name},
         "horizons": list(HORIZONS),
