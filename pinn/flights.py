@@ -491,11 +491,7 @@ def learned_models(flights: dict, vehicle, ident, fmt, budget: str = "full", pro
     from .export import export_model
     from .train import make_config, train
 
-    if budget not in BUDGETS:
-        raise ValueError(f"budget must be one of {', '.join(BUDGETS)}; found {budget!r}")
-    if not flights["val"]:
-        raise ValueError("the learned models need validation flights (their epoch is chosen on them)")
-    torch.set_num_threads(1)
+    _check_budget(flights, budget)
     b = BUDGETS[budget]
     used = flights["train"] + flights["val"]
     splits = {f.name: ("train" if f in flights["train"] else "val") for f in used}
@@ -521,19 +517,7 @@ def learned_models(flights: dict, vehicle, ident, fmt, budget: str = "full", pro
     kw = dict(identified_model(ident, vehicle, hold_rates=True), quadratic_drag=(0.0, 0.0, 0.0))
     iv = identified_vehicle(ident, vehicle)
     theta = {k: getattr(iv, k) for k in ("m", "Jxx", "Jyy", "Jzz", "kt", "kq")}
-    for history in (0, HISTORY):
-        name = "identified physics + network" + (f", history {history}" if history else "")
-        progress(f"training {name} on the training flights")
-        res = train_flight_model(flights["train"], flights["val"], kw,
-                                 FlightTrainConfig(history=history, **b["flight"]), progress)
-        step, start = flight_step(res.model, kw["wrench_gain"])
-
-        def export(path, model=res.model, name=name):
-            return export_flight_model(model, path, theta, name)
-
-        out.append(LearnedModel(name, step, start, res.best_epoch, res.config.epochs, res.scores, res.seconds,
-                                export))
-    return out
+    return out + _flight_models(flights, kw, theta, budget, progress, "wrench", "identified physics + network")
 
 
 def ctbr_learned_models(flights: dict, physics_kw: dict, theta: dict, budget: str = "full",
@@ -554,23 +538,36 @@ def ctbr_learned_models(flights: dict, physics_kw: dict, theta: dict, budget: st
     budget : str
         A key of :data:`BUDGETS`.
     """
+    _check_budget(flights, budget)
+    return _flight_models(flights, physics_kw, theta, budget, progress, "ctbr", "identified physics, ctbr + network")
+
+
+def _check_budget(flights: dict, budget: str) -> None:
+    """Refuse an unknown budget or a study without validation flights; one thread for torch."""
     if budget not in BUDGETS:
         raise ValueError(f"budget must be one of {', '.join(BUDGETS)}; found {budget!r}")
     if not flights["val"]:
         raise ValueError("the learned models need validation flights (their epoch is chosen on them)")
     torch.set_num_threads(1)
+
+
+def _flight_models(flights: dict, physics_kw: dict, theta: dict, budget: str, progress, level: str,
+                   label: str) -> list[LearnedModel]:
+    """:class:`FlightModel` at ``level`` without and with a register of :data:`HISTORY` periods, named ``label``
+    (and ``label, history H``), each trained by :func:`train_flight_model` and written at ``level``."""
+    gain = np.ones(4) if level == "ctbr" else physics_kw["wrench_gain"]
     out = []
     for history in (0, HISTORY):
-        name = "identified physics, ctbr + network" + (f", history {history}" if history else "")
+        name = label + (f", history {history}" if history else "")
         if progress:
             progress(f"training {name} on the training flights")
         res = train_flight_model(flights["train"], flights["val"], physics_kw,
                                  FlightTrainConfig(history=history, **BUDGETS[budget]["flight"]), progress,
-                                 level="ctbr")
-        step, start = flight_step(res.model, np.ones(4))
+                                 level=level)
+        step, start = flight_step(res.model, gain)
 
         def export(path, model=res.model, name=name):
-            return export_flight_model(model, path, theta, name, level="ctbr")
+            return export_flight_model(model, path, theta, name, level=level)
 
         out.append(LearnedModel(name, step, start, res.best_epoch, res.config.epochs, res.scores, res.seconds,
                                 export))

@@ -378,6 +378,7 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
                        for m in ctbr_learned_models(split_at["ctbr"], ctbr_kw["identified physics, ctbr"],
                                                     _theta(vehicle), learn, progress)]
     models, validation = {}, {}
+    records = {c[0]: c[5] for c in candidates}          # name -> learned-model record (None: a physics model)
     for name, kind, level, step, start, rec in candidates:
         progress(f"evaluating {name}")
         fl = split_at[level]
@@ -411,14 +412,13 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
         write_text(stated_file, vehicle.to_toml())
         rows = [("stated", "nominal", stated_file), ("identified", "nominal", ident_file)]
         if best_flyable is not None:
-            rec = next(c[5] for c in candidates if c[0] == best_flyable)
-            onnx = rec.export(out / "best-learned.onnx")
+            onnx = records[best_flyable].export(out / "best-learned.onnx")
             rows.append((f"identified, flying the learned model ({best_flyable})", onnx, ident_file))
         scenarios = [CLOSED_LOOP_SCENARIO]
         if melon1[0].reference is not None:
             scenarios.append(reference_scenario(melon1[0], out / f"{melon1[0].name}-reference.toml"))
         flown = fly_models([r + (sc,) for sc in scenarios for r in rows], plants, progress)
-        rec = next(c[5] for c in candidates if c[0] == best_ctbr)
+        rec = records[best_ctbr]
         write = rec.export if rec is not None else partial(export_ctbr_physics, ctbr_kw[best_ctbr], vehicle,
                                                             name=best_ctbr)
         flown += _fly_ctbr(best_ctbr, write, stated_file, melon1[0], out, plants, progress)
