@@ -44,7 +44,10 @@ CONVERGED = SQPSettings(time_budget_s=None, cold_start_budget_s=None, max_sqp_it
 #: States along figure8-fast: every EVERY-th period of the SQP's own two-lap flight (600 periods). Every 24th (25
 #: states) keeps the slow run's time; ``PINNMPC_SQP_EVERY=12`` compares the 50 states the documentation's figures
 #: were measured on (twice as long).
-EVERY = int(os.environ.get("PINNMPC_SQP_EVERY", "24"))
+_EVERY = os.environ.get("PINNMPC_SQP_EVERY", "24")
+if not _EVERY.isdigit() or not 1 <= int(_EVERY) <= 600:
+    raise ValueError(f"PINNMPC_SQP_EVERY must be a whole number of periods from 1 to 600; found {_EVERY!r}")
+EVERY = int(_EVERY)
 N_STATES = 600 // EVERY
 
 
