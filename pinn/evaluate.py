@@ -363,7 +363,7 @@ def evaluate_dir(folder, data_path=None, progress: bool = False, jobs: int = 1, 
 
             worker_init()      # one BLAS thread per worker, as in the closed-loop sweep (inherited at spawn)
             # Compiled once here, not in every worker at the same time.
-            precompile([sensitivity_function(QuadParams(), "wrench", s) for s in (True, False)], jobs)
+            precompile([(sensitivity_function(QuadParams(), "wrench", s), "batch") for s in (True, False)], jobs)
             with cf.ProcessPoolExecutor(min(jobs, len(tasks)), mp_context=mp.get_context("spawn"),
                                         initializer=worker_init) as pool:
                 futs = {pool.submit(_spec_task, tasks[i]): i for i in order}

@@ -69,3 +69,29 @@ def test_sensitivities_refuse_a_sparse_output():
     f = ca.Function("sparse", [x, u, th], [ca.jacobian(x[0] * th[0], th)])    # one nonzero in six
     with pytest.raises(ValueError, match="densify"):
         _map_eval(f, np.zeros((3, 12)), np.zeros((3, 4)), np.ones(6))
+
+
+def test_a_batch_function_compiles_unoptimized_to_the_same_numbers_bit_for_bit(cache, monkeypatch):
+    """The ``batch`` use compiles at -O0 and the ``period`` use at -O1, into two libraries of one function; both give
+    the same numbers to the last bit on the analytic model's step (ten RK4 substeps)."""
+    from sim.equations.dynamics_casadi import step_function
+    from sim.params import QuadParams
+
+    calls = []
+    real = sc._compile
+    monkeypatch.setattr(sc, "_compile", lambda code, name, lib, use="period": calls.append(use) or real(code, name,
+                                                                                                        lib, use))
+    f = step_function(QuadParams())
+    fast_run, fast_build = sc.compiled(f, "period"), sc.compiled(f, "batch")
+    assert calls == ["period", "batch"] and len(list(cache.glob("*.so"))) == 2
+    rng = np.random.default_rng(7)
+    x = rng.normal(size=(12, 200)) * np.r_[1, 1, 1, 0.5, 0.5, 3, 2, 2, 2, 2, 2, 2][:, None]
+    u = np.abs(rng.normal(size=(4, 200))) * 0.1
+    a = np.asarray(fast_run.map(200)(x, u))
+    b = np.asarray(fast_build.map(200)(x, u))
+    assert np.array_equal(a, b) and np.all(np.isfinite(a))
+
+
+def test_an_unknown_use_is_refused_by_name(cache):
+    with pytest.raises(ValueError, match="use must be one of period, batch; found 'fast'"):
+        sc.compiled(_function("t_use"), "fast")

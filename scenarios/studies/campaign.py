@@ -437,9 +437,9 @@ def precompile_job(jobs: int, evaluation: bool = True, fisher: bool = True) -> i
     p = QuadParams()
     actuated = list(numeric_sources(p, load_vehicle(None).fidelity))     # the oracle of the +highfi scenarios
     used = USED_SENSITIVITIES if evaluation else FISHER_SENSITIVITIES if fisher else ()
-    lag = [lag_sensitivity_function(p, s) for s in (True, False)] if evaluation else []
-    return precompile([sensitivity_function(p, i, s) for i, s in used] + list(numeric_sources(p)) + actuated + lag,
-                      jobs)
+    lag = [(lag_sensitivity_function(p, s), "batch") for s in (True, False)] if evaluation else []
+    sens = [(sensitivity_function(p, i, s), "batch") for i, s in used]
+    return precompile(sens + list(numeric_sources(p)) + actuated + lag, jobs)
 
 
 def _stored(path) -> dict | None:

@@ -144,13 +144,13 @@ _FUNCS: dict = {}
 def _jac_function(p: QuadParams, inputs: str, state: bool = True) -> ca.Function:
     """CasADi function (x, u, theta) -> (dF/dtheta (12, 6), dF/dx (12, 12)), or dF/dtheta alone; cached.
 
-    Compiled to C (:mod:`sim.equations.compiled`): about 5x faster than CasADi's virtual machine on a batch, with the
-    same results; the first call on a machine compiles it (about 9 s with ``state``, 3.5 s without).
+    Compiled to C (:mod:`sim.equations.compiled`, unoptimized: it is evaluated on whole datasets, a few times per
+    job), with the same results as CasADi's virtual machine; the first call on a machine compiles it (about 2 s).
     """
     # theta is an input of the function, so one function serves every theta with the same constants.
     key = (p.with_theta(QuadParams().theta), inputs, state)
     if key not in _FUNCS:
-        _FUNCS[key] = compiled(sensitivity_function(p, inputs, state))
+        _FUNCS[key] = compiled(sensitivity_function(p, inputs, state), "batch")
     return _FUNCS[key]
 
 

@@ -83,7 +83,7 @@ def lag_sensitivity_function(p: QuadParams, state: bool = True) -> ca.Function:
 def _function(p: QuadParams, state: bool) -> ca.Function:
     key = (p.g, p.c_d, p.d, p.n_max_sq, state)
     if key not in _FUNCS:
-        _FUNCS[key] = compiled(lag_sensitivity_function(p, state))
+        _FUNCS[key] = compiled(lag_sensitivity_function(p, state), "batch")
     return _FUNCS[key]
 
 
