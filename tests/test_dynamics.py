@@ -138,3 +138,29 @@ def test_rk4_convergence_order_is_four():
     errs = np.array([np.max(np.abs(rk4_step(f, x0, h, int(round(t_end / h))) - ref)) for h in hs])
     order = np.polyfit(np.log(hs), np.log(errs), 1)[0]
     assert abs(order - 4.0) < TOL["rk4_order"], (order, errs)
+
+
+@pytest.mark.parametrize("case", ["same shapes", "one state", "input broadcast", "payload masses", "float32 state"])
+def test_rates_assembles_its_columns_as_the_general_stack_does(rng, monkeypatch, case):
+    """The derivative's columns are written into one array when they share a shape and dtype, and stacked by the
+    general broadcasting form otherwise: both give the general form's array, to the last bit."""
+    from types import SimpleNamespace
+
+    import sim.equations.dynamics as D
+
+    P = QuadParams()
+    x = rng.normal(size=(6, 12)) * 0.5
+    u = np.abs(rng.normal(size=(6, 4))) * 0.1
+    p, accel = P, None
+    if case == "one state":
+        x, u = x[0], u[0]
+    elif case == "input broadcast":
+        u, accel = u[0], rng.normal(size=3)
+    elif case == "payload masses":
+        p = SimpleNamespace(**{k: getattr(P, k) for k in ("Jxx", "Jyy", "Jzz", "c_d", "g")}, m=P.m * (1 + rng.random(6)))
+    elif case == "float32 state":
+        x = x.astype(np.float32)
+    got = D.rates(x, u, p, accel=accel)
+    monkeypatch.setattr(D, "_columns", lambda cols, shape: np.stack(np.broadcast_arrays(*cols), axis=-1))
+    want = D.rates(x, u, p, accel=accel)
+    assert got.shape == x.shape and got.dtype == want.dtype and np.array_equal(got, want)

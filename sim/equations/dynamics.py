@@ -87,7 +87,19 @@ def rates(x: np.ndarray, u: np.ndarray, p: QuadParams, accel=None, torque=None) 
     if accel is not None:
         ax, ay, az = ax + accel[..., 0], ay + accel[..., 1], az + accel[..., 2]
 
-    return np.stack(np.broadcast_arrays(vx, vy, vz, phid, thd, psid, pd, qd, rd, ax, ay, az), axis=-1)
+    return _columns((vx, vy, vz, phid, thd, psid, pd, qd, rd, ax, ay, az), x.shape[:-1])
+
+
+def _columns(cols, shape) -> np.ndarray:
+    """``np.stack(np.broadcast_arrays(*cols), axis=-1)``, written into one array when every column is float64 of
+    ``shape`` (the usual case: a third of :func:`rates`'s time on a few states went to the general form)."""
+    for c in cols:
+        if getattr(c, "shape", None) != shape or getattr(c, "dtype", None) != np.float64:
+            return np.stack(np.broadcast_arrays(*cols), axis=-1)
+    out = np.empty(shape + (len(cols),))
+    for i, c in enumerate(cols):
+        out[..., i] = c
+    return out
 
 
 def rotation_matrix(phi, theta, psi) -> np.ndarray:
