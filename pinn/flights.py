@@ -20,6 +20,10 @@ goal (0.07 m, 0.40 m/s, 0.15 rad, 0.40 rad/s). States a log did not measure are 
 Each epoch's model is scored on the validation flights (the mean of the four h=50 errors over their goals) and
 the best epoch is kept: the test flights are never seen.
 
+:func:`export_flight_model` writes the model file and its derivative graph: ``forward_jacobian`` gives the exact
+``dx_next/dx`` and ``dx_next/du`` (forward-mode tangents through the physics' RK4 stages, the network's layers and
+the register's shift), with plain tensor operations that export to ONNX.
+
 The wrench the model takes is the identified one: the logged wrench (computed with the vehicle file's ``kt``)
 times the identification's ``wrench_gain``, so that a controller flying the model on a plant set up with the
 identified vehicle means the same thrust and torques.
@@ -57,6 +61,20 @@ def rotation_torch(e: torch.Tensor) -> torch.Tensor:
     return torch.stack([row0, row1, row2], -2)
 
 
+def _rotation_tangent(e: torch.Tensor, de: torch.Tensor) -> torch.Tensor:
+    """The small body-frame rotation (B, 3, k) that the Euler-angle tangent ``de`` (B, 3, k) makes at the ZYX angles
+    ``e`` (B, 3): ``d R(e) = R(e) [dth]_x`` with ``dth = E(e) de``, ``E`` the map from Euler rates to body rates."""
+    sphi, cphi = torch.sin(e[:, 0])[:, None], torch.cos(e[:, 0])[:, None]
+    sth, cth = torch.sin(e[:, 1])[:, None], torch.cos(e[:, 1])[:, None]
+    return torch.stack([de[:, 0] - sth * de[:, 2], cphi * de[:, 1] + (cth * sphi) * de[:, 2],
+                        (cth * cphi) * de[:, 2] - sphi * de[:, 1]], 1)
+
+
+def _cross(a: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
+    """``a x t`` for every column ``t`` of ``T`` (B, 3, k), ``a`` (B, 3)."""
+    return a[:, [1, 2, 0], None] * T[:, [2, 0, 1]] - a[:, [2, 0, 1], None] * T[:, [1, 2, 0]]
+
+
 class HeldRatesPhysics(nn.Module):
     """:func:`sim.flightlogs.logbench.physics_step` with ``hold_rates=True`` in torch (RK4, :data:`PHYSICS_SUBSTEPS`
     substeps).
@@ -92,9 +110,55 @@ class HeldRatesPhysics(nn.Module):
         return torch.cat([v, torch.stack([wp + qs_rc * sth / cth, wq * cphi - wr * sphi, qs_rc / cth], -1), zero, a],
                          -1)
 
+    def rates_tangent(self, x: torch.Tensor, u: torch.Tensor, dx: torch.Tensor, du: torch.Tensor):
+        """:meth:`rates` (B, 12), the same values, and its tangent (B, 12, k) along the tangents ``dx`` (B, 12, k)
+        of the state and ``du`` (B, 4, k) of the input. The drags' ``v |v|`` has the derivative ``2 |v|``."""
+        c = self.consts.to(x.dtype)
+        k, q, b = self.drag.to(x.dtype)
+        phi, th = x[:, 3], x[:, 4]
+        wq, wr = x[:, 7], x[:, 8]
+        sphi, cphi, sth, cth = torch.sin(phi), torch.cos(phi), torch.sin(th), torch.cos(th)
+        qs_rc = wq * sphi + wr * cphi
+        R = rotation_torch(x[:, 3:6])
+        v = x[:, 9:12]
+        vb = torch.einsum("nji,nj->ni", R, v)
+        w = -k * vb - q * vb * vb.abs() + b
+        # the Euler angles' rates
+        d_phi, d_th = dx[:, 3], dx[:, 4]
+        d_qs = dx[:, 7] * sphi[:, None] + dx[:, 8] * cphi[:, None] + (wq * cphi - wr * sphi)[:, None] * d_phi
+        sec2 = 1.0 / (cth * cth)
+        d_euler = torch.stack([dx[:, 6] + d_qs * (sth / cth)[:, None] + (qs_rc * sec2)[:, None] * d_th,
+                               dx[:, 7] * cphi[:, None] - dx[:, 8] * sphi[:, None] - qs_rc[:, None] * d_phi,
+                               d_qs / cth[:, None] + (qs_rc * sth * sec2)[:, None] * d_th], 1)
+        # the acceleration R (w - T/m e_z) - c_d v |v| + g e_z, with dR = R [dth]_x
+        dth = _rotation_tangent(x[:, 3:6], dx[:, 3:6])
+        dv = dx[:, 9:12]
+        d_vb = _cross(vb, dth) + torch.matmul(R.transpose(1, 2), dv)
+        d_w = -(k + q * vb.abs() * 2.0)[:, :, None] * d_vb
+        e_z = torch.eye(3, dtype=x.dtype, device=x.device)[2]
+        f_b = w - (u[:, 0] / c[0])[:, None] * e_z
+        d_fb = d_w - _cross(f_b, dth) - (du[:, 0] / c[0])[:, None, :] * e_z[:, None]
+        d_a = torch.matmul(R, d_fb) - (v.abs() * c[2] * 2.0)[:, :, None] * dv
+        return self.rates(x, u), torch.cat([dv, d_euler, torch.zeros_like(dx[:, 6:9]), d_a], 1)
+
     def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """The state one period later (B, 12)."""
         return _rk4(lambda z: self.rates(z, u), x, PHYSICS_SUBSTEPS)
+
+    def forward_tangent(self, x: torch.Tensor, u: torch.Tensor, dx: torch.Tensor, du: torch.Tensor):
+        """:meth:`forward` (B, 12), the same values, and its tangent (B, 12, k) along ``dx`` (B, 12, k) and ``du``
+        (B, 4, k)."""
+        return _rk4_tangent(lambda z, dz: self.rates_tangent(z, u, dz, du), x, dx, PHYSICS_SUBSTEPS)
+
+    def forward_jacobian(self, x: torch.Tensor, u: torch.Tensor):
+        """Next state (B, 12), ``A = dx_next/dx`` (B, 12, 12) and ``B = dx_next/du`` (B, 12, 4).
+
+        Exact (forward-mode tangents through every RK4 stage), written with plain tensor operations so that it
+        exports to ONNX with a dynamic batch; ``x_next`` is :meth:`forward`'s, bit for bit.
+        """
+        eye = torch.eye(16, dtype=x.dtype, device=x.device).expand(x.shape[0], 16, 16)
+        nxt, d = self.forward_tangent(x, u, eye[:, :12], eye[:, 12:])
+        return nxt, d[..., :12], d[..., 12:]
 
 
 def _rk4(f, x: torch.Tensor, substeps: int) -> torch.Tensor:
@@ -107,6 +171,20 @@ def _rk4(f, x: torch.Tensor, substeps: int) -> torch.Tensor:
         k4 = f(x + h * k3)
         x = x + (h / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
     return x
+
+
+def _rk4_tangent(f, x: torch.Tensor, dx: torch.Tensor, substeps: int):
+    """:func:`_rk4` (the same values) carrying the tangent ``dx`` (B, n, k): ``f(x, dx)`` gives ``x'`` and its
+    tangent. Returns ``(x, dx)`` after one period."""
+    h = DT / substeps
+    for _ in range(substeps):
+        k1, d1 = f(x, dx)
+        k2, d2 = f(x + 0.5 * h * k1, dx + 0.5 * h * d1)
+        k3, d3 = f(x + 0.5 * h * k2, dx + 0.5 * h * d2)
+        k4, d4 = f(x + h * k3, dx + h * d3)
+        x = x + (h / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
+        dx = dx + (h / 6.0) * (d1 + 2.0 * (d2 + d3) + d4)
+    return x, dx
 
 
 class CtbrPhysics(HeldRatesPhysics):
@@ -135,6 +213,21 @@ class CtbrPhysics(HeldRatesPhysics):
 
         return _rk4(f, x, self.substeps)
 
+    def forward_tangent(self, x: torch.Tensor, u: torch.Tensor, dx: torch.Tensor, du: torch.Tensor):
+        """:meth:`forward` (B, 12), the same values, and its tangent (B, 12, k) along ``dx`` (B, 12, k) and ``du``
+        (B, 4, k)."""
+        alpha = (u[:, 1:4] - x[:, 6:9]) / DT
+        d_alpha = (du[:, 1:4] - dx[:, 6:9]) / DT
+        gain = self.gain.to(x.dtype)
+        thrust = torch.cat([u[:, :1] * gain, torch.zeros_like(u[:, 1:])], -1)
+        d_thrust = torch.cat([du[:, :1] * gain, torch.zeros_like(du[:, 1:])], 1)
+
+        def f(z, dz):
+            d, dd = self.rates_tangent(z, thrust, dz, d_thrust)
+            return torch.cat([d[:, :6], alpha, d[:, 9:]], -1), torch.cat([dd[:, :6], d_alpha, dd[:, 9:]], 1)
+
+        return _rk4_tangent(f, x, dx, self.substeps)
+
 
 #: Names of the inputs in a register's extra states, by command level.
 REGISTER_INPUTS = {"wrench": ("T", "tx", "ty", "tz"), "ctbr": ("T", "p", "q", "r")}
@@ -152,6 +245,21 @@ def raw_features(z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     R = rotation_torch(z[:, 3:6])
     vb = torch.einsum("nji,nj->ni", R, z[:, 9:12])
     return torch.cat([z[:, 3:5], z[:, 6:9], vb, u, z[:, 12:]], -1)
+
+
+def raw_features_tangent(z: torch.Tensor, u: torch.Tensor):
+    """:func:`raw_features` (B, 12 + 7 H), the same values, and their derivatives with respect to ``(z, u)``:
+    (B, 12 + 7 H, nz + 4) with ``nz = z.shape[1]``, the state's columns first."""
+    n, nz = z.shape[0], z.shape[1]
+    eye = torch.eye(nz + 4, dtype=z.dtype, device=z.device)
+    R = rotation_torch(z[:, 3:6])
+    vb = torch.einsum("nji,nj->ni", R, z[:, 9:12])
+    # d vb = -[dth]_x R^T v + R^T dv = vb x dth + R^T dv
+    dth = _rotation_tangent(z[:, 3:6], eye[3:6].expand(n, 3, nz + 4))
+    d_vb = _cross(vb, dth) + torch.matmul(R.transpose(1, 2), eye[9:12])
+    head = torch.cat([eye[3:5], eye[6:9]]).expand(n, 5, nz + 4)
+    tail = torch.cat([eye[nz:], eye[12:nz]]).expand(n, nz - 8, nz + 4)
+    return raw_features(z, u), torch.cat([head, d_vb, tail], 1)
 
 
 class FlightModel(nn.Module):
@@ -204,6 +312,58 @@ class FlightModel(nn.Module):
         H = self.history
         reg_u, reg_w = z[:, 12:12 + 4 * H], z[:, 12 + 4 * H:]
         return torch.cat([nxt, u, reg_u[:, :4 * (H - 1)], x[:, 6:9], reg_w[:, :3 * (H - 1)]], -1)
+
+    def network_tangent(self, z: torch.Tensor, u: torch.Tensor):
+        """The scaled network output ``y`` of :meth:`forward` (B, 3 or 6), the same values, and its derivatives
+        with respect to ``(z, u)`` (B, 3 or 6, nz + 4)."""
+        raw, T = raw_features_tangent(z, u)
+        std = self.in_std.to(z.dtype)
+        h = (raw - self.in_mean.to(z.dtype)) / std
+        T = T / std[:, None]
+        for layer in self.body:
+            if isinstance(layer, nn.Linear):
+                h, T = layer(h), torch.matmul(layer.weight, T)
+            elif isinstance(layer, nn.Tanh):
+                h = torch.tanh(h)
+                T = (1.0 - h * h)[:, :, None] * T
+            else:
+                raise TypeError(f"no tangent for the layer {layer!r}")
+        scale = self.out_scale.to(z.dtype)
+        return self.out(h) * scale, torch.matmul(self.out.weight, T) * scale[:, None]
+
+    def forward_jacobian(self, z: torch.Tensor, u: torch.Tensor):
+        """Next state (B, nz), ``A = dz_next/dz`` (B, nz, nz) and ``B = dz_next/du`` (B, nz, 4).
+
+        Exact: the physics' forward-mode tangents through its RK4 stages, the network's through its layers (its
+        features include the body-frame velocity ``R^T v``), and the register's shift as the constant rows it is.
+        Written with plain tensor operations so that it exports to ONNX with a dynamic batch; ``x_next`` is
+        :meth:`forward`'s, bit for bit.
+        """
+        n, H = z.shape[0], self.history
+        nz = 12 + 7 * H
+        x = z[:, :12]
+        eye = torch.eye(nz + 4, dtype=z.dtype, device=z.device)
+        y, dy = self.network_tangent(z, u)
+        R = rotation_torch(x[:, 3:6])
+        nxt, A, B = self.physics.forward_jacobian(x, u)
+        dv = torch.einsum("nij,nj->ni", R, y[:, -3:])
+        # d (R y) = R ([dth]_x y + dy) = R (dy - y x dth)
+        dth = _rotation_tangent(x[:, 3:6], eye[3:6].expand(n, 3, nz + 4))
+        d_dv = torch.matmul(R, dy[:, -3:] - _cross(y[:, -3:], dth))
+        if H:
+            J = torch.cat([A, torch.zeros_like(A[:, :, :1]).expand(n, 12, 7 * H), B], -1)
+        else:
+            J = torch.cat([A, B], -1)
+        rates = nxt[:, 6:9] if self.level == "ctbr" else nxt[:, 6:9] + y[:, :3]
+        d_rates = J[:, 6:9] if self.level == "ctbr" else J[:, 6:9] + dy[:, :3]
+        nxt = torch.cat([nxt[:, :6], rates, nxt[:, 9:12] + dv], -1)
+        J = torch.cat([J[:, :6], d_rates, J[:, 9:12] + d_dv], 1)
+        if H:
+            reg_u, reg_w = z[:, 12:12 + 4 * H], z[:, 12 + 4 * H:]
+            nxt = torch.cat([nxt, u, reg_u[:, :4 * (H - 1)], x[:, 6:9], reg_w[:, :3 * (H - 1)]], -1)
+            shift = torch.cat([eye[nz:], eye[12:12 + 4 * (H - 1)], eye[6:9], eye[12 + 4 * H:nz - 3]])
+            J = torch.cat([J, shift.expand(n, 7 * H, nz + 4)], 1)
+        return nxt, J[..., :nz], J[..., nz:]
 
 
 def register(x: np.ndarray, u: np.ndarray, idx: np.ndarray, history: int, lo=0) -> np.ndarray:
@@ -397,10 +557,14 @@ def train_flight_model(train_flights, val_flights, physics_kw: dict, config: Fli
 
 
 def export_flight_model(model: FlightModel, path, theta: dict, description: str, level: str = "wrench") -> Path:
-    """Write ``model`` as an ONNX file of the model contract (float64; no derivative graph: the controllers take
-    central differences through onnxruntime).
+    """Write ``model`` as an ONNX file of the model contract and its derivative graph beside it (float64).
 
-    Exported as :func:`pinn.export.export_model` exports (the graph matches torch to 1e-16, in about a second).
+    Exported as :func:`pinn.export.export_model` exports (the graphs match torch to 1e-16): ``path`` gives
+    ``x_next``; the derivative graph :func:`mpc.prediction.contract.jacobian_path` gives ``x_next``, ``A = dx_next/dx``
+    and ``B = dx_next/du`` from the model's exact ``forward_jacobian``, so that the controllers linearize the model
+    in one onnxruntime call instead of taking central differences. With one RK4 substep (the trained models) each
+    graph takes about a second to write; :class:`CtbrPhysics`' default ten substeps take about 5 s for the model and
+    15 s for its derivative graph.
 
     Parameters
     ----------
@@ -414,15 +578,20 @@ def export_flight_model(model: FlightModel, path, theta: dict, description: str,
     level : str
         The command level the model takes (:data:`sim.levels.LEVELS`), stored as the metadata ``level`` with that
         level's ``input_names``.
+
+    Returns
+    -------
+    Path
+        ``path`` (the derivative graph is ``jacobian_path(path)``).
     """
     import json
 
-    from mpc.prediction.contract import CONTRACT_VERSION
+    from mpc.prediction.contract import CONTRACT_VERSION, jacobian_path
     from sim import __version__ as code_version
     from sim.levels import DEFAULT_LEVEL, LEVEL_INPUTS, check_level
     from sim.params import STATE_NAMES
 
-    from .export import _export, _Next, _set_metadata
+    from .export import _export, _Jac, _Next, _set_metadata
 
     check_level(level)
     path = Path(path)
@@ -430,7 +599,9 @@ def export_flight_model(model: FlightModel, path, theta: dict, description: str,
     m64 = copy.deepcopy(model).double().eval()
     extra = tuple(m64.extra_states)
     nx = 12 + len(extra)
+    jac = jacobian_path(path)
     _export(_Next(m64), path, ["x_next"], nx)
+    _export(_Jac(m64), jac, ["x_next", "A", "B"], nx)
     meta = {"pinnmpc.contract": CONTRACT_VERSION, "architecture": description, "dt": repr(DT),
             "state_names": json.dumps(list(STATE_NAMES)), "input_names": json.dumps(list(LEVEL_INPUTS[level])),
             "theta": json.dumps({k: float(v) for k, v in theta.items()}), "code_version": code_version,
@@ -440,6 +611,7 @@ def export_flight_model(model: FlightModel, path, theta: dict, description: str,
     if extra:
         meta["extra_states"] = json.dumps(list(extra))
     _set_metadata(path, meta)
+    _set_metadata(jac, {k: meta[k] for k in ("pinnmpc.contract", "architecture")})
     return path
 
 

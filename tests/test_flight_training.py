@@ -21,6 +21,7 @@ torch.set_num_threads(1)
 STATS_RTOL = 1e-12     # statistics of the masked dataset against those of its measured samples alone
 LEARNED_GAIN = 0.8     # the trained model's validation score against the held-rates physics alone (at most)
 ONNX_TOL = 1e-12       # onnxruntime against torch, float64
+JACOBIAN_TOL = 1e-10   # forward_jacobian against torch.func.jacfwd, float64 (entries of A and B up to about 1)
 PHYSICS_TOL = 1e-12    # torch held-rates physics against the numpy protocol's, float64, one RK4 step
 UNMEASURED = 0.15      # share of states marked as not measured
 
@@ -269,3 +270,98 @@ def test_a_ctbr_flight_model_learns_a_thrust_its_physics_has_wrong_and_exports_a
     z = models[1].start(f, idx)
     got = ort.InferenceSession(str(path)).run(None, {"x": z, "u": f.u[idx]})[0]
     np.testing.assert_allclose(got, models[1].step(z, f.u[idx]), rtol=0, atol=ONNX_TOL)
+
+
+# ---- exact derivatives: forward_jacobian and the derivative graph written beside the model file
+def _jacobian_states(n, nz, level, seed=7):
+    """Random states (n, nz) with tilts up to 0.6 rad, any heading and velocities of 0.3 to 2 m/s per axis (away
+    from the drags' kink), a random register, and inputs (n, 4) at ``level``, as float64 tensors."""
+    rng = np.random.default_rng(seed)
+    z = rng.normal(size=(n, nz))
+    z[:, 3:5] = rng.uniform(-0.6, 0.6, (n, 2))
+    z[:, 5] = rng.uniform(-np.pi, np.pi, n)
+    z[:, 9:12] = rng.uniform(0.3, 2.0, (n, 3)) * rng.choice([-1.0, 1.0], (n, 3))
+    turn = rng.normal(size=(n, 3)) * (1.0 if level == "ctbr" else 1e-3)       # rates reached, or torques
+    return torch.as_tensor(z), torch.as_tensor(np.c_[rng.uniform(0.2, 0.8, n), turn])
+
+
+def _jacobian_model(kind, level="wrench", history=0, substeps=1):
+    """``(model, nz, level)``: float64 physics (``kind`` ``"held"`` or ``"ctbr"``, with ``substeps``) or a
+    :class:`FlightModel` (``"flight"``) at ``level`` with ``history``, its network's weights all random and nonzero
+    and its statistics random (so that every feature's normalization and every output's scale matters)."""
+    from pinn.flights import CtbrPhysics
+
+    def ctbr():
+        return CtbrPhysics(P.m, P.g, P.c_d, thrust_gain=1.1, substeps=substeps, **DRAGS)
+
+    if kind == "held":
+        return _physics().double(), 12, "wrench"
+    if kind == "ctbr":
+        return ctbr().double(), 12, "ctbr"
+    rng = np.random.default_rng(11)
+    n_in = 12 + 7 * history
+    stats = {"in_mean": rng.normal(size=n_in) * 0.3, "in_std": rng.uniform(0.5, 2.0, n_in),
+             "out_scale": rng.uniform(0.05, 0.5, 6)}
+    torch.manual_seed(2)
+    m = FlightModel(_physics() if level == "wrench" else ctbr(), stats, history=history, hidden=16, layers=2)
+    with torch.no_grad():
+        m.out.weight.normal_(0.0, 0.3)
+        m.out.bias.normal_(0.0, 0.3)
+    return m.double().eval(), 12 + 7 * history, level
+
+
+def _jacfwd(model, z, u):
+    """Per-sample ``dz_next/dz`` (B, nz, nz) and ``dz_next/du`` (B, nz, 4) of ``model`` by
+    :func:`torch.func.jacfwd` of the batched model (the diagonal blocks of its batch-by-batch Jacobian)."""
+    jz = torch.func.jacfwd(lambda a: model(a, u))(z)           # (B, nz, B, nz)
+    ju = torch.func.jacfwd(lambda b: model(z, b))(u)           # (B, nz, B, 4)
+    return (torch.diagonal(jz, dim1=0, dim2=2).permute(2, 0, 1).detach(),
+            torch.diagonal(ju, dim1=0, dim2=2).permute(2, 0, 1).detach())
+
+
+# (torch's forward-mode differentiation loads its decompositions with torch.jit.script, which warns once)
+@pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning")
+@pytest.mark.parametrize("kind,level,history,substeps", [
+    pytest.param("held", "wrench", 0, 1, id="held-rates physics"),
+    pytest.param("ctbr", "ctbr", 0, 1, id="ctbr physics, 1 substep"),
+    pytest.param("ctbr", "ctbr", 0, 10, id="ctbr physics, 10 substeps"),
+    pytest.param("flight", "wrench", 0, 1, id="flight model, wrench"),
+    pytest.param("flight", "wrench", 4, 1, id="flight model, wrench, history 4"),
+    pytest.param("flight", "ctbr", 0, 2, id="flight model, ctbr"),
+    pytest.param("flight", "ctbr", 4, 2, id="flight model, ctbr, history 4"),
+])
+def test_forward_jacobian_is_the_derivative_of_forward(kind, level, history, substeps):
+    """``forward_jacobian`` gives ``forward``'s next state bit for bit and its A, B as torch's forward-mode automatic
+    differentiation of ``forward`` does, in float64: the physics' RK4 stages (any number of substeps), the network
+    (through the body-frame velocity of its features) and the register's shift."""
+    model, nz, level = _jacobian_model(kind, level, history, substeps)
+    z, u = _jacobian_states(16, nz, level)
+    with torch.no_grad():
+        nxt, A, B = model.forward_jacobian(z, u)
+        assert torch.equal(nxt, model(z, u))
+    assert A.shape == (16, nz, nz) and B.shape == (16, nz, 4)
+    A_ad, B_ad = _jacfwd(model, z, u)
+    np.testing.assert_allclose(A.numpy(), A_ad.numpy(), rtol=0, atol=JACOBIAN_TOL)
+    np.testing.assert_allclose(B.numpy(), B_ad.numpy(), rtol=0, atol=JACOBIAN_TOL)
+
+
+def test_an_exported_ctbr_history_model_has_its_exact_derivative_graph(tmp_path):
+    """The file written at ctbr for a model with a register has its derivative graph beside it: the contract finds it
+    and checks it against central differences of the model, and onnxruntime's x_next, A and B are torch's
+    ``forward_jacobian``'s."""
+    import onnxruntime as ort
+
+    from mpc.prediction.contract import check_model, jacobian_path
+    from pinn.flights import HISTORY, export_flight_model
+
+    model, nz, level = _jacobian_model("flight", "ctbr", HISTORY, substeps=2)
+    theta = {"m": P.m, "Jxx": P.Jxx, "Jyy": P.Jyy, "Jzz": P.Jzz, "kt": P.kt, "kq": P.kq}
+    path = export_flight_model(model, tmp_path / "h.onnx", theta, "test", level=level)
+    info = check_model(path)
+    assert info.jacobian == jacobian_path(path) and info.jacobian.is_file()
+    z, u = _jacobian_states(32, nz, level, seed=8)
+    got = ort.InferenceSession(str(info.jacobian)).run(["x_next", "A", "B"], {"x": z.numpy(), "u": u.numpy()})
+    with torch.no_grad():
+        want = model.forward_jacobian(z, u)
+    for name, g, w in zip(("x_next", "A", "B"), got, want):
+        np.testing.assert_allclose(g, w.numpy(), rtol=0, atol=ONNX_TOL, err_msg=name)
