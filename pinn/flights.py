@@ -20,9 +20,9 @@ goal (0.07 m, 0.40 m/s, 0.15 rad, 0.40 rad/s). States a log did not measure are 
 Each epoch's model is scored on the validation flights (the mean of the four h=50 errors over their goals) and
 the best epoch is kept: the test flights are never seen.
 
-:func:`export_flight_model` writes the model file and its derivative graph: ``forward_jacobian`` gives the exact
-``dx_next/dx`` and ``dx_next/du`` (forward-mode tangents through the physics' RK4 stages, the network's layers and
-the register's shift), with plain tensor operations that export to ONNX.
+:func:`export_flight_model` writes the model file and, for a model with a network, its derivative graph:
+``forward_jacobian`` gives the exact ``dx_next/dx`` and ``dx_next/du`` (forward-mode tangents through the physics'
+RK4 stages, the network's layers and the register's shift), with plain tensor operations that export to ONNX.
 
 The wrench the model takes is the identified one: the logged wrench (computed with the vehicle file's ``kt``)
 times the identification's ``wrench_gain``, so that a controller flying the model on a plant set up with the
@@ -557,14 +557,17 @@ def train_flight_model(train_flights, val_flights, physics_kw: dict, config: Fli
 
 
 def export_flight_model(model: FlightModel, path, theta: dict, description: str, level: str = "wrench") -> Path:
-    """Write ``model`` as an ONNX file of the model contract and its derivative graph beside it (float64).
+    """Write ``model`` as an ONNX file of the model contract (float64), with its derivative graph beside it when
+    ``model`` is a :class:`FlightModel`.
 
     Exported as :func:`pinn.export.export_model` exports (the graphs match torch to 1e-16): ``path`` gives
     ``x_next``; the derivative graph :func:`mpc.prediction.contract.jacobian_path` gives ``x_next``, ``A = dx_next/dx``
     and ``B = dx_next/du`` from the model's exact ``forward_jacobian``, so that the controllers linearize the model
-    in one onnxruntime call instead of taking central differences. With one RK4 substep (the trained models) each
-    graph takes about a second to write; :class:`CtbrPhysics`' default ten substeps take about 5 s for the model and
-    15 s for its derivative graph.
+    in one onnxruntime call instead of taking central differences. That pays for a network with a register (a
+    history-4 ctbr model: median 31-33 ms a period of the SQP on ``figure8-fast`` against 49-50 ms), not for the
+    physics alone, which is written without one: with :class:`CtbrPhysics`' ten RK4 substeps its derivative graph
+    made periods slower (28-29 ms against 24 ms, where the SQP refreshes about one stage a period) and took 15 s to
+    write, against about a second for a model of one substep.
 
     Parameters
     ----------
@@ -582,7 +585,7 @@ def export_flight_model(model: FlightModel, path, theta: dict, description: str,
     Returns
     -------
     Path
-        ``path`` (the derivative graph is ``jacobian_path(path)``).
+        ``path`` (the derivative graph, if written, is ``jacobian_path(path)``).
     """
     import json
 
@@ -599,9 +602,14 @@ def export_flight_model(model: FlightModel, path, theta: dict, description: str,
     m64 = copy.deepcopy(model).double().eval()
     extra = tuple(m64.extra_states)
     nx = 12 + len(extra)
-    jac = jacobian_path(path)
+    jac = jacobian_path(path) if isinstance(model, FlightModel) else None
     _export(_Next(m64), path, ["x_next"], nx)
-    _export(_Jac(m64), jac, ["x_next", "A", "B"], nx)
+    if jac is not None:
+        _export(_Jac(m64), jac, ["x_next", "A", "B"], nx)
+    else:
+        jac_old = jacobian_path(path)
+        if jac_old.exists():          # a graph of another model written to the same path before
+            jac_old.unlink()
     meta = {"pinnmpc.contract": CONTRACT_VERSION, "architecture": description, "dt": repr(DT),
             "state_names": json.dumps(list(STATE_NAMES)), "input_names": json.dumps(list(LEVEL_INPUTS[level])),
             "theta": json.dumps({k: float(v) for k, v in theta.items()}), "code_version": code_version,
@@ -611,7 +619,8 @@ def export_flight_model(model: FlightModel, path, theta: dict, description: str,
     if extra:
         meta["extra_states"] = json.dumps(list(extra))
     _set_metadata(path, meta)
-    _set_metadata(jac, {k: meta[k] for k in ("pinnmpc.contract", "architecture")})
+    if jac is not None:
+        _set_metadata(jac, {k: meta[k] for k in ("pinnmpc.contract", "architecture")})
     return path
 
 

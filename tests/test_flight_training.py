@@ -199,6 +199,7 @@ def test_a_ctbr_model_round_trips_through_the_contract_at_its_level(tmp_path):
                                "identified physics, ctbr", level="ctbr")
     info = check_model(path)
     assert declared_level(path) == "ctbr" and info.level == "ctbr"
+    assert info.jacobian is None      # the physics alone: central differences cost less than its derivative graph
     assert tuple(json.loads(info.metadata["input_names"])) == LEVEL_INPUTS["ctbr"]
     model = OnnxModel(path)
     assert model.level == "ctbr"
