@@ -306,12 +306,16 @@ class FlightModel(nn.Module):
         nxt = self.physics(x, u)
         dv = torch.einsum("nij,nj->ni", R, y[:, -3:])
         rates = nxt[:, 6:9] if self.level == "ctbr" else nxt[:, 6:9] + y[:, :3]
-        nxt = torch.cat([nxt[:, :6], rates, nxt[:, 9:12] + dv], -1)
-        if not self.history:
-            return nxt
+        return self._with_register(torch.cat([nxt[:, :6], rates, nxt[:, 9:12] + dv], -1), z, u)
+
+    def _with_register(self, nxt: torch.Tensor, z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """The next rigid-body state ``nxt`` (B, 12) followed by the register of ``z`` shifted by one period: ``u``
+        and the body rates of ``z`` enter as the newest, the oldest leave."""
         H = self.history
+        if not H:
+            return nxt
         reg_u, reg_w = z[:, 12:12 + 4 * H], z[:, 12 + 4 * H:]
-        return torch.cat([nxt, u, reg_u[:, :4 * (H - 1)], x[:, 6:9], reg_w[:, :3 * (H - 1)]], -1)
+        return torch.cat([nxt, u, reg_u[:, :4 * (H - 1)], z[:, 6:9], reg_w[:, :3 * (H - 1)]], -1)
 
     def network_tangent(self, z: torch.Tensor, u: torch.Tensor):
         """The scaled network output ``y`` of :meth:`forward` (B, 3 or 6), the same values, and its derivatives
@@ -356,11 +360,9 @@ class FlightModel(nn.Module):
             J = torch.cat([A, B], -1)
         rates = nxt[:, 6:9] if self.level == "ctbr" else nxt[:, 6:9] + y[:, :3]
         d_rates = J[:, 6:9] if self.level == "ctbr" else J[:, 6:9] + dy[:, :3]
-        nxt = torch.cat([nxt[:, :6], rates, nxt[:, 9:12] + dv], -1)
+        nxt = self._with_register(torch.cat([nxt[:, :6], rates, nxt[:, 9:12] + dv], -1), z, u)
         J = torch.cat([J[:, :6], d_rates, J[:, 9:12] + d_dv], 1)
         if H:
-            reg_u, reg_w = z[:, 12:12 + 4 * H], z[:, 12 + 4 * H:]
-            nxt = torch.cat([nxt, u, reg_u[:, :4 * (H - 1)], x[:, 6:9], reg_w[:, :3 * (H - 1)]], -1)
             shift = torch.cat([eye[nz:], eye[12:12 + 4 * (H - 1)], eye[6:9], eye[12 + 4 * H:nz - 3]])
             J = torch.cat([J, shift.expand(n, 7 * H, nz + 4)], 1)
         return nxt, J[..., :nz], J[..., nz:]
@@ -602,14 +604,12 @@ def export_flight_model(model: FlightModel, path, theta: dict, description: str,
     m64 = copy.deepcopy(model).double().eval()
     extra = tuple(m64.extra_states)
     nx = 12 + len(extra)
-    jac = jacobian_path(path) if isinstance(model, FlightModel) else None
+    jac, with_graph = jacobian_path(path), isinstance(model, FlightModel)
     _export(_Next(m64), path, ["x_next"], nx)
-    if jac is not None:
+    if with_graph:
         _export(_Jac(m64), jac, ["x_next", "A", "B"], nx)
-    else:
-        jac_old = jacobian_path(path)
-        if jac_old.exists():          # a graph of another model written to the same path before
-            jac_old.unlink()
+    elif jac.exists():          # a graph of another model written to the same path before
+        jac.unlink()
     meta = {"pinnmpc.contract": CONTRACT_VERSION, "architecture": description, "dt": repr(DT),
             "state_names": json.dumps(list(STATE_NAMES)), "input_names": json.dumps(list(LEVEL_INPUTS[level])),
             "theta": json.dumps({k: float(v) for k, v in theta.items()}), "code_version": code_version,
@@ -619,7 +619,7 @@ def export_flight_model(model: FlightModel, path, theta: dict, description: str,
     if extra:
         meta["extra_states"] = json.dumps(list(extra))
     _set_metadata(path, meta)
-    if jac is not None:
+    if with_graph:
         _set_metadata(jac, {k: meta[k] for k in ("pinnmpc.contract", "architecture")})
     return path
 
