@@ -219,7 +219,8 @@ def load_inputs(run_dir) -> Inputs:
         missing = [k for k in LEARN_KEYS if not isinstance(st, dict) or k not in st]
         if missing:
             raise ReportError(f"{path.name!r}: not the output of pinnmpc learn (lacks {', '.join(missing)})")
-        learn[st["plant"]] = st
+        level = st.get("level", "wrench")
+        learn[st["plant"] if level == "wrench" else f"{st['plant']}_{level}"] = st
     plan = results.get("plan") if isinstance(results.get("plan"), dict) else {}
     return Inputs(d, runs, plan, evaluation, fisher, ablation, provenance, study, versus, study_ekf, realdata,
                   learn or None, levels, versus_levels)

@@ -233,7 +233,7 @@ def register(sub) -> None:
     _qp_option(p, "every SQP run")
     p.set_defaults(handler=cmd_levels)
 
-    from .studies.learn import LEARN_PLANTS, LearnSettings, upper_flights
+    from .studies.learn import LEARN_LEVELS, LEARN_PLANTS, LearnSettings, upper_flights
     from .studies.training_refs import references_per_iteration
 
     per_level = LearnSettings.per_level
@@ -273,10 +273,15 @@ def register(sub) -> None:
                         "fixed budget; smoke: seconds, for tests of the loop)")
     p.add_argument("--seed", type=int, default=0, help="seed of the references, dither and noise (default 0)")
     p.add_argument("--no-controls", action="store_true", help="skip the two controls")
+    p.add_argument("--level", choices=LEARN_LEVELS, default="wrench",
+                   help="command level flown and learned (default wrench: physics plus network with the rotor "
+                        "speeds as states; ctbr: collective thrust and body rates through the plant's inner loop, "
+                        "the level's nominal model plus a network with a register of the last 2 periods, no "
+                        "open-loop control; the study goes in OUT/PLANT_ctbr)")
     p.add_argument("--jobs", type=int, default=None, help="worker processes (default: number of CPUs)")
     p.add_argument("--publish", action="store_true",
-                   help="copy the study's summary, learning curve and models into MODELS/learn/PLANT, "
-                        "where the report of pinnmpc run finds them")
+                   help="copy the study's summary, learning curve and models into MODELS/learn/PLANT (PLANT_ctbr at "
+                        "ctbr), where the report of pinnmpc run finds them")
     p.set_defaults(handler=cmd_learn)
 
     p = sub.add_parser("bounds", help="write the CI bounds file from the results of pinnmpc run",
@@ -548,13 +553,13 @@ def cmd_learn(args: argparse.Namespace) -> int:
             raise ValueError(f"plant {args.plant} needs RotorPy: python -m pip install -e '.[rotorpy]'")
     settings = LearnSettings(plant=args.plant, iterations=args.iterations, per_level=args.per_level, seed=args.seed,
                              profile=args.profile, members=args.members, curve_members=args.curve_members,
-                             ladder_members=args.ladder_members, controls=not args.no_controls)
+                             ladder_members=args.ladder_members, controls=not args.no_controls, level=args.level)
     check_writable(args.out, "--out", folder=True)
     out = run_learn(settings, args.out, args.models, jobs)
     print(format_learn(out))
-    print(f"wrote {args.out / args.plant / 'learn.json'}")
+    print(f"wrote {args.out / settings.tag / 'learn.json'}")
     if args.publish:
-        print(f"published into {publish_learn(args.out / args.plant, args.models)}")
+        print(f"published into {publish_learn(args.out / settings.tag, args.models)}")
     return 0
 
 

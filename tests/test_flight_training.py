@@ -13,7 +13,7 @@ from pinn.train import _TrainData, make_config, train, training_stats
 from scenarios.studies.realdata import why_not_flyable
 from sim.identification.excitation import make_dataset
 from sim.flightlogs.logbench import ctbr_physics_step, physics_step, prediction_errors
-from sim.params import QuadParams
+from sim.params import DT, QuadParams
 
 torch.set_num_threads(1)
 
@@ -23,6 +23,9 @@ LEARNED_GAIN = 0.8     # the trained model's validation score against the held-r
 ONNX_TOL = 1e-12       # onnxruntime against torch, float64
 JACOBIAN_TOL = 1e-10   # forward_jacobian against torch.func.jacfwd, float64 (entries of A and B up to about 1)
 PHYSICS_TOL = 1e-12    # torch held-rates physics against the numpy protocol's, float64, one RK4 step
+LAG_EXACT_TOL = 1e-14  # the lagged-rates physics' next rates against the lag's closed form (rad/s, about 1)
+LAG_NOMINAL_TOL = 3e-5  # the lagged-rates physics (1 substep) against the CasADi ctbr nominal model (10 RK4 substeps)
+LAG_ORDER = (3.6, 4.4)  # observed order of the lagged-rates physics' RK4 in its substeps (4, the method's)
 UNMEASURED = 0.15      # share of states marked as not measured
 
 
@@ -290,14 +293,16 @@ def _jacobian_model(kind, level="wrench", history=0, substeps=1):
     """``(model, nz, level)``: float64 physics (``kind`` ``"held"`` or ``"ctbr"``, with ``substeps``) or a
     :class:`FlightModel` (``"flight"``) at ``level`` with ``history``, its network's weights all random and nonzero
     and its statistics random (so that every feature's normalization and every output's scale matters)."""
-    from pinn.flights import CtbrPhysics
+    from pinn.flights import CtbrPhysics, LaggedCtbrPhysics
 
     def ctbr():
+        if kind.startswith("lagged"):
+            return LaggedCtbrPhysics(P.m, P.g, P.c_d, (0.007, 0.009, 0.0125), substeps=substeps)
         return CtbrPhysics(P.m, P.g, P.c_d, thrust_gain=1.1, substeps=substeps, **DRAGS)
 
     if kind == "held":
         return _physics().double(), 12, "wrench"
-    if kind == "ctbr":
+    if kind in ("ctbr", "lagged"):
         return ctbr().double(), 12, "ctbr"
     rng = np.random.default_rng(11)
     n_in = 12 + 7 * history
@@ -305,6 +310,8 @@ def _jacobian_model(kind, level="wrench", history=0, substeps=1):
              "out_scale": rng.uniform(0.05, 0.5, 6)}
     torch.manual_seed(2)
     m = FlightModel(_physics() if level == "wrench" else ctbr(), stats, history=history, hidden=16, layers=2)
+    if kind.startswith("lagged"):
+        assert m.corrects_rates and m.out.out_features == 6
     with torch.no_grad():
         m.out.weight.normal_(0.0, 0.3)
         m.out.bias.normal_(0.0, 0.3)
@@ -330,6 +337,9 @@ def _jacfwd(model, z, u):
     pytest.param("flight", "wrench", 4, 1, id="flight model, wrench, history 4"),
     pytest.param("flight", "ctbr", 0, 2, id="flight model, ctbr"),
     pytest.param("flight", "ctbr", 4, 2, id="flight model, ctbr, history 4"),
+    pytest.param("lagged", "ctbr", 0, 1, id="lagged-rates physics, 1 substep"),
+    pytest.param("lagged", "ctbr", 0, 3, id="lagged-rates physics, 3 substeps"),
+    pytest.param("lagged-flight", "ctbr", 2, 1, id="flight model on lagged rates, history 2"),
 ])
 def test_forward_jacobian_is_the_derivative_of_forward(kind, level, history, substeps):
     """``forward_jacobian`` gives ``forward``'s next state bit for bit and its A, B as torch's forward-mode automatic
@@ -366,3 +376,62 @@ def test_an_exported_ctbr_history_model_has_its_exact_derivative_graph(tmp_path)
         want = model.forward_jacobian(z, u)
     for name, g, w in zip(("x_next", "A", "B"), got, want):
         np.testing.assert_allclose(g, w.numpy(), rtol=0, atol=ONNX_TOL, err_msg=name)
+
+
+# ------------------------------------------------------------------ the ctbr level's nominal model in torch
+def _lag_states(n, seed):
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(n, 12)) * 0.3
+    u = np.c_[np.full(n, 0.3) * (1.0 + 0.1 * rng.normal(size=n)), rng.normal(size=(n, 3))]
+    return x, u
+
+
+@pytest.mark.parametrize("vehicle,plant", [("crazyflie", "rotorpy"), (None, "rotorpy"), ("crazyflie", "sim")])
+def test_the_lagged_rates_physics_is_the_ctbr_nominal_model(vehicle, plant):
+    """One period of :class:`LaggedCtbrPhysics` from random states and commands: the rates are the lag's closed form
+    exactly, and the whole state is the CasADi nominal model of the level (ten RK4 substeps) within
+    LAG_NOMINAL_TOL, for the vehicle's own response (the Crazyflie's 7 ms lag is the fastest shipped)."""
+    from mpc.prediction.models import model_params
+    from pinn.flights import LaggedCtbrPhysics
+    from sim.equations.levels_casadi import level_step_function
+    from sim.vehicles.vehicle import load_vehicle
+
+    v = load_vehicle(vehicle)
+    response = v.inner_loop_at("ctbr").response()
+    p = model_params("nominal", plant, v)
+    x, u = _lag_states(40, 5)
+    u[:, 0] *= p.m * p.g / 0.3
+    with torch.no_grad():
+        got = LaggedCtbrPhysics(p.m, p.g, p.c_d, response.rate_tau).double()(torch.as_tensor(x),
+                                                                             torch.as_tensor(u)).numpy()
+    decay = np.exp(-DT / np.asarray(response.rate_tau))
+    np.testing.assert_allclose(got[:, 6:9], u[:, 1:] + (x[:, 6:9] - u[:, 1:]) * decay, rtol=0, atol=LAG_EXACT_TOL)
+    F = level_step_function(p, "ctbr", response)
+    want = np.stack([np.asarray(F(x[i], u[i])).ravel() for i in range(len(x))])
+    np.testing.assert_allclose(got, want, rtol=0, atol=LAG_NOMINAL_TOL)
+
+
+def test_the_lagged_rates_physics_converges_at_fourth_order():
+    """Along the lag's exact rates, the attitude and velocity are RK4's: halving the substep divides the error
+    (against 64 substeps) by about 16."""
+    from pinn.flights import LaggedCtbrPhysics
+
+    x, u = _lag_states(20, 6)
+    x, u = torch.as_tensor(x), torch.as_tensor(u * np.r_[1.0, 8.0, 8.0, 8.0])       # fast turns: a visible error
+    with torch.no_grad():
+        run = {n: LaggedCtbrPhysics(P.m, P.g, P.c_d, (0.007, 0.009, 0.0125), substeps=n).double()(x, u).numpy()
+               for n in (1, 2, 4, 64)}
+    err = {n: np.abs(run[n] - run[64]).max() for n in (1, 2, 4)}
+    for a, b in ((1, 2), (2, 4)):
+        order = np.log2(err[a] / err[b])
+        assert LAG_ORDER[0] < order < LAG_ORDER[1], (a, b, err)
+
+
+def test_the_lagged_rates_physics_refuses_a_time_constant_that_is_not_positive():
+    from pinn.flights import LaggedCtbrPhysics
+
+    for tau in ((0.0, 0.01, 0.01), (0.01, -1.0, 0.01), (0.01, 0.01), (0.01, 0.01, float("nan"))):
+        with pytest.raises(ValueError, match="^rate_tau must be 3 finite numbers > 0"):
+            LaggedCtbrPhysics(P.m, P.g, P.c_d, tau)
+    with pytest.raises(ValueError, match="^substeps must be an integer >= 1"):
+        LaggedCtbrPhysics(P.m, P.g, P.c_d, (0.01,) * 3, substeps=0)

@@ -174,6 +174,88 @@ def test_a_crashed_flight_is_left_out_and_never_empties_the_validation_or_test_s
     np.testing.assert_array_equal(more.split[:7], ds_all.split)
 
 
+# ------------------------------------------------------------------ the ctbr level
+def test_ctbr_flights_keep_the_flights_and_splits_of_the_wrench_dataset():
+    """The ctbr learner's flights are the wrench dataset's (the same left out, the same split by position), each
+    cut before its first non-finite state, with the command in effect from every sample (the last repeated)."""
+    L = learn.PIECE_STEPS
+    flights = [_hover_flight(f"f{i}", L + 1 + 37 * i, i) for i in range(7)]
+    late = _hover_flight("late", L + 1, 10)
+    late["x"][L // 2:] = np.nan                     # a log, but shorter than a piece: left out
+    cut = _hover_flight("cut", 2 * L, 11)
+    cut["x"][L + 20:] = np.nan                      # a piece and more before its crash: kept, cut there
+    fl = flights[:3] + [late] + flights[3:5] + [cut] + flights[5:]
+    got = learn.ctbr_flights(fl)
+    ds = flights_dataset(fl)
+    kept = [f for f in fl if f is not late]
+    by_split = {"train": [], "val": [], "test": []}
+    for j, f in enumerate(kept):
+        by_split[{4: "val", 5: "test"}.get(j % learn.SPLIT_EVERY, "train")].append(f["name"])
+    assert {k: [f.name for f in v] for k, v in got.items()} == by_split
+    assert sorted(set(ds.split.tolist())) == [0, 1, 2]
+    c = next(f for f in got["train"] + got["val"] + got["test"] if f.name == "cut")
+    assert len(c.x) == L + 20 and c.x_ok.all() and np.all(np.isfinite(c.x))
+    f0 = got["train"][0]
+    np.testing.assert_array_equal(f0.u[:-1], flights[0]["command"])
+    np.testing.assert_array_equal(f0.u[-1], flights[0]["command"][-1])
+
+
+def test_the_ctbr_dither_shakes_the_rates_as_the_torque_dither_does():
+    """Each rate's standard deviation is the rate change the torque dither makes in one period on the vehicle's
+    inertia; the thrust's is the wrench level's; the wrench level's is dither_std itself."""
+    from scenarios.closed_loop.dither import dither_std, level_dither_std
+    from sim.vehicles.vehicle import load_vehicle
+
+    for name in ("crazyflie", None):
+        p = load_vehicle(name).params
+        w = dither_std(p)
+        np.testing.assert_array_equal(level_dither_std(p, "wrench"), w)
+        got = level_dither_std(p, "ctbr", 2.0)
+        assert got[0] == pytest.approx(2.0 * w[0], rel=1e-15)
+        np.testing.assert_allclose(got[1:], 2.0 * w[1:] * DT / np.array([p.Jxx, p.Jyy, p.Jzz]), rtol=1e-15)
+    with pytest.raises(ScenarioError, match="^level must be 'wrench' or 'ctbr'"):
+        level_dither_std(p, "ctatt")
+
+
+def test_a_ctbr_study_has_its_own_folder_and_names_and_an_old_study_still_resumes():
+    """At ctbr the study goes in PLANT_ctbr with its models named after it; at the wrench level the settings are
+    stored as before the level existed (a study written then matches its settings.json)."""
+    s = LearnSettings(plant="rotorpy", level="ctbr")
+    assert s.tag == "rotorpy_ctbr" and s.record()["level"] == "ctbr"
+    w = LearnSettings(plant="rotorpy")
+    shipped = json.loads((SHIPPED / "rotorpy" / "learn.json").read_text())["settings"]
+    assert w.tag == "rotorpy" and "level" not in w.record() and w.record() == shipped
+    assert learn.study_tag({"plant": "rotorpy"}) == "rotorpy"
+    assert learn.study_tag({"plant": "rotorpy", "level": "ctbr"}) == "rotorpy_ctbr"
+    with pytest.raises(ScenarioError, match="^--level must be one of wrench, ctbr"):
+        LearnSettings(level="ctatt")
+
+
+def test_the_ctbr_learner_trains_on_flown_flights_and_writes_a_ctbr_model(tmp_path):
+    """Nine synthetic flights become a model file at ctbr with the register of its history and its derivative graph,
+    trained on the training flights and scored on the test one; the split counts and the physics' time constants
+    (the vehicle file's response) are recorded."""
+    from mpc.prediction.contract import check_model
+    from pinn.flights import register_names
+
+    L = learn.PIECE_STEPS
+    flights = [_hover_flight(f"f{i}", L + 1, i) for i in range(9)]
+    s = LearnSettings(plant="highfi", level="ctbr", profile="smoke")
+    rec = learn.train_ctbr_model(s, flights, tmp_path, "m", 1, {"flights": 9})
+    info = check_model(tmp_path / "m.onnx")
+    assert info.level == "ctbr" and info.jacobian is not None
+    assert tuple(info.extra_states) == register_names(learn.CTBR_HISTORY, "ctbr")
+    assert rec["flights"] == {"train": 7, "val": 1, "test": 1} and rec["level"] == "ctbr"
+    physics, theta = learn.ctbr_physics(s)
+    from sim.vehicles.vehicle import load_vehicle
+
+    response = load_vehicle(None).inner_loop_at("ctbr").response()
+    assert rec["rate_tau_s"] == pytest.approx(list(response.rate_tau), rel=1e-12)
+    assert json.loads((tmp_path / "m.json").read_text()) == rec
+    with pytest.raises(ScenarioError, match="no test flight"):
+        learn.train_ctbr_model(s, flights[:5], tmp_path, "m2", 1, {})
+
+
 def test_training_data_without_a_validation_or_test_flight_is_refused_by_name(tmp_path):
     flights = [_hover_flight(f"f{i}", learn.PIECE_STEPS + 1, i) for i in range(5)]    # no sixth: no test flight
     path = tmp_path / "data.npz"

@@ -298,6 +298,27 @@ def test_versus_at_a_level_flies_the_nominal_model_there_and_its_own_file():
     assert (published_name(), published_name("ctbr")) == ("versus.json", "versus_ctbr.json")
 
 
+def test_versus_at_a_level_flies_the_published_learning_study_s_final_model_there(tmp_path):
+    """At ctbr a plant flies, after the nominal model, the final model of the learning study published at that level
+    (``learn/PLANT_ctbr``); a final model at another level, or none published, adds nothing; the wrench level never
+    adds it (the main job flies the wrench study's models)."""
+    import json
+
+    from pinn.flights import LaggedCtbrPhysics, export_flight_model
+    from scenarios.studies.versus import learned_at_level, plant_models
+
+    theta = {"m": 0.03, "Jxx": 1e-5, "Jyy": 1e-5, "Jzz": 2e-5, "kt": 1e-8, "kq": 1e-10}
+    folder = tmp_path / "learn" / "rotorpy_ctbr"
+    final = export_flight_model(LaggedCtbrPhysics(0.03, 9.81, 0.0, (0.01,) * 3), folder / "final.onnx", theta, "t",
+                                level="ctbr")
+    (folder / "learn.json").write_text(json.dumps({"plant": "rotorpy", "level": "ctbr", "final_model": "final"}))
+    assert plant_models("rotorpy", tmp_path, "ctbr") == ["nominal", str(final)]
+    assert learned_at_level("rotorpy", tmp_path, "wrench") == [] == learned_at_level("highfi", tmp_path, "ctbr")
+    assert plant_models("rotorpy", tmp_path, "ctatt") == ["nominal"]
+    export_flight_model(LaggedCtbrPhysics(0.03, 9.81, 0.0, (0.01,) * 3), final, theta, "t")    # now a wrench file
+    assert plant_models("rotorpy", tmp_path, "ctbr") == ["nominal"]
+
+
 def test_a_study_of_a_zoo_with_no_model_at_the_level_is_refused_before_anything_is_written(tmp_path, capsys):
     from scenarios.cli import main
 

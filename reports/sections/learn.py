@@ -106,7 +106,10 @@ def learn_section(studies: dict | None, run_dir: Path, figure_md) -> str:
         parts.append(figure_md(f))
     for plant, st in sorted(studies.items()):
         ev = st["evaluation"]
-        parts.append(f"**{ev['label']}** (`{ev['scenario']}`; {_members(st['settings'])}, "
+        level = st.get("level", "wrench")
+        at = "" if level == "wrench" else (f", at the `{level}` level (the level's nominal model plus a network on "
+                                           f"the rates and the velocity; no open-loop control)")
+        parts.append(f"**{ev['label']}**{at} (`{ev['scenario']}`; {_members(st['settings'])}, "
                      f"{fmt(st.get('study_seconds', st['wall_time_s']) / 60, '.0f')} min on two cores, "
                      f"{st.get('date', 'undated')})")
         rows = [[r["iteration"], f"`{r['model']}`", r["flights"], fmt(r["flight_minutes"], ".1f"),

@@ -37,6 +37,34 @@ def dither_std(params, scale: float = 1.0) -> np.ndarray:
                              DITHER_TORQUE * weight * params.d, DITHER_TORQUE * weight * params.kq / params.kt])
 
 
+def level_dither_std(params, level: str, scale: float = 1.0) -> np.ndarray:
+    """Standard deviations (4,) of the dither on a command at ``level``: at ``ctbr`` ``[T, p, q, r]``, N and rad/s.
+
+    The thrust's is :func:`dither_std`'s; each body rate's is the change of that rate the torque dither of
+    :func:`dither_std` makes in one control period on the vehicle's inertia (``std_tau / J * dt``: 0.044 rad/s on
+    roll for the Crazyflie, 0.030 for the default vehicle), so that a flight dithered at either level is shaken by
+    about as much.
+
+    Parameters
+    ----------
+    params : sim.params.QuadParams
+        The vehicle's parameters.
+    level : str
+        ``"wrench"`` (:func:`dither_std` itself) or ``"ctbr"``.
+    scale : float
+        Multiplies every standard deviation (>= 0; 0: no dither).
+    """
+    from sim.params import DT
+
+    std = dither_std(params, scale)
+    if level == "wrench":
+        return std
+    if level != "ctbr":
+        raise ScenarioError(f"level must be 'wrench' or 'ctbr' for a dither; found {level!r}")
+    inertia = np.array([params.Jxx, params.Jyy, params.Jzz])
+    return np.r_[std[0], std[1:] / inertia * DT]
+
+
 class Dithered:
     """A controller whose every output gets seeded Gaussian noise of standard deviations ``std``.
 
@@ -73,4 +101,4 @@ class Dithered:
         return getattr(self.controller, name)
 
 
-__all__ = ["DITHER_THRUST", "DITHER_TORQUE", "Dithered", "dither_std"]
+__all__ = ["DITHER_THRUST", "DITHER_TORQUE", "Dithered", "dither_std", "level_dither_std"]

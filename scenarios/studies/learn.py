@@ -117,7 +117,22 @@ LEARN_PLANTS = {
 #: setting's error names its option as typed, since that is where the value came from on the command line.
 SETTING_OPTIONS = {"plant": "--plant", "iterations": "--iterations", "per_level": "--per-level", "seed": "--seed",
                    "profile": "--profile", "members": "--members", "curve_members": "--curve-members",
-                   "ladder_members": "--ladder-members", "controls": "--no-controls"}
+                   "ladder_members": "--ladder-members", "controls": "--no-controls", "level": "--level"}
+#: The command levels the study learns at: the wrench (:data:`LEARN_ARCH`, the rotor speeds as states) and ``ctbr``
+#: (:data:`CTBR_ARCH`). At ``ctatt`` no learner is written.
+LEARN_LEVELS = ("wrench", "ctbr")
+#: Periods of commands and body rates in the register of the ``ctbr`` learner's model. Its period costs the SQP, on
+#: RotorPy's figure8-fast (one run each, idle machine): 9.2 ms with none, 14.8 with 1, 18.8 with 2, 31.8 with 4
+#: (the nominal model 7.3): 2 is the longest memory the study can fly at about the wrench level's pace.
+CTBR_HISTORY = 2
+#: What is learned at ``ctbr``: the level's nominal model (the rigid body whose rates follow their commands as
+#: first-order lags, :class:`pinn.flights.LaggedCtbrPhysics`) plus a network on the rates and the velocity, with a
+#: register of the last :data:`CTBR_HISTORY` commands and rates; trained on open-loop rollouts of the flights
+#: (:func:`pinn.flights.train_flight_model`).
+CTBR_ARCH = f"nominal ctbr physics + network, history {CTBR_HISTORY}"
+#: Training budgets at ``ctbr`` by profile: :class:`pinn.flights.FlightTrainConfig` settings changed from its own.
+CTBR_PROFILES = {"scaled": {"epochs": 12}, "full": {"epochs": 12}, "quick": {},
+                 "smoke": {"epochs": 2, "steps_per_epoch": 4, "windows": 32, "hidden": 16, "layers": 2}}
 
 
 @dataclass(frozen=True)
@@ -142,7 +157,8 @@ class LearnSettings:
     members: int = 10            # ensemble members on figure8-fast: the evaluation, and the curve's first and last rows
     curve_members: int = 5       # ensemble members of the curve's other rows (the models between first and final)
     ladder_members: int = 3      # members per rung of the speed ladder in the evaluation
-    controls: bool = True        # train and fly the two controls
+    controls: bool = True        # train and fly the two controls (at ctbr the upper bound only)
+    level: str = "wrench"        # command level flown and learned (LEARN_LEVELS)
 
     def __post_init__(self):
         def named(name: str) -> str:
@@ -163,10 +179,26 @@ class LearnSettings:
         if self.profile not in LEARN_PROFILES:
             raise ScenarioError(f"{named('profile')} must be one of {', '.join(LEARN_PROFILES)}; "
                                 f"found {self.profile!r}")
+        if self.level not in LEARN_LEVELS:
+            raise ScenarioError(f"{named('level')} must be one of {', '.join(LEARN_LEVELS)} (no learner is written "
+                                f"for the other levels); found {self.level!r}")
 
     @property
     def spec(self) -> LearnPlant:
         return LEARN_PLANTS[self.plant]
+
+    @property
+    def tag(self) -> str:
+        """The study's folder and model-name stem: the plant's key, with ``_<level>`` beside the wrench level."""
+        return self.plant if self.level == "wrench" else f"{self.plant}_{self.level}"
+
+    def record(self) -> dict:
+        """The settings as stored in ``settings.json`` and ``learn.json`` (the level only where it is not the
+        wrench, so that the studies written before it existed resume)."""
+        out = dataclasses.asdict(self)
+        if self.level == "wrench":
+            del out["level"]
+        return out
 
 
 # ------------------------------------------------------------------ one training flight
@@ -215,7 +247,8 @@ def fly_flight(job: FlightJob) -> dict:
     dict
         ``name``; ``t`` (n,), s; ``x`` (n, 12) and ``rotor_speed`` (n, 4), RU, as measured (the open-loop data's
         motion-capture and telemetry noise, :class:`sim.params.NoiseModel`, added to the plant's); ``command``
-        (n - 1, 4), the wrench sent (dither included), N and N m; ``reference`` (n, 3), the perturbed reference's
+        (n - 1, 4), the command sent at the study's level (dither included): the wrench, N and N m, or at ``ctbr``
+        the collective thrust, N, and the body rates, rad/s; ``reference`` (n, 3), the perturbed reference's
         positions, m; and the flight's ``rmse_m`` (true position against that reference), ``crashed``,
         ``crash_reason``, ``seconds`` flown and ``solve_ms`` (median per period).
     """
@@ -223,15 +256,16 @@ def fly_flight(job: FlightJob) -> dict:
     from sim.plants.named import make_plant
     from sim.vehicles.vehicle import load_vehicle
 
-    from ..closed_loop.dither import Dithered, dither_std
+    from ..closed_loop.dither import Dithered, level_dither_std
     from ..closed_loop.loop import IdealClock, StateSensor, fly_loop
     from mpc.controllers.factory import make_controller
     from mpc.references.trajectory import reference_spec, reference_states
 
     p = job.settings.spec
     name, traj, duration = job.reference()
+    level = job.settings.level
     vehicle = load_vehicle(p.vehicle)
-    plant = make_plant(p.plant, vehicle, high_fidelity=p.high_fidelity)
+    plant = make_plant(p.plant, vehicle, high_fidelity=p.high_fidelity, level=level)
     K = int(round(duration / DT))
     times = DT * np.arange(K + 1)
     n0 = None
@@ -242,13 +276,13 @@ def fly_flight(job: FlightJob) -> dict:
         n0 = n_ref[0] if vehicle.fidelity.motor_tau > 0.0 else None
     else:
         x_ref = reference_states(traj, times, reference_spec(p.plant, vehicle))
-    model = _load(job.model, p)
+    model = _load(job.model, p, level)
     ctrl = make_controller("sqp", model, traj, timing="ideal", vehicle=vehicle)
+    std = level_dither_std(vehicle.params, level)
     ctrl.prepare(K * DT, x0=x_ref[0].copy())
     plant.reset(x_ref[0].copy(), rotor_speed=n0)
     rng = np.random.default_rng([job.seed, 0x1EA2])
-    tr = fly_loop(plant, StateSensor(None, rng), Dithered(ctrl, job.settings.dither * dither_std(vehicle.params),
-                                                          seed=job.seed),
+    tr = fly_loop(plant, StateSensor(None, rng), Dithered(ctrl, job.settings.dither * std, seed=job.seed),
                   IdealClock(plant.hover_input, 0), x_ref, K)
     n = tr.steps + 1
     x, rot = tr.x[:n].copy(), tr.rotor_speed[:n].copy()
@@ -264,12 +298,13 @@ def fly_flight(job: FlightJob) -> dict:
             "solve_ms": float(1e3 * np.median(solve)) if solve.size else None}
 
 
-def _load(model: str, p: LearnPlant):
-    """The prediction model ``model`` (``"nominal"`` or an ONNX path) as a run on plant ``p`` would load it."""
+def _load(model: str, p: LearnPlant, level: str = "wrench"):
+    """The prediction model ``model`` (``"nominal"`` or an ONNX path) as a run on plant ``p`` at ``level`` would load
+    it."""
     from ..closed_loop.runner import RunSpec, load_run_model
 
     scenario = "figure8-fast" + ("+highfi" if p.high_fidelity else "")
-    return load_run_model(RunSpec(scenario, "sqp", model, plant=p.plant, vehicle=p.vehicle))
+    return load_run_model(RunSpec(scenario, "sqp", model, plant=p.plant, vehicle=p.vehicle, level=level))
 
 
 FLIGHT_ARRAYS = ("t", "x", "rotor_speed", "command", "reference")
@@ -338,6 +373,95 @@ def flights_dataset(flights: list[dict], vehicle=None):
     return Dataset(**take, split=split, meta=meta)
 
 
+@dataclass(frozen=True)
+class FlownSeries:
+    """A flown flight as the ``ctbr`` learner takes it (:func:`pinn.flights.train_flight_model`'s flights).
+
+    ``x`` (n, 12) the measured states; ``u`` (n, 4) the command in effect from each sample to the next (the last row
+    repeats the one before); ``x_ok`` (n,) the finite samples (a crashed flight's are cut before its first
+    non-finite state).
+    """
+
+    name: str
+    x: np.ndarray
+    u: np.ndarray
+    x_ok: np.ndarray
+
+
+def ctbr_flights(flights: list[dict]) -> dict[str, list[FlownSeries]]:
+    """The flown flights by split (``train``, ``val``, ``test``) for the ``ctbr`` learner.
+
+    The flights kept and their splits are :func:`flights_dataset`'s: a flight with fewer finite samples than one
+    piece (:data:`PIECE_STEPS`) and the logs' least length is left out, and of every :data:`SPLIT_EVERY` flights
+    kept, in the order given, the fifth is for validation and the sixth for test.
+    """
+    from sim.flightlogs.flightlog import MIN_SAMPLES, finite_samples
+
+    out: dict[str, list[FlownSeries]] = {"train": [], "val": [], "test": []}
+    j = 0
+    for f in flights:
+        if finite_samples(f["x"], f["rotor_speed"]) < max(PIECE_STEPS + 1, MIN_SAMPLES):
+            continue
+        x = np.asarray(f["x"], dtype=float)
+        bad = np.flatnonzero(~np.all(np.isfinite(x), axis=1))
+        n = len(x) if bad.size == 0 else int(bad[0])
+        cmd = np.asarray(f["command"], dtype=float)[:n]
+        u = np.concatenate([cmd, cmd[-1:]])[:n] if len(cmd) < n else cmd[:n]
+        split = "val" if j % SPLIT_EVERY == 4 else "test" if j % SPLIT_EVERY == 5 else "train"
+        out[split].append(FlownSeries(f["name"], x[:n].copy(), u, np.ones(n, dtype=bool)))
+        j += 1
+    if not j:
+        raise ScenarioError(f"no flown flight is {PIECE_STEPS * DT:g} s long: nothing to learn from")
+    return out
+
+
+def ctbr_physics(settings: "LearnSettings"):
+    """The ``ctbr`` nominal model of the study's plant and vehicle in torch (:class:`pinn.flights.LaggedCtbrPhysics`)
+    and the vehicle's ``theta`` written into the model file."""
+    from mpc.prediction.models import model_params
+    from pinn.flights import LaggedCtbrPhysics
+    from sim.vehicles.vehicle import load_vehicle
+
+    p = settings.spec
+    vehicle = load_vehicle(p.vehicle)
+    params = model_params("nominal", p.plant, vehicle)
+    response = vehicle.inner_loop_at("ctbr").response()
+    theta = {k: float(getattr(params, k)) for k in ("m", "Jxx", "Jyy", "Jzz", "kt", "kq")}
+    return LaggedCtbrPhysics(params.m, params.g, params.c_d, response.rate_tau), theta
+
+
+def train_ctbr_model(settings: LearnSettings, flights: list[dict], folder, name: str, threads: int,
+                     data: dict) -> dict:
+    """Train :data:`CTBR_ARCH` on ``flights`` (:func:`fly_flight`'s records at ``ctbr``) and export it as
+    ``folder/name.onnx`` (level ``ctbr``, with its derivative graph); its record, also written to
+    ``folder/name.json``: the settings, the epoch kept, the validation scores and the test flights' open-loop
+    errors at h = 1, 10 and 50."""
+    import torch
+
+    from pinn.flights import FlightTrainConfig, export_flight_model, flight_step, train_flight_model
+    from sim.flightlogs.logbench import prediction_errors
+
+    torch.set_num_threads(threads)
+    split = ctbr_flights(flights)
+    for k, what in (("train", "training"), ("val", "validation"), ("test", "test")):
+        if not split[k]:
+            raise ScenarioError(f"training {name}: its data have no {what} flight; six or more flights of at least "
+                                f"{PIECE_STEPS * DT:g} s are needed (fly more references: --per-level)")
+    physics, theta = ctbr_physics(settings)
+    cfg = FlightTrainConfig(history=CTBR_HISTORY, seed=settings.seed, **CTBR_PROFILES[settings.profile])
+    res = train_flight_model(split["train"], split["val"], None, cfg, physics=physics)
+    step, start = flight_step(res.model, np.ones(4))
+    test = prediction_errors(step, split["test"], start=start).to_dict()
+    export_flight_model(res.model, Path(folder) / f"{name}.onnx", theta, CTBR_ARCH, level="ctbr")
+    rec = {"name": name, "onnx": f"{name}.onnx", "data": data, "recipe": CTBR_ARCH, "level": "ctbr",
+           "train": dataclasses.asdict(cfg), "flights": {k: len(v) for k, v in split.items()},
+           "best_epoch": res.best_epoch, "validation_scores": [float(v) for v in res.scores], "test_errors": test,
+           "rate_tau_s": [float(1.0 / v) for v in physics.inv_tau], "training_seconds": round(res.seconds, 1),
+           "threads": threads}
+    write_json(Path(folder) / f"{name}.json", rec)
+    return rec
+
+
 # ------------------------------------------------------------------ stages
 def _say(progress, line: str) -> None:
     if progress is not None:
@@ -383,9 +507,12 @@ def _fly_item(item):
 
 
 def _train_item(item):
-    """Train one model (a pool task): ``(settings, dataset path, folder, name, threads, data)``; its record."""
-    settings, data_path, folder, name, threads, data = item
-    return train_model(settings, data_path, folder, name, threads, data)
+    """Train one model (a pool task): ``(settings, dataset, folder, name, threads, data)``; its record. The dataset is
+    a dataset file's path at the wrench level, the flights themselves at ``ctbr``."""
+    settings, dataset, folder, name, threads, data = item
+    if settings.level == "ctbr":
+        return train_ctbr_model(settings, dataset, folder, name, threads, data)
+    return train_model(settings, dataset, folder, name, threads, data)
 
 
 def train_model(settings: LearnSettings, data_path, folder, name: str, threads: int, data: dict) -> dict:
@@ -454,7 +581,8 @@ def _curve_row(settings: LearnSettings, out: Path, iteration: int, model: str, f
 
     members = settings.members if iteration in (0, settings.iterations) else min(settings.curve_members,
                                                                                 settings.members)
-    specs = versus_specs(settings.spec.versus, [model], members, ladder_members=1)["ensemble"][model]
+    specs = versus_specs(settings.spec.versus, [model], members, ladder_members=1,
+                         level=settings.level)["ensemble"][model]
     results = sweep(specs, out / "evaluation", jobs=jobs, progress=False)
     _no_errors(results)
     s = summarize(results)
@@ -569,10 +697,10 @@ def run_learn(settings: LearnSettings, out_dir="results/learn", models_dir="mode
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ScenarioError(f"jobs must be an integer >= 1; found {jobs!r}")
     s, p = settings, settings.spec
-    out = Path(out_dir) / p.key
+    out = Path(out_dir) / s.tag
     out.mkdir(parents=True, exist_ok=True)
     recorded = out / "settings.json"
-    mine = dataclasses.asdict(s)
+    mine = s.record()
     if recorded.is_file() and json.loads(recorded.read_text()) != mine:
         raise ScenarioError(f"{str(out)!r} holds a study with other settings ({recorded.read_text().strip()}); "
                             f"give another --out, or remove it")
@@ -586,15 +714,15 @@ def run_learn(settings: LearnSettings, out_dir="results/learn", models_dir="mode
     for i in range(s.iterations + 1):
         it = out / f"it{i}"
         if i > 0:
-            name = f"learn_{p.key}_it{i}"
+            name = f"learn_{s.tag}_it{i}"
             timer.start(f"train {i}", it / f"{name}.json")
             _check_held_out(flights)          # what enters training, by content
             data = {"flights": len(flights), "flight_minutes": sum(f["seconds"] for f in flights) / 60.0,
                     "kind": "closed loop", "iterations": list(range(i))}
-            path = _dataset_file(it / "data.npz", flights, p.vehicle)
+            dataset = flights if s.level == "ctbr" else _dataset_file(it / "data.npz", flights, p.vehicle)
             _say(progress, f"iteration {i}: training {name} on {len(flights)} flights "
                            f"({data['flight_minutes']:.1f} min)")
-            rec = _stage(it / f"{name}.json", lambda: train_model(s, path, it, name, min(jobs, 2), data))
+            rec = _stage(it / f"{name}.json", lambda: _train_item((s, dataset, it, name, min(jobs, 2), data)))
             trainings.append(rec)
             model = str(it / f"{name}.onnx")
             timer.stop()
@@ -612,20 +740,27 @@ def run_learn(settings: LearnSettings, out_dir="results/learn", models_dir="mode
     final = model
     controls = {}
     if s.controls:
-        timer.start("controls", out / "controls" / f"learn_{p.key}_upper.json")
+        timer.start("controls", out / "controls" / f"learn_{s.tag}_upper.json")
         controls = _controls(s, out, flights, final, jobs, progress)
         timer.stop()
     timer.start("evaluation", None)
     flown: list[dict] = []
     evaluation = _evaluate(s, out, models_dir, final, controls, jobs, progress, on_result=flown.append)
     timer.stop(found_done=not flown)      # a rerun that flies none of its runs finds the evaluation done
-    summary = {"plant": p.key, "label": evaluation["label"], "settings": mine, "curve": curve,
+    summary = {"plant": p.key, "level": s.level, "label": evaluation["label"], "settings": mine, "curve": curve,
                "trainings": trainings, "controls": {k: v["record"] for k, v in controls.items()},
                "evaluation": evaluation, "final_model": Path(final).stem,
                "stage_seconds": dict(timer.seconds), "study_seconds": round(sum(timer.seconds.values()), 1),
                "wall_time_s": round(time.perf_counter() - t_start, 1), "date": time.strftime("%Y-%m-%d")}
     write_json(out / "learn.json", summary)
     return summary
+
+
+def study_tag(summary: dict) -> str:
+    """The folder name of a study's summary (``learn.json``): its plant, with ``_<level>`` beside the wrench level
+    (:attr:`LearnSettings.tag`)."""
+    level = summary.get("level", "wrench")
+    return summary["plant"] if level == "wrench" else f"{summary['plant']}_{level}"
 
 
 def training_refs_of(settings: LearnSettings, iteration: int):
@@ -656,10 +791,11 @@ def _controls(s: LearnSettings, out: Path, flights: list[dict], final: str, jobs
     p = s.spec
     c = out / "controls"
     seconds = sum(f["seconds"] for f in flights)
-    # Same minutes of open-loop excitation: pinnmpc data's flights on this plant, in the regime of its best model.
+    # Same minutes of open-loop excitation: pinnmpc data's flights on this plant, in the regime of its best model
+    # (flown at the wrench level only: at ctbr there is no open-loop control).
     n_open = max(2, math.ceil(seconds / OPEN_LOOP_FLIGHT_S - 1e-9))
     open_path = c / "openloop_data.npz"
-    if not open_path.is_file():
+    if s.level == "wrench" and not open_path.is_file():
         _say(progress, f"controls: {n_open} open-loop excitation flights of {OPEN_LOOP_FLIGHT_S:g} s ({p.open_loop})")
         vehicle = load_vehicle(p.vehicle)
         ds = make_dataset(p.open_loop, n_open, OPEN_LOOP_FLIGHT_S, s.seed, noise=NoiseModel(),
@@ -673,25 +809,27 @@ def _controls(s: LearnSettings, out: Path, flights: list[dict], final: str, jobs
     _say(progress, f"controls: {n_up} flights of figure8-fast itself with {Path(final).stem} (upper bound only)")
     up = _flights_stage(s, c / "upper_flights.npz", [FlightJob(s, "upper", 0, k, final) for k in range(n_up)],
                         jobs, progress, "upper bound", held_out=False)
-    up_path = _dataset_file(c / "upper_data.npz", flights + up, p.vehicle)
+    up_data = flights + up if s.level == "ctbr" else _dataset_file(c / "upper_data.npz", flights + up, p.vehicle)
     todo = {
         "openloop": (open_path, {"flights": n_open, "flight_minutes": n_open * OPEN_LOOP_FLIGHT_S / 60.0,
                                  "kind": f"open-loop excitation ({p.open_loop})"}),
-        "upper": (up_path, {"flights": len(flights) + len(up),
+        "upper": (up_data, {"flights": len(flights) + len(up),
                             "flight_minutes": sum(f["seconds"] for f in flights + up) / 60.0,
                             "kind": f"the final model's flights plus {len(up)} of the evaluation reference "
                                     f"(upper bound)"}),
     }
+    if s.level != "wrench":
+        del todo["openloop"]
     recs = {}
     items = []
     for k, (path, data) in todo.items():
-        name = f"learn_{p.key}_{k}"
+        name = f"learn_{s.tag}_{k}"
         if (c / f"{name}.json").is_file():
             recs[k] = json.loads((c / f"{name}.json").read_text())
         else:
             items.append((k, (s, path, c, name, 1, data)))
     if items:
-        _say(progress, f"controls: training {', '.join(f'learn_{p.key}_{k}' for k, _ in items)}")
+        _say(progress, f"controls: training {', '.join(f'learn_{s.tag}_{k}' for k, _ in items)}")
 
         def failed(item, reason):
             raise ScenarioError(f"training control {item[0]}: {reason}")
@@ -701,7 +839,7 @@ def _controls(s: LearnSettings, out: Path, flights: list[dict], final: str, jobs
         else:
             for item in items:
                 recs[item[0]] = _control_item(item)
-    return {k: {"record": recs[k], "model": str(c / f"learn_{p.key}_{k}.onnx")} for k in todo}
+    return {k: {"record": recs[k], "model": str(c / f"learn_{s.tag}_{k}.onnx")} for k in todo}
 
 
 def _control_item(item):
@@ -718,15 +856,19 @@ def _evaluate(s: LearnSettings, out: Path, models_dir, final: str, controls: dic
     from ..sweeps.sweep import sweep
     from .versus import VERSUS_SCENARIO, WIN_FRACTION, summarize_plant, versus_specs
 
+    from mpc.prediction.contract import declared_level
+
     models = ["nominal"]
     best = None if s.spec.best_open_loop is None else Path(models_dir) / s.spec.best_open_loop
-    if best is not None and best.is_file():
+    if best is not None and not (best.is_file() and declared_level(str(best)) == s.level):
+        best = None             # absent, or at another level (every shipped open-loop model takes wrenches)
+    if best is not None:
         models.append(str(best))
     models.append(final)
     models += [c["model"] for c in controls.values()]
     # Every model on figure8-fast; the ladder for the nominal equations and the final model (the goal's rung test).
-    ens = versus_specs(s.spec.versus, models, s.members, s.ladder_members)["ensemble"]
-    lad = versus_specs(s.spec.versus, ["nominal", final], s.members, s.ladder_members)["ladder"]
+    ens = versus_specs(s.spec.versus, models, s.members, s.ladder_members, level=s.level)["ensemble"]
+    lad = versus_specs(s.spec.versus, ["nominal", final], s.members, s.ladder_members, level=s.level)["ladder"]
     specs, tags = [], []
     for m, runs in ens.items():
         specs += runs
@@ -740,7 +882,7 @@ def _evaluate(s: LearnSettings, out: Path, models_dir, final: str, controls: dic
     results = sweep(specs, out / "evaluation", jobs=jobs, progress=progress is not None, on_result=on_result)
     _no_errors(results)
     mine = {i: {**r, "_model": m, "_rung": rung} for i, ((m, rung), r) in enumerate(zip(tags, results))}
-    summary = summarize_plant(s.spec.versus, models, mine, ladder_speeds())
+    summary = summarize_plant(s.spec.versus, models, mine, ladder_speeds(), level=s.level)
     # The verdict is the final model's (summarize_plant's best could be a control, and the upper bound has seen the
     # evaluation reference): at least WIN_FRACTION below the nominal equations with the medians' intervals apart, and
     # the fastest rung flown at least the nominal equations'.
@@ -758,7 +900,7 @@ def _evaluate(s: LearnSettings, out: Path, models_dir, final: str, controls: dic
         "met": bool(v["fraction"] >= WIN_FRACTION and v["apart"] and ladder_ok)}
     summary["roles"] = {Path(m).stem if m != "nominal" else m: role for m, role in
                         [("nominal", "nominal equations")]
-                        + [(str(best), "best open-loop model")] * (best is not None and best.is_file())
+                        + [(str(best), "best open-loop model")] * (best is not None)
                         + [(final, "final learned model")]
                         + [(c["model"], CONTROL_ROLES[k]) for k, c in controls.items()]}
     return summary
@@ -768,7 +910,9 @@ def format_learn(out: dict) -> str:
     """A study's summary as plain text: the learning curve, the controls and the evaluation's verdict."""
     from .versus import _mm
 
-    lines = [f"learning from flown flights on {out['label']}", "learning curve (figure8-fast, median RMSE, mm):"]
+    level = out.get("level", "wrench")
+    lines = [f"learning from flown flights on {out['label']}" + ("" if level == "wrench" else f", at the {level} level"),
+             "learning curve (figure8-fast, median RMSE, mm):"]
     for r in out["curve"]:
         s = r["ensemble"]
         ci = s["median_ci95"]
@@ -810,7 +954,7 @@ def publish_learn(study_dir, models_dir="models") -> Path:
     if not summary_path.is_file():
         raise ScenarioError(f"{str(study_dir)!r} holds no finished study (no learn.json)")
     out = json.loads(summary_path.read_text())
-    dest = Path(models_dir) / LEARN_DIR / out["plant"]
+    dest = Path(models_dir) / LEARN_DIR / study_tag(out)
     dest.mkdir(parents=True, exist_ok=True)
     for onnx in sorted(study_dir.glob("it*/*.onnx")) + sorted(study_dir.glob("controls/*.onnx")):
         shutil.copyfile(onnx, dest / onnx.name)

@@ -22,6 +22,8 @@ to regenerate). The runs are a resumable sweep (:func:`scenarios.sweeps.sweep.sw
 
 from __future__ import annotations
 
+import json
+
 import shutil
 import time
 from dataclasses import dataclass
@@ -123,7 +125,23 @@ def plant_models(key: str, models_dir, level: str = DEFAULT_LEVEL) -> list[str]:
     p = VERSUS_PLANTS[key]
     eq = ["nominal"] + (["oracle"] if p.oracle and level == DEFAULT_LEVEL else [])
     files = [str(Path(models_dir) / m) for m in p.models if (Path(models_dir) / m).is_file()]
-    return eq + [m for m in files if declared_level(m) == level]
+    return eq + [m for m in files if declared_level(m) == level] + learned_at_level(key, models_dir, level)
+
+
+#: Where ``pinnmpc learn --level LEVEL --publish`` puts the summary of its study on a plant (under the models folder).
+LEARNED_SUMMARY = "learn/{key}_{level}/learn.json"
+
+
+def learned_at_level(key: str, models_dir, level: str) -> list[str]:
+    """The final model of the published learning study on plant ``key`` at ``level`` (``[path]``; ``[]`` at the
+    wrench level, whose study's models the main job flies, or where none is published)."""
+    if level == DEFAULT_LEVEL:
+        return []
+    summary = Path(models_dir) / LEARNED_SUMMARY.format(key=key, level=level)
+    if not summary.is_file():
+        return []
+    final = summary.parent / f"{json.loads(summary.read_text())['final_model']}.onnx"
+    return [str(final)] if final.is_file() and declared_level(str(final)) == level else []
 
 
 def published_name(level: str = DEFAULT_LEVEL) -> str:
