@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from scenarios.closed_loop.record import RunRecord
+from scenarios.studies.learn import study_tag
 
 from .errors import ReportError
 from .labels import run_key
@@ -219,8 +220,7 @@ def load_inputs(run_dir) -> Inputs:
         missing = [k for k in LEARN_KEYS if not isinstance(st, dict) or k not in st]
         if missing:
             raise ReportError(f"{path.name!r}: not the output of pinnmpc learn (lacks {', '.join(missing)})")
-        level = st.get("level", "wrench")
-        learn[st["plant"] if level == "wrench" else f"{st['plant']}_{level}"] = st
+        learn[study_tag(st)] = st  # the plant, with _<level> beside the wrench level
     plan = results.get("plan") if isinstance(results.get("plan"), dict) else {}
     return Inputs(d, runs, plan, evaluation, fisher, ablation, provenance, study, versus, study_ekf, realdata,
                   learn or None, levels, versus_levels)

@@ -655,6 +655,27 @@ def test_the_report_section_states_the_goal_with_its_numbers(tmp_path):
     assert "(`figure8-fast+highfi`; 10 members (5 for the models between), 3 per ladder rung, 30 min" in text
 
 
+def test_the_report_reads_a_ctbr_study_beside_the_wrench_one_and_names_its_level(tmp_path):
+    """Two studies of one plant at two levels are two studies in the report (keyed by folder name), the ctbr one
+    named with its level."""
+    from reports.build import _figure_md
+    from reports.inputs import LEARN_KEYS
+    from reports.sections.learn import learn_section
+
+    wrench, ctbr = _study(24.0, True), {**_study(18.0, True), "level": "ctbr"}
+    assert all(k in wrench for k in LEARN_KEYS)
+    for name, st in (("learn_highfi.json", wrench), ("learn_highfi_ctbr.json", ctbr)):
+        (tmp_path / name).write_text(json.dumps(st))
+    learned = {}
+    for path in sorted(tmp_path.glob("learn_*.json")):     # as the report's inputs key them
+        st = json.loads(path.read_text())
+        learned[learn.study_tag(st)] = st
+    assert sorted(learned) == ["highfi", "highfi_ctbr"]
+    text = learn_section(learned, tmp_path, _figure_md)
+    assert text.count("**our high-fidelity plant**, at the `ctbr` level") == 1
+    assert text.count("**our high-fidelity plant** (") == 1
+
+
 # ------------------------------------------------------------------ the shipped study
 SHIPPED_PLANTS = ("highfi", "rotorpy", "crazyflie")
 
