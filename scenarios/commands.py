@@ -206,8 +206,9 @@ def register(sub) -> None:
                         "crazyflie (RotorPy's Crazyflie preset: no open-loop model is trained on it)")
     _sweep_options(p, "versus.json", "--models/versus")
     _qp_option(p, "every SQP run")
-    _level_option(p, ". At ctbr and ctatt: the nominal model of that level and the learned models that declare it "
-                     "(no true equations: they would need the inner loop with the plant's lag); writes and publishes "
+    _level_option(p, ". At ctbr and ctatt: the nominal model of that level, the learned models that declare it and "
+                     "the final model of the learning study published at that level (MODELS/learn/PLANT_LEVEL) (no "
+                     "true equations: they would need the inner loop with the plant's lag); writes and publishes "
                      "versus_LEVEL.json beside the wrench level's versus.json, and the report shows both")
     p.set_defaults(handler=cmd_versus)
 

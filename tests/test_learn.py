@@ -677,7 +677,7 @@ def test_the_report_reads_a_ctbr_study_beside_the_wrench_one_and_names_its_level
 
 
 # ------------------------------------------------------------------ the shipped study
-SHIPPED_PLANTS = ("highfi", "rotorpy", "crazyflie")
+SHIPPED_PLANTS = ("highfi", "rotorpy", "crazyflie", "rotorpy_ctbr")
 
 
 @pytest.mark.parametrize("plant", SHIPPED_PLANTS)
@@ -697,8 +697,11 @@ def test_the_shipped_study_learned_from_training_references_only(plant):
     seconds = np.cumsum([sum(f["seconds"] for f in load_flights(d / f"flights_it{i}.npz")) for i in range(its)])
     assert [r["flight_minutes"] for r in st["curve"][1:]] == pytest.approx(list(seconds / 60.0), rel=1e-12)
     check_held_out({f["name"]: np.asarray(f["reference"], dtype=float) for f in flights})
+    level = st.get("level", "wrench")
+    assert learn.study_tag(st) == plant and plant == (st["plant"] if level == "wrench" else f"{st['plant']}_{level}")
     for i in range(1, its + 1):
-        assert check_model(d / f"learn_{plant}_it{i}.onnx").jacobian is not None
+        info = check_model(d / f"learn_{plant}_it{i}.onnx")
+        assert info.jacobian is not None and info.level == level
 
 
 @pytest.mark.parametrize("plant", SHIPPED_PLANTS)
