@@ -71,7 +71,7 @@ def versus_section(versus: dict | None) -> str:
                          f"{s['crashes']}/{s['runs']}", pct_ci(r.get("versus_nominal")),
                          MISSING if sp is None else f"{sp:.2f}"])
         parts.append(f"**{p['label']}** (`{p['scenario']}`)")
-        parts.append(md_table(["model", "architecture", "actuator states", "RMSE, mm (95 %)", "crashes",
+        parts.append(md_table(["model", "architecture", "extra states", "RMSE, mm (95 %)", "crashes",
                                "against nominal (95 %)", "max speed, m/s"], rows))
         parts.append(verdict_text(p, versus["goal"]))
     return "\n\n".join(parts)

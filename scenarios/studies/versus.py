@@ -356,7 +356,7 @@ def format_versus(out: dict) -> str:
             vs = "" if v is None else (f", {100 * v['fraction']:+.0f} % vs nominal "
                                        f"({100 * v['fraction_ci95'][0]:+.0f} to {100 * v['fraction_ci95'][1]:+.0f})")
             sp = row["ladder"]["max_speed"]["speed_mps"]
-            extra = f" [{len(row['extra_states'])} actuator states]" if row["extra_states"] else ""
+            extra = f" [{len(row['extra_states'])} extra states]" if row["extra_states"] else ""
             lines.append(f"  {name}{extra}: {_mm(s['median'])} mm{ci_txt}, crashes {s['crashes']}/{s['runs']}{vs}; "
                          f"max speed {'–' if sp is None else f'{sp:.2f} m/s'}")
         v = p["verdict"]
