@@ -268,6 +268,8 @@ class LaggedCtbrPhysics(HeldRatesPhysics):
         if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
             raise ValueError(f"substeps must be an integer >= 1; found {substeps!r}")
         self.register_buffer("inv_tau", torch.tensor(1.0 / tau, dtype=torch.float64))
+        # ones but for the rates' slots: their path is the lag's solution, not integrated
+        self.register_buffer("integrated", torch.tensor([1.0] * 6 + [0.0] * 3 + [1.0] * 3, dtype=torch.float64))
         self.substeps = substeps
 
     def _decay(self, t: float, dtype) -> torch.Tensor:
@@ -297,12 +299,14 @@ class LaggedCtbrPhysics(HeldRatesPhysics):
             dw = dwc + (dw0 - dwc) * e[:, None]
             return z, torch.cat([dz[:, :6], dw, dz[:, 9:]], 1)
 
+        mask = self.integrated.to(x.dtype)
+
         def f(z, dz, t):
             z, dz = with_rates(z, dz, t)
             if tangent:
                 d, dd = self.rates_tangent(z, thrust, dz, d_thrust)
-                return d * self._mask(d), dd * self._mask(d)[:, None]
-            return self.rates(z, thrust) * self._mask(z), None
+                return d * mask, dd * mask[:, None]
+            return self.rates(z, thrust) * mask, None
 
         h = DT / self.substeps
         z, dz = x, dx
@@ -317,13 +321,6 @@ class LaggedCtbrPhysics(HeldRatesPhysics):
                 dz = dz + (h / 6.0) * (d1 + 2.0 * (d2 + d3) + d4)
             z, dz = with_rates(z, dz, t + h)
         return (z, dz) if tangent else z
-
-    @staticmethod
-    def _mask(z: torch.Tensor) -> torch.Tensor:
-        """(12,) ones but for the rates' slots: their path is the lag's solution, not integrated."""
-        m = torch.ones(12, dtype=z.dtype, device=z.device)
-        m[6:9] = 0.0
-        return m
 
 
 #: Names of the inputs in a register's extra states, by command level.
@@ -588,6 +585,21 @@ def rollout_loss(model: FlightModel, z0, xs, us, ok) -> torch.Tensor:
     return total / (4.0 * n)
 
 
+def _identified_physics(physics_kw: dict, level: str):
+    """``(physics, gain)``: the identified physics of ``physics_kw`` at ``level`` and the gain on the logged input
+    (see :func:`train_flight_model`)."""
+    if level not in ("wrench", "ctbr"):
+        raise ValueError(f"level must be 'wrench' or 'ctbr'; found {level!r}")
+    p = physics_kw["p"]
+    drags = [physics_kw.get(k, (0.0,) * 3) for k in ("linear_drag", "quadratic_drag", "accel_bias")]
+    if level == "ctbr":
+        # one RK4 substep, as the wrench level's held-rates physics: the network answers for what it leaves
+        return (CtbrPhysics(p.m, p.g, p.c_d, *drags, thrust_gain=physics_kw.get("thrust_gain", 1.0),
+                            substeps=PHYSICS_SUBSTEPS), np.ones(4))
+    return (HeldRatesPhysics(p.m, p.g, p.c_d, *drags),
+            np.asarray(physics_kw.get("wrench_gain", (1.0,) * 4), dtype=float))
+
+
 def train_flight_model(train_flights, val_flights, physics_kw: dict | None, config: FlightTrainConfig,
                        progress=None, level: str = "wrench", physics: HeldRatesPhysics | None = None
                        ) -> FlightTrainResult:
@@ -616,22 +628,10 @@ def train_flight_model(train_flights, val_flights, physics_kw: dict | None, conf
 
     torch.manual_seed(config.seed)
     gen = np.random.default_rng(config.seed)
-    if physics is not None:
-        gain = np.ones(4)
-    elif level == "ctbr":
-        p = physics_kw["p"]
-        drags = [physics_kw.get(k, (0.0,) * 3) for k in ("linear_drag", "quadratic_drag", "accel_bias")]
-        gain = np.ones(4)
-        # one RK4 substep, as the wrench level's held-rates physics: the network answers for what it leaves
-        physics = CtbrPhysics(p.m, p.g, p.c_d, *drags, thrust_gain=physics_kw.get("thrust_gain", 1.0),
-                              substeps=PHYSICS_SUBSTEPS)
-    elif level == "wrench":
-        p = physics_kw["p"]
-        drags = [physics_kw.get(k, (0.0,) * 3) for k in ("linear_drag", "quadratic_drag", "accel_bias")]
-        gain = np.asarray(physics_kw.get("wrench_gain", (1.0,) * 4), dtype=float)
-        physics = HeldRatesPhysics(p.m, p.g, p.c_d, *drags)
+    if physics is None:
+        physics, gain = _identified_physics(physics_kw, level)
     else:
-        raise ValueError(f"level must be 'wrench' or 'ctbr'; found {level!r}")
+        gain = np.ones(4)
     model = FlightModel(physics, flight_stats(train_flights, gain, config.history), config.history, config.hidden,
                         config.layers)
     windows = _Windows(train_flights, gain, config.history)

@@ -189,8 +189,8 @@ class LearnSettings:
 
     @property
     def tag(self) -> str:
-        """The study's folder and model-name stem: the plant's key, with ``_<level>`` beside the wrench level."""
-        return self.plant if self.level == "wrench" else f"{self.plant}_{self.level}"
+        """The study's folder and model-name stem (:func:`study_tag`)."""
+        return study_tag({"plant": self.plant, "level": self.level})
 
     def record(self) -> dict:
         """The settings as stored in ``settings.json`` and ``learn.json`` (the level only where it is not the
@@ -340,7 +340,7 @@ def flights_dataset(flights: list[dict], vehicle=None):
     ``vehicle`` is the vehicle flown (a name, file or :class:`sim.vehicles.vehicle.Vehicle`; None: the default vehicle).
     """
     from sim.identification.excitation import Dataset
-    from sim.flightlogs.flightlog import MIN_SAMPLES, finite_samples, flights_to_dataset, flown_flight
+    from sim.flightlogs.flightlog import flights_to_dataset, flown_flight
     from sim.vehicles.vehicle import load_vehicle
 
     vehicle = load_vehicle(vehicle)
@@ -349,13 +349,11 @@ def flights_dataset(flights: list[dict], vehicle=None):
     # MIN_SAMPLES, is no log): it is left out here. Splits go by position among the flights kept, so that a crash
     # never leaves the validation or test split empty, and a flight added later never moves a kept one.
     fl, splits = [], {}
-    for f in flights:
-        if finite_samples(f["x"], f["rotor_speed"]) < max(L + 1, MIN_SAMPLES):    # its one-step pairs: samples - 1
-            continue
+    for f in _kept(flights):
         j = len(fl)
         fl.append(flown_flight(f["name"], f["t"], f["x"], f["rotor_speed"], vehicle, command=f["command"],
                                reference=f["reference"]))
-        splits[f["name"]] = "val" if j % SPLIT_EVERY == 4 else "test" if j % SPLIT_EVERY == 5 else "train"
+        splits[f["name"]] = _split_of(j)
     if not fl:
         raise ScenarioError(f"no flown flight is {L * DT:g} s long: nothing to learn from")
     ds = flights_to_dataset(fl, vehicle, splits)
@@ -371,6 +369,21 @@ def flights_dataset(flights: list[dict], vehicle=None):
     split = np.array([ds.split[i] for i, _ in rows])
     meta = {**ds.meta, "pieces": {"steps": L, "count": len(rows), "flights": len(fl)}}
     return Dataset(**take, split=split, meta=meta)
+
+
+def _kept(flights: list[dict]) -> list[dict]:
+    """The flights long enough to learn from: at least one piece (:data:`PIECE_STEPS` one-step pairs) and the logs'
+    least length of finite samples (a flight cut short by a crash gives less)."""
+    from sim.flightlogs.flightlog import MIN_SAMPLES, finite_samples
+
+    return [f for f in flights
+            if finite_samples(f["x"], f["rotor_speed"]) >= max(PIECE_STEPS + 1, MIN_SAMPLES)]
+
+
+def _split_of(j: int) -> str:
+    """The split of the ``j``-th flight kept: of every :data:`SPLIT_EVERY`, the fifth for validation, the sixth for
+    test."""
+    return {4: "val", 5: "test"}.get(j % SPLIT_EVERY, "train")
 
 
 @dataclass(frozen=True)
@@ -395,22 +408,16 @@ def ctbr_flights(flights: list[dict]) -> dict[str, list[FlownSeries]]:
     piece (:data:`PIECE_STEPS`) and the logs' least length is left out, and of every :data:`SPLIT_EVERY` flights
     kept, in the order given, the fifth is for validation and the sixth for test.
     """
-    from sim.flightlogs.flightlog import MIN_SAMPLES, finite_samples
-
     out: dict[str, list[FlownSeries]] = {"train": [], "val": [], "test": []}
-    j = 0
-    for f in flights:
-        if finite_samples(f["x"], f["rotor_speed"]) < max(PIECE_STEPS + 1, MIN_SAMPLES):
-            continue
+    kept = _kept(flights)
+    for j, f in enumerate(kept):
         x = np.asarray(f["x"], dtype=float)
         bad = np.flatnonzero(~np.all(np.isfinite(x), axis=1))
         n = len(x) if bad.size == 0 else int(bad[0])
         cmd = np.asarray(f["command"], dtype=float)[:n]
         u = np.concatenate([cmd, cmd[-1:]])[:n] if len(cmd) < n else cmd[:n]
-        split = "val" if j % SPLIT_EVERY == 4 else "test" if j % SPLIT_EVERY == 5 else "train"
-        out[split].append(FlownSeries(f["name"], x[:n].copy(), u, np.ones(n, dtype=bool)))
-        j += 1
-    if not j:
+        out[_split_of(j)].append(FlownSeries(f["name"], x[:n].copy(), u, np.ones(n, dtype=bool)))
+    if not kept:
         raise ScenarioError(f"no flown flight is {PIECE_STEPS * DT:g} s long: nothing to learn from")
     return out
 
@@ -791,17 +798,22 @@ def _controls(s: LearnSettings, out: Path, flights: list[dict], final: str, jobs
     p = s.spec
     c = out / "controls"
     seconds = sum(f["seconds"] for f in flights)
+    todo = {}
     # Same minutes of open-loop excitation: pinnmpc data's flights on this plant, in the regime of its best model
     # (flown at the wrench level only: at ctbr there is no open-loop control).
-    n_open = max(2, math.ceil(seconds / OPEN_LOOP_FLIGHT_S - 1e-9))
-    open_path = c / "openloop_data.npz"
-    if s.level == "wrench" and not open_path.is_file():
-        _say(progress, f"controls: {n_open} open-loop excitation flights of {OPEN_LOOP_FLIGHT_S:g} s ({p.open_loop})")
-        vehicle = load_vehicle(p.vehicle)
-        ds = make_dataset(p.open_loop, n_open, OPEN_LOOP_FLIGHT_S, s.seed, noise=NoiseModel(),
-                          fidelity=vehicle.named_fidelity("high" if p.high_fidelity else "nominal"), plant=p.plant,
-                          vehicle=vehicle, workers=jobs)
-        ds.save(open_path)
+    if s.level == "wrench":
+        n_open = max(2, math.ceil(seconds / OPEN_LOOP_FLIGHT_S - 1e-9))
+        open_path = c / "openloop_data.npz"
+        if not open_path.is_file():
+            _say(progress, f"controls: {n_open} open-loop excitation flights of {OPEN_LOOP_FLIGHT_S:g} s "
+                           f"({p.open_loop})")
+            vehicle = load_vehicle(p.vehicle)
+            ds = make_dataset(p.open_loop, n_open, OPEN_LOOP_FLIGHT_S, s.seed, noise=NoiseModel(),
+                              fidelity=vehicle.named_fidelity("high" if p.high_fidelity else "nominal"),
+                              plant=p.plant, vehicle=vehicle, workers=jobs)
+            ds.save(open_path)
+        todo["openloop"] = (open_path, {"flights": n_open, "flight_minutes": n_open * OPEN_LOOP_FLIGHT_S / 60.0,
+                                        "kind": f"open-loop excitation ({p.open_loop})"})
     # The upper bound: the final model's flights plus one iteration's worth of flights of the evaluation reference
     # itself (perturbed, dithered), flown with the final model: what the loop would reach had it been allowed to fly
     # the test.
@@ -810,16 +822,10 @@ def _controls(s: LearnSettings, out: Path, flights: list[dict], final: str, jobs
     up = _flights_stage(s, c / "upper_flights.npz", [FlightJob(s, "upper", 0, k, final) for k in range(n_up)],
                         jobs, progress, "upper bound", held_out=False)
     up_data = flights + up if s.level == "ctbr" else _dataset_file(c / "upper_data.npz", flights + up, p.vehicle)
-    todo = {
-        "openloop": (open_path, {"flights": n_open, "flight_minutes": n_open * OPEN_LOOP_FLIGHT_S / 60.0,
-                                 "kind": f"open-loop excitation ({p.open_loop})"}),
-        "upper": (up_data, {"flights": len(flights) + len(up),
-                            "flight_minutes": sum(f["seconds"] for f in flights + up) / 60.0,
-                            "kind": f"the final model's flights plus {len(up)} of the evaluation reference "
-                                    f"(upper bound)"}),
-    }
-    if s.level != "wrench":
-        del todo["openloop"]
+    todo["upper"] = (up_data, {"flights": len(flights) + len(up),
+                               "flight_minutes": sum(f["seconds"] for f in flights + up) / 60.0,
+                               "kind": f"the final model's flights plus {len(up)} of the evaluation reference "
+                                       f"(upper bound)"})
     recs = {}
     items = []
     for k, (path, data) in todo.items():
