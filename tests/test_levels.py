@@ -319,6 +319,26 @@ def test_versus_at_a_level_flies_the_published_learning_study_s_final_model_ther
     assert plant_models("rotorpy", tmp_path, "ctbr") == ["nominal"]
 
 
+@pytest.mark.parametrize("content,why", [("", "is not the summary of pinnmpc learn (Expecting value"),
+                                         ("[1, 2]", "is not the summary of pinnmpc learn ('list' object"),
+                                         ('{"plant": "rotorpy"}', "'final_model' must name its final model; found None"),
+                                         ('{"final_model": 3}', "'final_model' must name its final model; found 3")])
+def test_a_broken_published_study_summary_is_one_line_naming_the_file(tmp_path, capsys, content, why):
+    """pinnmpc versus --level ctbr refuses an unreadable or incomplete published summary before flying or writing
+    anything: exit 2, one line naming the file."""
+    from scenarios.cli import main
+
+    folder = tmp_path / "models" / "learn" / "highfi_ctbr"
+    folder.mkdir(parents=True)
+    (folder / "learn.json").write_text(content)
+    out = tmp_path / "out"
+    assert main(["versus", "--level", "ctbr", "--plants", "highfi", "--models", str(tmp_path / "models"),
+                 "--out", str(out), "--members", "1", "--ladder-members", "1"]) == 2
+    err = capsys.readouterr().err
+    assert str(folder / "learn.json") in err and why in err and err.count("\n") == 1
+    assert not out.exists()
+
+
 def test_a_study_of_a_zoo_with_no_model_at_the_level_is_refused_before_anything_is_written(tmp_path, capsys):
     from scenarios.cli import main
 

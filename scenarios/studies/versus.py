@@ -140,7 +140,14 @@ def learned_at_level(key: str, models_dir, level: str) -> list[str]:
     summary = Path(models_dir) / LEARNED_SUMMARY.format(key=key, level=level)
     if not summary.is_file():
         return []
-    final = summary.parent / f"{json.loads(summary.read_text())['final_model']}.onnx"
+    try:
+        stem = json.loads(summary.read_text()).get("final_model")
+    except (ValueError, AttributeError, UnicodeDecodeError) as e:
+        raise ScenarioError(f"{str(summary)!r} is not the summary of pinnmpc learn ({e})") from None
+    if not isinstance(stem, str) or not stem:
+        raise ScenarioError(f"{str(summary)!r} is not the summary of pinnmpc learn: 'final_model' must name its "
+                            f"final model; found {stem!r}")
+    final = summary.parent / f"{stem}.onnx"
     return [str(final)] if final.is_file() and declared_level(str(final)) == level else []
 
 
