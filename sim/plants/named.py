@@ -10,8 +10,10 @@ from .plant import Plant, SimPlant, WindFn
 from ..vehicles.vehicle import load_vehicle
 
 #: Plant names, the default first. ``drone-models[:PHYSICS]`` are the Crazyflie models identified from real flights
-#: (:mod:`sim.plants.drone_models_plant`; the level ``ctatt`` only).
-PLANTS = ("sim", "rotorpy", "rotorpy-ideal", "drone-models", "drone-models:so_rpy", "drone-models:so_rpy_rotor")
+#: (:mod:`sim.plants.drone_models_plant`; the level ``ctatt`` only); ``crazyflow`` a Crazyflie simulated with its
+#: Mellinger onboard loops (:mod:`sim.plants.crazyflow_plant`; ``ctbr`` and ``ctatt``).
+PLANTS = ("sim", "rotorpy", "rotorpy-ideal", "drone-models", "drone-models:so_rpy", "drone-models:so_rpy_rotor",
+          "crazyflow")
 #: Plants whose equations this project knows (they have an oracle): our simulator's nominal set-up, and RotorPy
 #: without motor lag and aerodynamics (the same rigid body, no drag). RotorPy's aerodynamics have no such form here.
 KNOWN_EQUATIONS = ("sim", "rotorpy-ideal")
@@ -48,7 +50,8 @@ def make_plant(name: str = "sim", vehicle=None, *, high_fidelity: bool = False, 
     flies it through the vehicle's inner loop (:class:`sim.plants.inner_loop.InnerLoopPlant`, the vehicle file's
     ``[inner_loop]``), RotorPy through its own onboard controllers with that table's rate and gains
     (:class:`sim.plants.rotorpy_plant.RotorPyPlant`); a vehicle without one is refused. The drone-models plants
-    (:class:`sim.plants.drone_models_plant.DroneModelsPlant`) take ``ctatt`` only.
+    (:class:`sim.plants.drone_models_plant.DroneModelsPlant`) take ``ctatt`` only; ``crazyflow``
+    (:class:`sim.plants.crazyflow_plant.CrazyflowPlant`) ``ctbr`` and ``ctatt``.
     """
     from ..levels import DEFAULT_LEVEL, check_level
 
@@ -76,4 +79,11 @@ def make_plant(name: str = "sim", vehicle=None, *, high_fidelity: bool = False, 
         from .drone_models_plant import DroneModelsPlant, parse_plant_name
 
         return DroneModelsPlant(vehicle, parse_plant_name(name), level, payload_kg=payload_kg, wind=wind)
+    if name == "crazyflow":
+        if high_fidelity:
+            raise SimInputError("high fidelity is a set-up of the reference simulator (plant 'sim'); plant "
+                                "'crazyflow' has its own rotor dynamics")
+        from .crazyflow_plant import CrazyflowPlant
+
+        return CrazyflowPlant(vehicle, level, payload_kg=payload_kg, wind=wind)
     raise SimInputError(f"plant must be one of {', '.join(PLANTS)}; found {name!r}")
