@@ -677,7 +677,7 @@ def test_the_report_reads_a_ctbr_study_beside_the_wrench_one_and_names_its_level
 
 
 # ------------------------------------------------------------------ the shipped study
-SHIPPED_PLANTS = ("highfi", "rotorpy", "crazyflie", "rotorpy_ctbr")
+SHIPPED_PLANTS = ("highfi", "rotorpy", "crazyflie", "rotorpy_ctbr", "highfi_ctbr")
 
 
 @pytest.mark.parametrize("plant", SHIPPED_PLANTS)
