@@ -13,8 +13,9 @@ model or its loops is rewritten here; what this module adds is the boundary:
 
 * frames: crazyflow is z-up with an FLU body and ``R = Rz(yaw) Ry(pitch) Rx(roll)``, its attitude a quaternion
   (x, y, z, w); with ``F = diag(1, -1, -1)`` positions and velocities convert as ``F v``, body rates as ``F w`` and
-  the angles as ``(phi, -theta, -psi)`` (as for RotorPy and drone-models). Its floor stops a drone at height 0, so
-  this plant flies :data:`ALTITUDE_OFFSET_M` above it (our scenarios fly near the origin);
+  the angles as ``(phi, -theta, -psi)`` (:mod:`sim.plants.zup_frames`, as for RotorPy and drone-models). Its
+  floor stops a drone at height 0, so this plant flies :data:`ALTITUDE_OFFSET_M` above it (our scenarios fly near
+  the origin);
 * the command: ours at ``ctbr`` is ``[T, p, q, r]``; at ``ctatt`` ``[T, phi, theta, r]`` with a yaw *rate*, which
   crazyflow takes as a yaw *angle*, so the yaw-rate command is integrated, from the yaw at :meth:`reset`, at every
   tick. Rate commands are clipped to the vehicle's ``max_rate`` and tilt commands to its ``max_tilt`` (as the other
@@ -48,6 +49,7 @@ from ..errors import PlantUnavailableError, SimInputError
 from ..levels import check_level
 from ..vehicles.vehicle import Vehicle
 from .plant import PLANT_TICK_S, Plant, PlantOutput, WindFn, plant_time
+from .zup_frames import FLIP, euler_from_quat, quat_from_euler, unwrap_euler
 
 #: crazyflow's drones that have a vehicle file here.
 DRONES = ("cf2x_L250",)
@@ -59,8 +61,6 @@ SIM_HZ = int(round(1.0 / PLANT_TICK_S))
 LOOP_HZ = 500
 #: Height of our origin above crazyflow's floor, m.
 ALTITUDE_OFFSET_M = 100.0
-#: The frame flip between NED/FRD and z-up/FLU.
-FLIP = np.array([1.0, -1.0, -1.0])
 
 _UNAVAILABLE = "plant 'crazyflow' needs the crazyflow package: python -m pip install -e '.[crazyflow]'"
 
@@ -169,9 +169,7 @@ class CrazyflowPlant(Plant):
         return float((-c1 + np.sqrt(c1 * c1 - 4.0 * c2 * (c0 - per_rotor))) / (2.0 * c2))
 
     def _reset(self, x0, rotor_speed):
-        from scipy.spatial.transform import Rotation
-
-        quat = Rotation.from_euler("xyz", x0[3:6] * FLIP).as_quat()
+        quat = quat_from_euler(*x0[3:6])
         pos = x0[0:3] * FLIP + np.array([0.0, 0.0, ALTITUDE_OFFSET_M])
         state = self._request("reset", pos, quat, x0[9:12] * FLIP, x0[6:9] * FLIP, np.full(4, self._hover_rpm()))
         self._rpm = state[4]
@@ -185,8 +183,6 @@ class CrazyflowPlant(Plant):
         return PlantOutput(x, np.full(4, np.nan), np.array([thrust, np.nan, np.nan, np.nan]), np.zeros(4, dtype=bool))
 
     def _advance(self, u, ticks):
-        from scipy.spatial.transform import Rotation
-
         c = self.loop
         force = np.zeros(3) if self.wind is None else \
             (self.model_mass + self.payload_kg) * FLIP * np.asarray(self.wind(plant_time(self._ticks)), dtype=float)
@@ -202,12 +198,9 @@ class CrazyflowPlant(Plant):
         pos, quat, vel, ang_vel, self._rpm = state
         x = np.empty(12)
         x[0:3] = (pos - np.array([0.0, 0.0, ALTITUDE_OFFSET_M])) * FLIP
-        x[3:6] = Rotation.from_quat(quat).as_euler("xyz") * FLIP
+        x[3:6] = unwrap_euler(euler_from_quat(quat), self.x[3:6])    # continuous, never wrapped
         x[6:9] = ang_vel * FLIP
         x[9:12] = vel * FLIP
-        # Euler angles are continuous here (never wrapped): unwrap against the state before the call.
-        prev = self.x
-        x[3:6] = prev[3:6] + (x[3:6] - prev[3:6] + np.pi) % (2.0 * np.pi) - np.pi
         return self._output(x)
 
     def describe(self) -> dict:

@@ -45,14 +45,13 @@ from ..errors import PlantUnavailableError, SimInputError
 from ..levels import check_level
 from ..vehicles.vehicle import Vehicle
 from .plant import PLANT_TICK_S, Plant, PlantOutput, WindFn, plant_time
+from .zup_frames import FLIP
 
 #: The package's model variants this plant flies, and the default.
 PHYSICS = ("so_rpy", "so_rpy_rotor", "so_rpy_rotor_drag")
 DEFAULT_PHYSICS = "so_rpy_rotor_drag"
 #: The drones with fitted parameters in drone-models 0.1.0 (a vehicle file of this project each, where shipped).
 DRONES = ("cf2x_L250", "cf2x_P250", "cf2x_T350", "cf21B_500")
-#: The frame flip between NED/FRD and z-up/FLU.
-FLIP = np.array([1.0, -1.0, -1.0])
 
 _UNAVAILABLE = "plant 'drone-models' needs the drone-models package: python -m pip install -e '.[drone-models]'"
 

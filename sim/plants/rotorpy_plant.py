@@ -115,12 +115,11 @@ from ..levels import DEFAULT_LEVEL, check_level
 from ..vehicles.onboard import InnerLoopConfig
 from ..vehicles.rotors import wrench_from_rotor_sq
 from ..vehicles.vehicle import Vehicle
+from .zup_frames import FLIP, euler_from_quat, quat_from_euler, unwrap_euler
 
 #: RotorPy's index (0-based) of our rotor i: our rotors 1-4 are RotorPy's r2, r3, r4, r1. For an array ``a`` in our
 #: order, ``rp = np.empty(4); rp[ROTORPY_INDEX] = a`` is RotorPy's order; ``rp[ROTORPY_INDEX]`` is ours again.
 ROTORPY_INDEX = np.array([1, 2, 3, 0])
-#: The frame flip ``diag(F)``: NED <-> z-up world, FRD <-> FLU body.
-FLIP = np.array([1.0, -1.0, -1.0])
 #: RotorPy's gravity, m/s^2 (fixed in ``Multirotor``).
 ROTORPY_G = 9.81
 #: ``solve_ivp`` settings per set-up (``ideal``: no motor lag and no aerodynamics; ``physics``: any effect on).
@@ -233,51 +232,6 @@ def rotorpy_loop_gains(config: InnerLoopConfig) -> dict:
             "kd_att": kp.copy()}
 
 
-def _quat_from_euler(phi: float, theta: float, psi: float) -> np.ndarray:
-    """RotorPy's quaternion (xyzw) of our ZYX Euler angles: ``R_rp = F R F = Rz(-psi) Ry(-theta) Rx(phi)``."""
-    cr, sr = math.cos(0.5 * phi), math.sin(0.5 * phi)
-    cp, sp = math.cos(-0.5 * theta), math.sin(-0.5 * theta)
-    cy, sy = math.cos(-0.5 * psi), math.sin(-0.5 * psi)
-    return np.array([sr * cp * cy - cr * sp * sy,
-                     cr * sp * cy + sr * cp * sy,
-                     cr * cp * sy - sr * sp * cy,
-                     cr * cp * cy + sr * sp * sy])
-
-
-def _euler_from_quat(q: np.ndarray) -> np.ndarray:
-    """Our ZYX Euler angles (phi, theta, psi) of RotorPy's quaternion (xyzw), |theta| <= pi/2, others in [-pi, pi]."""
-    x, y, z, w = np.asarray(q, dtype=float) / np.linalg.norm(q)
-    # Rotation matrix of the z-up/FLU attitude; ours is F R F: R[i, j] * F_i * F_j.
-    r00 = 1.0 - 2.0 * (y * y + z * z)
-    r10 = 2.0 * (x * y + z * w)
-    r20 = 2.0 * (x * z - y * w)
-    r21 = 2.0 * (y * z + x * w)
-    r22 = 1.0 - 2.0 * (x * x + y * y)
-    # Ours: R00 = r00, R10 = -r10, R20 = -r20, R21 = r21, R22 = r22.
-    phi = math.atan2(r21, r22)
-    theta = math.atan2(r20, math.hypot(r21, r22))
-    psi = math.atan2(-r10, r00)
-    return np.array([phi, theta, psi])
-
-
-def unwrap_euler(angles, previous) -> np.ndarray:
-    """The ZYX Euler angles of the attitude ``angles`` (3,) nearest to ``previous`` (3,), rad.
-
-    Both representations of one attitude, ``(phi, theta, psi)`` and ``(phi + pi, pi - theta, psi + pi)``, are
-    shifted by whole turns towards ``previous``; the nearer one is returned, so angles integrated through +-pi
-    (and beyond) stay continuous.
-    """
-    a = np.asarray(angles, dtype=float)
-    prev = np.asarray(previous, dtype=float)
-    best, best_d = None, math.inf
-    for cand in (a, np.array([a[0] + math.pi, math.pi - a[1], a[2] + math.pi])):
-        shifted = cand + 2.0 * math.pi * np.round((prev - cand) / (2.0 * math.pi))
-        dist = float(np.sum((shifted - prev) ** 2))
-        if dist < best_d:
-            best, best_d = shifted, dist
-    return best
-
-
 def to_rotorpy_state(x, rotor_speed) -> dict:
     """RotorPy's state dictionary of our state ``x`` (12,) and rotor speeds (4,) in our order, RU.
 
@@ -300,7 +254,7 @@ def _to_rotorpy(x: np.ndarray, n: np.ndarray) -> dict:
     """Unchecked :func:`to_rotorpy_state` (a diverging flight's non-finite state passes through)."""
     n_rp = np.empty(4)
     n_rp[ROTORPY_INDEX] = n
-    return {"x": FLIP * x[0:3], "v": FLIP * x[9:12], "q": _quat_from_euler(x[3], x[4], x[5]),
+    return {"x": FLIP * x[0:3], "v": FLIP * x[9:12], "q": quat_from_euler(x[3], x[4], x[5]),
             "w": FLIP * x[6:9], "wind": np.zeros(3), "rotor_speeds": n_rp}
 
 
@@ -312,7 +266,7 @@ def from_rotorpy_state(state: dict, previous) -> tuple[np.ndarray, np.ndarray]:
     """
     x = np.empty(NX)
     x[0:3] = FLIP * np.asarray(state["x"], dtype=float)
-    x[3:6] = unwrap_euler(_euler_from_quat(state["q"]), np.asarray(previous, dtype=float)[3:6])
+    x[3:6] = unwrap_euler(euler_from_quat(state["q"]), np.asarray(previous, dtype=float)[3:6])
     x[6:9] = FLIP * np.asarray(state["w"], dtype=float)
     x[9:12] = FLIP * np.asarray(state["v"], dtype=float)
     n = np.asarray(state["rotor_speeds"], dtype=float)[ROTORPY_INDEX]
@@ -425,7 +379,7 @@ class RotorPyPlant(Plant):
             return {"cmd_thrust": float(u[0]), "cmd_w": FLIP * w}
         tilt = np.clip(u[1:3], -c.max_tilt, c.max_tilt)
         self._yaw_ref += float(np.clip(u[3], -c.max_rate, c.max_rate)) * c.period_s
-        return {"cmd_thrust": float(u[0]), "cmd_q": _quat_from_euler(tilt[0], tilt[1], self._yaw_ref)}
+        return {"cmd_thrust": float(u[0]), "cmd_q": quat_from_euler(tilt[0], tilt[1], self._yaw_ref)}
 
     def _advance(self, u, ticks):
         if self.loop is None:
