@@ -24,12 +24,15 @@ def register(sub) -> None:
     p = sub.add_parser("train", help="train one PINN, export it to ONNX and record it in the manifest",
                        description="Physics-informed training with parameter identification; writes "
                                    "NAME.onnx, NAME.jac.onnx, NAME.pt into --out and updates --out/manifest.json.")
-    p.add_argument("--arch", required=True, choices=ARCHS)
+    p.add_argument("--arch", required=True, choices=ARCHS + ("ctbr",),
+                   help="the architecture; ctbr: the ctbr level's nominal model plus a network with a register, "
+                        "from a dataset flown at that level (pinnmpc data --level ctbr; docs/levels.md)")
     p.add_argument("--recipe", default=None, choices=("baseline", "proposed"),
                    help="training recipe, if not the architecture's own (hybrid trains with the baseline recipe; "
                         "--recipe proposed adds curriculum, scheduled sampling, dropout, energy and smoothness)")
-    p.add_argument("--profile", default="quick", choices=("quick", "full"),
-                   help="budget: quick (CI, < 60 s) or full (shipped models)")
+    p.add_argument("--profile", default="quick", choices=("quick", "full", "smoke"),
+                   help="budget: quick (CI, < 60 s) or full (shipped models); smoke (--arch ctbr only: a few "
+                        "seconds, for trying the command)")
     p.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--data", type=Path, default=None, help="dataset .npz from `pinnmpc data`")
@@ -106,16 +109,22 @@ def _dataset(args):
         noise = "default" if any(m["noise"].values()) else "none"
         spec = {"file": str(args.data), "regime": m["regime"], "n_traj": m["n_traj"], "duration_s": m["duration_s"],
                 "seed": m["seed"], "noise": noise, "fingerprint": ds.fingerprint()}
+        if ds.level != "wrench":
+            spec["level"] = ds.level
         return ds, spec
     fidelity = getattr(args, "fidelity", "nominal")
     inputs = getattr(args, "inputs", "commanded")
-    ds = make_dataset(args.regime, 100, 10.0, args.data_seed, fidelity=FIDELITIES[fidelity], inputs=inputs)
+    level = "ctbr" if getattr(args, "arch", None) == "ctbr" else "wrench"
+    ds = make_dataset(args.regime, 100, 10.0, args.data_seed, fidelity=FIDELITIES[fidelity], inputs=inputs,
+                      level=level)
     spec = {"regime": args.regime, "n_traj": 100, "duration_s": 10.0, "seed": args.data_seed, "noise": "default"}
     # Recorded only off their defaults, so that the description (and hash) of older models stays as it was.
     if fidelity != "nominal":
         spec["fidelity"] = fidelity
     if inputs != "commanded":
         spec["inputs"] = inputs
+    if level != "wrench":
+        spec["level"] = level
     spec["fingerprint"] = ds.fingerprint()
     return ds, spec
 
@@ -123,6 +132,7 @@ def _dataset(args):
 def default_name(arch: str, spec: dict) -> str:
     """File stem of a trained model: ARCH, then _REGIME off the small regime, _highfi (or the effect), _realized."""
     name = arch if spec["regime"] == "small" else f"{arch}_{spec['regime']}"
+    name += "" if arch == spec.get("level", "wrench") or "level" not in spec else f"_{spec['level']}"
     fidelity = spec.get("fidelity", "nominal")
     if fidelity != "nominal":
         name += "_highfi" if fidelity == "high" else "_" + fidelity.replace("-", "_")
@@ -157,7 +167,22 @@ def cmd_train(args: argparse.Namespace) -> int:
     if not 0.0 <= args.dropout_until <= 1.0:
         raise ValueError(f"--dropout-until must lie in [0, 1]; found {args.dropout_until}")
     overrides = {"dropout_until": args.dropout_until} if args.dropout_until != 1.0 else {}
+    if args.arch == "ctbr":
+        for flag, given in (("--recipe", args.recipe is not None), ("--dropout-until", bool(overrides)),
+                            ("--inputs", args.inputs != "commanded")):
+            if given:
+                raise ValueError(f"{flag} applies to the wrench architectures; --arch ctbr has its own recipe")
+    elif args.profile == "smoke":
+        raise ValueError(f"--profile smoke is --arch ctbr's; --arch {args.arch} takes quick or full")
     ds, spec = _dataset(args)
+    if args.arch == "ctbr" and ds.level != "ctbr":
+        raise ValueError(f"--arch ctbr learns from a dataset flown at the ctbr level (pinnmpc data --level ctbr); "
+                         f"--data {str(args.data)!r} holds commands at the {ds.level} level")
+    if args.arch != "ctbr" and ds.level != "wrench":
+        raise ValueError(f"--data {str(args.data)!r} holds commands at the {ds.level} level; --arch {args.arch} "
+                         f"learns from wrenches (--arch ctbr learns at ctbr)")
+    if args.arch == "ctbr":
+        return _train_ctbr(args, ds, spec)
     own = args.arch if args.arch in ("baseline", "proposed") else "baseline"
     recipe = None if args.recipe in (None, own) else args.recipe
     name = args.name or default_name(args.arch if recipe is None else f"{args.arch}_{recipe}", spec)
@@ -202,6 +227,50 @@ def cmd_train(args: argparse.Namespace) -> int:
           f"100-step MAE position {r['position']:.3g} m, phi {r['phi']:.3g} rad, diverged {r['n_diverged']}/{r['n_rollouts']}")
     print("  theta-hat error %: " + ", ".join(f"{k} {v:+.2f}" for k, v in last["theta_err_pct"].items()))
     print(f"  validation loss {last['val']:.3e} (first epoch {res.history[0]['val']:.3e}); manifest {manifest}")
+    return 0
+
+
+def _train_ctbr(args: argparse.Namespace, ds, spec: dict) -> int:
+    """``pinnmpc train --arch ctbr``: :func:`pinn.ctbr.train_ctbr` on the dataset's splits, exported with its
+    derivative graph (level ``ctbr``) and recorded in the manifest."""
+    import dataclasses
+
+    import torch
+
+    from sim.vehicles.vehicle import load_vehicle
+
+    from .ctbr import CTBR_ARCH, dataset_series, train_ctbr
+    from .flights import export_flight_model
+    from .manifest import update_manifest
+
+    torch.set_num_threads(args.threads)
+    vehicle = load_vehicle(ds.meta.get("vehicle"))
+    plant = ds.meta.get("plant", "sim")
+    name = args.name or default_name("ctbr", spec)
+    say = (lambda line: print(line, file=sys.stderr)) if sys.stderr.isatty() else None
+    t = train_ctbr(dataset_series(ds), plant, vehicle, args.seed, args.profile, progress=say)
+    res = t.result
+    if not np.all(np.isfinite(res.scores)):
+        raise ValueError(f"training {name} ended with a non-finite validation score ({res.scores[-1]}); nothing was "
+                         f"written to {args.out}")
+    path = export_flight_model(res.model, args.out / f"{name}.onnx", t.theta, CTBR_ARCH, level="ctbr")
+    cmd = (f"pinnmpc train --arch ctbr --profile {args.profile} --seed {args.seed} "
+           + (f"--data {args.data} " if args.data else f"--regime {spec['regime']} --data-seed {spec['seed']} "
+              + (f"--fidelity {spec['fidelity']} " if "fidelity" in spec else ""))
+           + f"--threads {args.threads} " + (f"--name {args.name} " if args.name else "") + f"--out {args.out}")
+    entry = {"files": {"onnx": path.name, "jacobian": f"{name}.jac.onnx"}, "command": cmd, "seed": args.seed,
+             "architecture": "ctbr", "recipe": CTBR_ARCH, "level": "ctbr", "profile": args.profile, "data": spec,
+             "plant": plant, "vehicle": vehicle.name, "train": dataclasses.asdict(t.config),
+             "flights": {k: len(v) for k, v in dataset_series(ds).items()}, "best_epoch": res.best_epoch,
+             "validation_scores": [float(v) for v in res.scores], "test_errors": t.test_errors,
+             "rate_tau_s": t.rate_tau_s, "theta": t.theta, "training_seconds": round(res.seconds, 1),
+             "torch_version": torch.__version__, "cpu_count": os.cpu_count()}
+    manifest = update_manifest(args.out, name, entry)
+    print(f"trained {name} (ctbr, {args.profile}) in {res.seconds:.0f} s -> {path}")
+    print(f"  best epoch {res.best_epoch} of {len(res.scores)}, validation score {min(res.scores):.3f} (1 = the goal)")
+    print("  test flights' open-loop error at h = 1, 10, 50: "
+          + "; ".join(f"{q} " + "/".join(f"{v:.3g}" for v in e) for q, e in t.test_errors.items()))
+    print(f"  manifest {manifest}")
     return 0
 
 

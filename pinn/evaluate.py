@@ -299,9 +299,9 @@ def _spec_task(task) -> tuple[dict, list[dict]]:
 #: Fisher bounds and the classical estimator (``sim``), the metrics (``pinn``) and the model contract.
 EVALUATION_CODE = ("sim", "pinn", "mpc/prediction/contract.py", "mpc/prediction/models.py", "mpc/errors.py")
 #: Code under EVALUATION_CODE that neither the evaluation nor the Fisher table imports (the flight-log import and
-#: its benchmark), left out of their keys so that work on it does not call for a recomputation (a test holds that
+#: its benchmark, the flight models and the ctbr learner), left out of their keys so that work on it does not call for a recomputation (a test holds that
 #: they do not import it).
-KEY_EXCLUDES = ("sim/flightlogs", "pinn/flights.py")
+KEY_EXCLUDES = ("sim/flightlogs", "pinn/flights.py", "pinn/ctbr.py")
 
 
 def evaluation_key(folder, extra_specs=()) -> str:
@@ -332,6 +332,19 @@ def evaluate_dir(folder, data_path=None, progress: bool = False, jobs: int = 1, 
     files = [p for d in folders for p in model_files(d)]
     if not files:
         raise ValueError(f"no .onnx models in {', '.join(repr(str(d)) for d in folders)}")
+    from mpc.prediction.contract import declared_level
+
+    for f in files:
+        if (level := declared_level(f)) != "wrench":
+            raise ValueError(f"{f}: the model takes {level} commands; the evaluation's tables are of wrench-level "
+                             f"models (a model trained with pinnmpc train --arch ctbr has its open-loop errors in "
+                             f"its manifest entry)")
+    if data_path is not None:
+        from sim.identification.excitation import load_dataset
+
+        if (level := load_dataset(data_path).level) != "wrench":
+            raise ValueError(f"--data {str(data_path)!r} holds commands at the {level} level; the evaluation's "
+                             f"models take wrenches")
     groups: dict[str, list] = {}
     specs: dict[str, dict] = {}
     for f in files:

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from .files import check_writable, write_json
+from .levels import DATA_LEVELS
 from .params import FIDELITIES, INPUT_LOGS, THETA_NAMES
 
 
@@ -44,8 +45,11 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, type=Path, help="output file, .npz")
     p.add_argument("--json", type=Path, default=None, help="also write the summary as JSON")
     p.add_argument("--jobs", type=int, default=1,
-                   help="processes flying at once on a plant that flies one vehicle at a time (RotorPy; default 1); "
-                        "the dataset is the same for any number")
+                   help="processes flying at once on a plant that flies one vehicle at a time (RotorPy, or any "
+                        "plant at --level ctbr; default 1); the dataset is the same for any number")
+    p.add_argument("--level", choices=DATA_LEVELS, default="wrench",
+                   help="what the excitation commands and the dataset logs: wrench (thrust and torques, default) or "
+                        "ctbr (thrust and body rates, flown through the vehicle's inner loop; docs/levels.md)")
     add_plant_options(p, " ; --fidelity applies to sim only")
     p.set_defaults(handler=cmd_data)
 
@@ -91,12 +95,14 @@ def cmd_data(args: argparse.Namespace) -> int:
     ds = make_dataset(args.regime, args.n_traj, args.duration, args.seed,
                       noise=NoiseModel() if args.noise == "default" else NoiseModel.none(),
                       fidelity=vehicle.named_fidelity(args.fidelity), inputs=args.inputs,
-                      progress=sys.stderr.isatty(), plant=args.plant, vehicle=vehicle, workers=args.jobs)
+                      progress=sys.stderr.isatty(), plant=args.plant, vehicle=vehicle, workers=args.jobs,
+                      level=args.level)
     ds.save(args.out)
     s = ds.summary()
     lo, hi = s["envelope_deg"]
     print(f"wrote {args.out}: {s['samples']} samples, {args.n_traj} trajectories x {ds.meta['duration_s']:g} s "
-          f"(train/val/test {s['trajectories']['train']}/{s['trajectories']['val']}/{s['trajectories']['test']})")
+          + ("" if ds.level == "wrench" else f"at the {ds.level} level ")
+          + f"(train/val/test {s['trajectories']['train']}/{s['trajectories']['val']}/{s['trajectories']['test']})")
     print(f"  regime {s['regime']}: max |roll| {s['max_abs_roll_deg']:.1f} deg, max |pitch| "
           f"{s['max_abs_pitch_deg']:.1f} deg (target {lo:g}-{hi:g}: "
           f"{'reached' if s['envelope_reached'] else 'NOT reached'}), yaw {s['yaw_range_deg'][0]:.0f} to "

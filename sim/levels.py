@@ -22,6 +22,8 @@ from .params import INPUT_NAMES
 LEVELS = ("wrench", "ctbr", "ctatt")
 #: The level of a model, a run or a plant that names none.
 DEFAULT_LEVEL = "wrench"
+#: The levels an excitation dataset is flown and logged at (``pinnmpc data --level``).
+DATA_LEVELS = ("wrench", "ctbr")
 #: The names of the four inputs at each level (a model file's ``input_names`` metadata).
 LEVEL_INPUTS = {
     "wrench": INPUT_NAMES,
@@ -41,3 +43,14 @@ def check_level(level, name: str = "level") -> str:
     if not isinstance(level, str) or level not in LEVELS:
         raise SimInputError(f"{name} must be one of {', '.join(LEVELS)}; found {level!r}")
     return level
+
+
+def rate_dither_std(torque_std, params) -> "np.ndarray":
+    """The body-rate dither (3,) at ``ctbr`` that shakes a vehicle about as much as the torque dither ``torque_std``
+    (3,) at the wrench level: the change of each rate that torque makes in one control period on the vehicle's
+    inertia, ``std_tau / J * dt`` (rad/s; ``params`` a :class:`sim.params.QuadParams`)."""
+    import numpy as np
+
+    from .params import DT
+
+    return np.asarray(torque_std, dtype=float) / np.array([params.Jxx, params.Jyy, params.Jzz]) * DT

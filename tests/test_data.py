@@ -5,7 +5,7 @@ import hashlib
 import numpy as np
 import pytest
 
-from sim import NoiseModel, Simulator
+from sim import NOMINAL, NoiseModel, Simulator
 from sim.identification.excitation import REGIMES, load_dataset, make_dataset
 
 TOL = {
@@ -143,3 +143,87 @@ def test_realized_inputs_log_the_applied_wrench_of_the_same_flights():
     sat = np.any(cmd.saturated, axis=-1)
     gap = np.max(np.abs(cmd.u - real.u) / np.array([1.0, 1e-3, 1e-3, 1e-3]), axis=-1)
     assert sat.any() and np.all(gap[~sat] < TOL["realized_rounding"]) and np.all(gap[sat] > 1e3 * TOL["realized_rounding"])
+
+
+# ------------------------------------------------------------------ the excitation at the ctbr level
+#: The wrench level's dataset of ("small", 6 flights, 10 s, seed 0) before the excitation learned the ctbr level: its
+#: arrays must not move.
+WRENCH_FINGERPRINT = "930f0e93909c1a8f9f7e5cabe6ac31f67a2cfa179329db426ad915d5cc08cd69"
+
+
+def _replayed(ds, plant: str, high_fidelity: bool = False):
+    """Each noise-free trajectory flown again through a fresh plant at ctbr from its first state with its logged
+    commands: the states (n_traj, n_steps, 12)."""
+    from sim.plants.named import make_plant
+
+    out = np.empty_like(ds.x_next)
+    for i in range(ds.n_traj):
+        pl = make_plant(plant, ds.meta["vehicle"], high_fidelity=high_fidelity, level="ctbr")
+        pl.reset(ds.x[i, 0])
+        for k in range(ds.x.shape[1]):
+            out[i, k] = pl.step(ds.u[i, k]).x
+    return out
+
+
+def test_the_wrench_excitation_is_unchanged_by_the_levels():
+    ds = make_dataset("small", 6, 10.0, 0)
+    assert ds.fingerprint() == WRENCH_FINGERPRINT and "level" not in ds.meta and ds.level == "wrench"
+
+
+@pytest.mark.parametrize("high_fidelity", [False, True])
+def test_a_ctbr_excitation_logs_the_thrust_and_rate_commands_its_inner_loop_flew(high_fidelity):
+    """Replayed through the vehicle's inner loop (a fresh plant at ctbr), the logged commands give the logged next
+    states exactly; the rates stay inside the vehicle's largest rate command."""
+    from sim.vehicles.vehicle import load_vehicle
+
+    veh = load_vehicle(None)
+    fidelity = veh.fidelity if high_fidelity else NOMINAL
+    ds = make_dataset("aggressive", 3, 1.5, 4, noise=NoiseModel.none(), level="ctbr", fidelity=fidelity)
+    assert ds.level == "ctbr" and ds.meta["level"] == "ctbr"
+    assert np.array_equal(_replayed(ds, "sim", high_fidelity), ds.x_next)
+    assert np.max(np.abs(ds.u[..., 1:])) <= veh.inner_loop_at("ctbr").max_rate
+    # The wrench level's plant given the same numbers flies another flight.
+    shifted = Simulator(veh.params, fidelity).step(ds.x[:, 0], ds.u[:, 0])
+    assert not np.allclose(shifted, ds.x_next[:, 0], rtol=0, atol=1e-6)
+
+
+def test_a_ctbr_excitation_on_rotorpy_replays_through_its_onboard_controller_and_any_worker_count():
+    pytest.importorskip("rotorpy")
+    one = make_dataset("small", 3, 0.5, 2, noise=NoiseModel.none(), level="ctbr", plant="rotorpy")
+    two = make_dataset("small", 3, 0.5, 2, noise=NoiseModel.none(), level="ctbr", plant="rotorpy", workers=2)
+    assert one.fingerprint() == two.fingerprint()
+    assert np.array_equal(_replayed(one, "rotorpy"), one.x_next)
+
+
+@pytest.mark.parametrize("regime", list(REGIMES))
+def test_a_ctbr_excitation_reaches_its_regimes_envelope(regime):
+    ds = make_dataset(regime, 4, 10.0, 100, noise=NoiseModel.none(), level="ctbr")
+    lo, hi = REGIMES[regime].envelope_deg
+    roll, pitch = envelope(ds)
+    assert max(roll, pitch) <= hi and min(roll, pitch) >= lo, (roll, pitch)
+    # Two ctbr datasets of one seed are equal; of sizes 2 and 4 share their first two flights.
+    small = make_dataset(regime, 2, 10.0, 100, noise=NoiseModel.none(), level="ctbr")
+    assert np.array_equal(small.x, ds.x[:2]) and np.array_equal(small.u, ds.u[:2])
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(level="ctatt"), "level must be one of wrench, ctbr for an excitation"),
+    (dict(level="torque"), "level must be one of wrench, ctbr, ctatt"),
+    (dict(level="ctbr", inputs="realized"), "inputs='realized' logs a realized wrench"),
+])
+def test_bad_levels_are_refused_by_name(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        make_dataset("small", 2, 1.0, 0, **kwargs)
+
+
+def test_data_at_ctbr_refuses_a_vehicle_without_an_inner_loop_and_writes_nothing(tmp_path, capsys):
+    from scenarios.cli import main
+    from sim.vehicles.vehicle import load_vehicle
+
+    path = tmp_path / "bare.toml"
+    path.write_text(load_vehicle("crazyflie").replace(name="bare", inner_loop=None).to_toml())
+    out = tmp_path / "d.npz"
+    assert main(["data", "--regime", "small", "--n-traj", "2", "--duration", "1", "--level", "ctbr",
+                 "--vehicle", str(path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "inner_loop.rate_kp is missing" in err and err.count("\n") == 1 and not out.exists(), err

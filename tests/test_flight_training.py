@@ -435,3 +435,77 @@ def test_the_lagged_rates_physics_refuses_a_time_constant_that_is_not_positive()
             LaggedCtbrPhysics(P.m, P.g, P.c_d, tau)
     with pytest.raises(ValueError, match="^substeps must be an integer >= 1"):
         LaggedCtbrPhysics(P.m, P.g, P.c_d, (0.01,) * 3, substeps=0)
+
+
+# ------------------------------------------------------------------ learning at ctbr from an excitation dataset
+def test_a_ctbr_excitation_becomes_flights_of_its_own_splits():
+    from pinn.ctbr import dataset_series
+
+    ds = make_dataset("small", 7, 1.0, 3, level="ctbr")
+    series = dataset_series(ds)
+    assert {k: len(v) for k, v in series.items()} == {"train": 5, "val": 1, "test": 1}
+    for split, flights in series.items():
+        for f in flights:
+            i = int(f.name[4:])
+            assert ("train", "val", "test")[int(ds.split[i])] == split
+            np.testing.assert_array_equal(f.x[:-1], ds.x[i])
+            np.testing.assert_array_equal(f.x[1:], ds.x_next[i])
+            np.testing.assert_array_equal(f.u[:-1], ds.u[i])
+            assert f.x_ok.all() and len(f.x_ok) == ds.x.shape[1] + 1
+
+
+def test_the_ctbr_learner_beats_its_physics_on_a_plant_with_motor_lag():
+    """On our high-fidelity plant at ctbr (a 30 ms motor lag and rotor drag, neither in the level's nominal model),
+    the network trained on the excitation's training flights scores below the nominal physics alone on its
+    validation flights."""
+    from pinn.ctbr import CTBR_HISTORY, ctbr_physics, dataset_series
+    from pinn.flights import FlightModel
+    from sim.flightlogs.logbench import goal_score as score
+    from sim.vehicles.vehicle import load_vehicle
+
+    veh = load_vehicle(None)
+    series = dataset_series(make_dataset("aggressive", 8, 4.0, 0, level="ctbr", fidelity=veh.fidelity))
+    physics, _ = ctbr_physics("sim", veh)
+    cfg = FlightTrainConfig(history=CTBR_HISTORY, epochs=3, steps_per_epoch=30, windows=64, hidden=32, layers=2,
+                            validation_stride=5)
+    res = train_flight_model(series["train"], series["val"], None, cfg, physics=physics)
+    alone = FlightModel(physics, flight_stats(series["train"], np.ones(4), CTBR_HISTORY), CTBR_HISTORY, 32, 2)
+    step, start = flight_step(alone, np.ones(4))
+    physics_score = score(prediction_errors(step, series["val"], start=start, stride=5).to_dict())
+    assert min(res.scores) < LEARNED_GAIN * physics_score, (res.scores, physics_score)
+
+
+def test_train_arch_ctbr_writes_a_ctbr_model_reruns_exactly_and_refuses_the_other_level(tmp_path, capsys):
+    import onnxruntime as ort
+
+    from mpc.prediction.contract import check_model
+    from scenarios.cli import main
+    from sim.vehicles.vehicle import load_vehicle
+
+    ctbr, wrench = tmp_path / "ctbr.npz", tmp_path / "wrench.npz"
+    make_dataset("small", 8, 3.0, 0, level="ctbr").save(ctbr)
+    make_dataset("small", 8, 3.0, 0).save(wrench)
+    outs = []
+    for run in ("a", "b"):
+        assert main(["train", "--arch", "ctbr", "--profile", "smoke", "--data", str(ctbr), "--out",
+                     str(tmp_path / run)]) == 0
+        info = check_model(tmp_path / run / "ctbr.onnx")
+        assert info.level == "ctbr" and info.jacobian is not None
+        sess = ort.InferenceSession(str(tmp_path / run / "ctbr.onnx"), providers=["CPUExecutionProvider"])
+        z = np.random.default_rng(0).normal(0.0, 0.1, (5, sess.get_inputs()[0].shape[-1]))
+        outs.append(sess.run(None, {sess.get_inputs()[0].name: z, sess.get_inputs()[1].name: np.ones((5, 4))})[0])
+    np.testing.assert_array_equal(outs[0], outs[1])
+    entry = json.loads((tmp_path / "a" / "manifest.json").read_text())["ctbr"]
+    assert entry["level"] == "ctbr" and entry["data"]["level"] == "ctbr" and entry["data"]["n_traj"] == 8
+    assert entry["flights"] == {"train": 6, "val": 1, "test": 1}
+    assert entry["rate_tau_s"] == pytest.approx(list(load_vehicle(None).inner_loop_at("ctbr").response().rate_tau),
+                                                rel=1e-12)
+    capsys.readouterr()
+    for args, message in ((["--arch", "ctbr", "--data", str(wrench)], "--arch ctbr learns from a dataset flown at"),
+                          (["--arch", "hybrid", "--data", str(ctbr)], "holds commands at the ctbr level"),
+                          (["--arch", "ctbr", "--recipe", "proposed", "--data", str(ctbr)], "--recipe applies to"),
+                          (["--arch", "hybrid", "--profile", "smoke", "--data", str(wrench)], "--profile smoke is")):
+        assert main(["train", *args, "--out", str(tmp_path / "c")]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, err
+        assert not (tmp_path / "c").exists()

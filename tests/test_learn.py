@@ -256,6 +256,24 @@ def test_the_ctbr_learner_trains_on_flown_flights_and_writes_a_ctbr_model(tmp_pa
         learn.train_ctbr_model(s, flights[:5], tmp_path, "m2", 1, {})
 
 
+def test_the_ctbr_open_loop_control_trains_on_an_excitation_flown_at_ctbr(tmp_path):
+    """The same-minutes control at ctbr: an excitation dataset flown through the inner loop (its file's path) is
+    trained with the dataset's own splits; the plant's best open-loop model at ctbr is the one trained at ctbr."""
+    from mpc.prediction.contract import check_model
+    from sim.identification.excitation import make_dataset
+
+    ds = make_dataset("small", 8, 2.0, 0, level="ctbr")
+    path = ds.save(tmp_path / "openloop_data.npz")
+    s = LearnSettings(plant="highfi", level="ctbr", profile="smoke")
+    rec = learn.train_ctbr_model(s, path, tmp_path, "open", 1, {"flights": 8})
+    assert rec["flights"] == {k: int(np.sum(ds.split == i)) for i, k in enumerate(("train", "val", "test"))}
+    assert check_model(tmp_path / "open.onnx").level == "ctbr"
+    p = learn.LEARN_PLANTS["highfi"]
+    assert p.best_open_loop_at("wrench") == p.best_open_loop and "ctbr" not in p.best_open_loop
+    assert p.best_open_loop_at("ctbr").startswith("versus/ctbr/")
+    assert learn.LEARN_PLANTS["crazyflie"].best_open_loop_at("ctbr") is None
+
+
 def test_training_data_without_a_validation_or_test_flight_is_refused_by_name(tmp_path):
     flights = [_hover_flight(f"f{i}", learn.PIECE_STEPS + 1, i) for i in range(5)]    # no sixth: no test flight
     path = tmp_path / "data.npz"

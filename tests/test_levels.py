@@ -290,10 +290,12 @@ def test_versus_at_a_level_flies_the_nominal_model_there_and_its_own_file():
 
     models = Path(__file__).resolve().parents[1] / "models"
     assert plant_models("highfi", models)[:2] == ["nominal", "oracle"] and len(plant_models("highfi", models)) > 2
-    # at ctbr: the shipped open-loop models take wrenches and the true equations have no inner loop with the plant's
-    # lag; the final model of the ctbr learning study published for the plant is added
-    assert plant_models("highfi", models, "ctbr") == ["nominal",
-                                                      str(models / "learn/highfi_ctbr/learn_highfi_ctbr_it3.onnx")]
+    # at ctbr: the open-loop models trained at ctbr (not those at the wrench level) and no true equations (none
+    # has an inner loop with the plant's lag); the final model of the ctbr learning study published for the plant
+    assert plant_models("highfi", models, "ctbr") == ["nominal"] + [str(models / f) for f in (
+        "versus/ctbr/ctbr_highfi.onnx", "versus/ctbr/ctbr_aggressive_highfi.onnx",
+        "learn/highfi_ctbr/learn_highfi_ctbr_it3.onnx")]
+    assert not [m for m in plant_models("highfi", models) if "ctbr" in m]
     assert plant_models("rotorpy", models, "ctatt") == ["nominal"]
     specs = versus_specs("highfi", ["nominal"], members=2, ladder_members=1, level="ctbr")
     assert {s.level for s in specs["ensemble"]["nominal"]} == {"ctbr"}

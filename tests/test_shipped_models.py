@@ -44,6 +44,11 @@ REQUIRED_IDENT = {f"{a}_{c}" for a in ("baseline", "proposed")
 ARCHS = ("baseline", "modular", "fourier", "proposed", "hybrid", "hybrid_lag")
 REQUIRED_VERSUS = {"modular_highfi", "fourier_highfi", "hybrid_highfi", "hybrid_lag_aggressive_highfi"} | {
     f"{a}_rotorpy" for a in ARCHS}
+#: The open-loop models at the ctbr level (models/versus/ctbr, their own manifest): ``pinnmpc train --arch ctbr`` on
+#: ``pinnmpc data --level ctbr`` of each plant of the study, small and aggressive.
+VERSUS_CTBR = VERSUS / "ctbr"
+VERSUS_CTBR_MANIFEST = json.loads((VERSUS_CTBR / "manifest.json").read_text())
+REQUIRED_VERSUS_CTBR = {f"ctbr{r}_{p}" for r in ("", "_aggressive") for p in ("highfi", "rotorpy")}
 
 
 def envelope_inputs(n, seed=0):
@@ -56,10 +61,13 @@ def envelope_inputs(n, seed=0):
 
 def model_inputs(path, n, seed=0):
     """Envelope states and inputs for a shipped model: a model with extra states gets them at rest for each input
-    (held state and input), then moved 5 % off it, so that they are exercised away from equilibrium."""
+    (held state and input), then moved 5 % off it, so that they are exercised away from equilibrium. A model at
+    ``ctbr`` gets body-rate commands within 2 rad/s instead of torques."""
     from mpc.prediction.contract import _with_extra_at_rest
     x, u = envelope_inputs(n, seed)
     info = check_model(path)
+    if info.level == "ctbr":
+        u[:, 1:] = np.random.default_rng(seed + 2).uniform(-2.0, 2.0, (n, 3))
     if not info.extra_states:
         return x, u
     z = _with_extra_at_rest(open_session(path), x, u, info.extra_states, str(path), "test")
@@ -103,7 +111,8 @@ def test_torch_and_onnxruntime_agree(folder, name):
     assert np.max(np.abs(got - ref) / scale) < TOL["parity"]
 
 
-@pytest.mark.parametrize("folder, name", ALL, ids=IDS)
+@pytest.mark.parametrize("folder, name", ALL + [(VERSUS_CTBR, n) for n in sorted(VERSUS_CTBR_MANIFEST)],
+                         ids=IDS + [f"versus/ctbr/{n}" for n in sorted(VERSUS_CTBR_MANIFEST)])
 def test_exported_derivatives_match_central_differences(folder, name):
     x, u = model_inputs(folder / f"{name}.onnx", 20, seed=1)
     model = open_session(folder / f"{name}.onnx")
@@ -183,3 +192,42 @@ def test_retraining_a_versus_model_reproduces_it(tmp_path, name):
     """Retrain a models/versus model (5-10 minutes); RotorPy's dataset first, with the manifest's data command
     (about 4 minutes)."""
     _retrain(VERSUS_MANIFEST[name], name, tmp_path)
+
+
+def test_the_open_loop_models_at_ctbr_are_shipped_at_their_level_with_their_record():
+    """Each declares ctbr with its derivative graph and the register of its history, and its manifest entry names
+    its data (flown at ctbr on its plant) and the rate time constants of its physics (the vehicle file's)."""
+    from pinn.ctbr import CTBR_ARCH, CTBR_HISTORY
+    from pinn.flights import register_names
+    from sim.vehicles.vehicle import load_vehicle
+
+    assert set(VERSUS_CTBR_MANIFEST) == REQUIRED_VERSUS_CTBR
+    tau = list(load_vehicle(None).inner_loop_at("ctbr").response().rate_tau)
+    for name, entry in VERSUS_CTBR_MANIFEST.items():
+        info = check_model(VERSUS_CTBR / entry["files"]["onnx"])
+        assert info.level == "ctbr" and info.jacobian == jacobian_path(VERSUS_CTBR / f"{name}.onnx")
+        assert info.architecture == CTBR_ARCH and tuple(info.extra_states) == register_names(CTBR_HISTORY, "ctbr")
+        assert entry["data"]["level"] == "ctbr" and entry["plant"] == name.rsplit("_", 1)[1].replace("highfi", "sim")
+        assert ("aggressive" in name) == (entry["data"]["regime"] == "aggressive")
+        assert entry["rate_tau_s"] == pytest.approx(tau, rel=1e-12)
+
+
+@pytest.mark.retrain
+@pytest.mark.parametrize("name", sorted(VERSUS_CTBR_MANIFEST))
+def test_retraining_a_ctbr_versus_model_reproduces_it(tmp_path, name):
+    """Fly its dataset again at ctbr (the manifest's data command: 20 s on our plant, 2 minutes on RotorPy) and
+    retrain it (about 2 minutes): the same data, test errors within 5 %."""
+    from scenarios.cli import main
+
+    entry = VERSUS_CTBR_MANIFEST[name]
+    data = shlex.split(entry["data_command"])[1:]
+    data[data.index("--out") + 1] = str(tmp_path / "data.npz")
+    assert main(data) == 0
+    args = shlex.split(entry["command"])[1:]
+    args[args.index("--data") + 1] = str(tmp_path / "data.npz")
+    args[args.index("--out") + 1] = str(tmp_path)
+    assert main(args) == 0
+    new = json.loads((tmp_path / "manifest.json").read_text())[name]
+    assert new["data"]["fingerprint"] == entry["data"]["fingerprint"]
+    for q, old in entry["test_errors"].items():
+        assert np.allclose(new["test_errors"][q], old, rtol=TOL["reproduce"], atol=0), (q, old, new["test_errors"][q])

@@ -108,7 +108,9 @@ def learn_section(studies: dict | None, run_dir: Path, figure_md) -> str:
         ev = st["evaluation"]
         level = st.get("level", "wrench")
         at = "" if level == "wrench" else (f", at the `{level}` level (the level's nominal model plus a network on "
-                                           f"the rates and the velocity; no open-loop control)")
+                                           f"the rates and the velocity"
+                                           + ("" if "openloop" in (st.get("controls") or {}) else
+                                              "; no open-loop control") + ")")
         parts.append(f"**{ev['label']}**{at} (`{ev['scenario']}`; {_members(st['settings'])}, "
                      f"{fmt(st.get('study_seconds', st['wall_time_s']) / 60, '.0f')} min on two cores, "
                      f"{st.get('date', 'undated')})")

@@ -54,15 +54,14 @@ def level_dither_std(params, level: str, scale: float = 1.0) -> np.ndarray:
     scale : float
         Multiplies every standard deviation (>= 0; 0: no dither).
     """
-    from sim.params import DT
+    from sim.levels import rate_dither_std
 
     std = dither_std(params, scale)
     if level == "wrench":
         return std
     if level != "ctbr":
         raise ScenarioError(f"level must be 'wrench' or 'ctbr' for a dither; found {level!r}")
-    inertia = np.array([params.Jxx, params.Jyy, params.Jzz])
-    return np.r_[std[0], std[1:] / inertia * DT]
+    return np.r_[std[0], rate_dither_std(std[1:], params)]
 
 
 class Dithered:

@@ -41,6 +41,8 @@ import numpy as np
 from sim.files import write_json
 from sim.params import DT
 
+from pinn.ctbr import CTBR_ARCH, CTBR_HISTORY, CTBR_PROFILES, FlownSeries  # noqa: F401  (torch-free settings)
+
 from ..errors import ScenarioError
 from ..sweeps.lock import locks_out_dir
 
@@ -82,7 +84,8 @@ class LearnPlant:
 
     ``versus`` is the key of the plant in :data:`scenarios.studies.versus.VERSUS_PLANTS` (its scenario suffix, label and
     vehicle); ``open_loop`` the excitation regime of the same-data control; ``best_open_loop`` the path (under the
-    models folder) of the best model trained on open-loop excitation of this plant (None: there is none).
+    models folder) of the best model trained on open-loop excitation of this plant (None: there is none), and
+    ``best_open_loop_ctbr`` that of the best one trained on excitation flown at ``ctbr``.
     """
 
     key: str
@@ -90,6 +93,11 @@ class LearnPlant:
     versus: str
     open_loop: str
     best_open_loop: str | None
+    best_open_loop_ctbr: str | None = None
+
+    def best_open_loop_at(self, level: str) -> str | None:
+        """The best open-loop model at ``level`` (a path under the models folder; None: there is none)."""
+        return self.best_open_loop_ctbr if level == "ctbr" else self.best_open_loop
 
     @property
     def plant(self) -> str:
@@ -107,8 +115,10 @@ class LearnPlant:
 
 
 LEARN_PLANTS = {
-    "highfi": LearnPlant("highfi", True, "highfi", "aggressive", "versus/hybrid_lag_aggressive_highfi.onnx"),
-    "rotorpy": LearnPlant("rotorpy", False, "rotorpy", "small", "versus/hybrid_lag_rotorpy.onnx"),
+    "highfi": LearnPlant("highfi", True, "highfi", "aggressive", "versus/hybrid_lag_aggressive_highfi.onnx",
+                         "versus/ctbr/ctbr_aggressive_highfi.onnx"),
+    "rotorpy": LearnPlant("rotorpy", False, "rotorpy", "small", "versus/hybrid_lag_rotorpy.onnx",
+                          "versus/ctbr/ctbr_aggressive_rotorpy.onnx"),
     "crazyflie": LearnPlant("crazyflie", False, "crazyflie", "small", None),
 }
 
@@ -121,18 +131,7 @@ SETTING_OPTIONS = {"plant": "--plant", "iterations": "--iterations", "per_level"
 #: The command levels the study learns at: the wrench (:data:`LEARN_ARCH`, the rotor speeds as states) and ``ctbr``
 #: (:data:`CTBR_ARCH`). At ``ctatt`` no learner is written.
 LEARN_LEVELS = ("wrench", "ctbr")
-#: Periods of commands and body rates in the register of the ``ctbr`` learner's model. Its period costs the SQP, on
-#: RotorPy's figure8-fast (one run each, idle machine): 9.2 ms with none, 14.8 with 1, 18.8 with 2, 31.8 with 4
-#: (the nominal model 7.3): 2 is the longest memory the study can fly at about the wrench level's pace.
-CTBR_HISTORY = 2
-#: What is learned at ``ctbr``: the level's nominal model (the rigid body whose rates follow their commands as
-#: first-order lags, :class:`pinn.flights.LaggedCtbrPhysics`) plus a network on the rates and the velocity, with a
-#: register of the last :data:`CTBR_HISTORY` commands and rates; trained on open-loop rollouts of the flights
-#: (:func:`pinn.flights.train_flight_model`).
-CTBR_ARCH = f"nominal ctbr physics + network, history {CTBR_HISTORY}"
-#: Training budgets at ``ctbr`` by profile: :class:`pinn.flights.FlightTrainConfig` settings changed from its own.
-CTBR_PROFILES = {"scaled": {"epochs": 12}, "full": {"epochs": 12}, "quick": {},
-                 "smoke": {"epochs": 2, "steps_per_epoch": 4, "windows": 32, "hidden": 16, "layers": 2}}
+# The ctbr learner's register, description and budgets (pinn.ctbr): CTBR_HISTORY, CTBR_ARCH, CTBR_PROFILES.
 
 
 @dataclass(frozen=True)
@@ -386,21 +385,6 @@ def _split_of(j: int) -> str:
     return {4: "val", 5: "test"}.get(j % SPLIT_EVERY, "train")
 
 
-@dataclass(frozen=True)
-class FlownSeries:
-    """A flown flight as the ``ctbr`` learner takes it (:func:`pinn.flights.train_flight_model`'s flights).
-
-    ``x`` (n, 12) the measured states; ``u`` (n, 4) the command in effect from each sample to the next (the last row
-    repeats the one before); ``x_ok`` (n,) the finite samples (a crashed flight's are cut before its first
-    non-finite state).
-    """
-
-    name: str
-    x: np.ndarray
-    u: np.ndarray
-    x_ok: np.ndarray
-
-
 def ctbr_flights(flights: list[dict]) -> dict[str, list[FlownSeries]]:
     """The flown flights by split (``train``, ``val``, ``test``) for the ``ctbr`` learner.
 
@@ -423,47 +407,45 @@ def ctbr_flights(flights: list[dict]) -> dict[str, list[FlownSeries]]:
 
 
 def ctbr_physics(settings: "LearnSettings"):
-    """The ``ctbr`` nominal model of the study's plant and vehicle in torch (:class:`pinn.flights.LaggedCtbrPhysics`)
-    and the vehicle's ``theta`` written into the model file."""
-    from mpc.prediction.models import model_params
-    from pinn.flights import LaggedCtbrPhysics
+    """The ``ctbr`` nominal model of the study's plant and vehicle in torch (:func:`pinn.ctbr.ctbr_physics`) and the
+    vehicle's ``theta`` written into the model file."""
+    from pinn.ctbr import ctbr_physics as physics_of
     from sim.vehicles.vehicle import load_vehicle
 
-    p = settings.spec
-    vehicle = load_vehicle(p.vehicle)
-    params = model_params("nominal", p.plant, vehicle)
-    response = vehicle.inner_loop_at("ctbr").response()
-    theta = {k: float(getattr(params, k)) for k in ("m", "Jxx", "Jyy", "Jzz", "kt", "kq")}
-    return LaggedCtbrPhysics(params.m, params.g, params.c_d, response.rate_tau), theta
+    return physics_of(settings.spec.plant, load_vehicle(settings.spec.vehicle))
 
 
-def train_ctbr_model(settings: LearnSettings, flights: list[dict], folder, name: str, threads: int,
-                     data: dict) -> dict:
-    """Train :data:`CTBR_ARCH` on ``flights`` (:func:`fly_flight`'s records at ``ctbr``) and export it as
+def train_ctbr_model(settings: LearnSettings, flights, folder, name: str, threads: int, data: dict) -> dict:
+    """Train :data:`CTBR_ARCH` on ``flights`` (:func:`fly_flight`'s records at ``ctbr``, or the path of an excitation
+    dataset flown at ``ctbr``: its trajectories and splits, :func:`pinn.ctbr.dataset_series`) and export it as
     ``folder/name.onnx`` (level ``ctbr``, with its derivative graph); its record, also written to
     ``folder/name.json``: the settings, the epoch kept, the validation scores and the test flights' open-loop
     errors at h = 1, 10 and 50."""
     import torch
 
-    from pinn.flights import FlightTrainConfig, export_flight_model, flight_step, train_flight_model
-    from sim.flightlogs.logbench import prediction_errors
+    from pinn.ctbr import train_ctbr
+    from pinn.flights import export_flight_model
+    from sim.vehicles.vehicle import load_vehicle
 
     torch.set_num_threads(threads)
-    split = ctbr_flights(flights)
+    if isinstance(flights, (str, Path)):
+        from pinn.ctbr import dataset_series
+        from sim.identification.excitation import load_dataset
+
+        split = dataset_series(load_dataset(flights))
+    else:
+        split = ctbr_flights(flights)
     for k, what in (("train", "training"), ("val", "validation"), ("test", "test")):
         if not split[k]:
             raise ScenarioError(f"training {name}: its data have no {what} flight; six or more flights of at least "
                                 f"{PIECE_STEPS * DT:g} s are needed (fly more references: --per-level)")
-    physics, theta = ctbr_physics(settings)
-    cfg = FlightTrainConfig(history=CTBR_HISTORY, seed=settings.seed, **CTBR_PROFILES[settings.profile])
-    res = train_flight_model(split["train"], split["val"], None, cfg, physics=physics)
-    step, start = flight_step(res.model, np.ones(4))
-    test = prediction_errors(step, split["test"], start=start).to_dict()
-    export_flight_model(res.model, Path(folder) / f"{name}.onnx", theta, CTBR_ARCH, level="ctbr")
+    t = train_ctbr(split, settings.spec.plant, load_vehicle(settings.spec.vehicle), settings.seed, settings.profile)
+    res = t.result
+    export_flight_model(res.model, Path(folder) / f"{name}.onnx", t.theta, CTBR_ARCH, level="ctbr")
     rec = {"name": name, "onnx": f"{name}.onnx", "data": data, "recipe": CTBR_ARCH, "level": "ctbr",
-           "train": dataclasses.asdict(cfg), "flights": {k: len(v) for k, v in split.items()},
-           "best_epoch": res.best_epoch, "validation_scores": [float(v) for v in res.scores], "test_errors": test,
-           "rate_tau_s": [float(1.0 / v) for v in physics.inv_tau], "training_seconds": round(res.seconds, 1),
+           "train": dataclasses.asdict(t.config), "flights": {k: len(v) for k, v in split.items()},
+           "best_epoch": res.best_epoch, "validation_scores": [float(v) for v in res.scores],
+           "test_errors": t.test_errors, "rate_tau_s": t.rate_tau_s, "training_seconds": round(res.seconds, 1),
            "threads": threads}
     write_json(Path(folder) / f"{name}.json", rec)
     return rec
@@ -799,21 +781,20 @@ def _controls(s: LearnSettings, out: Path, flights: list[dict], final: str, jobs
     c = out / "controls"
     seconds = sum(f["seconds"] for f in flights)
     todo = {}
-    # Same minutes of open-loop excitation: pinnmpc data's flights on this plant, in the regime of its best model
-    # (flown at the wrench level only: at ctbr there is no open-loop control).
-    if s.level == "wrench":
-        n_open = max(2, math.ceil(seconds / OPEN_LOOP_FLIGHT_S - 1e-9))
-        open_path = c / "openloop_data.npz"
-        if not open_path.is_file():
-            _say(progress, f"controls: {n_open} open-loop excitation flights of {OPEN_LOOP_FLIGHT_S:g} s "
-                           f"({p.open_loop})")
-            vehicle = load_vehicle(p.vehicle)
-            ds = make_dataset(p.open_loop, n_open, OPEN_LOOP_FLIGHT_S, s.seed, noise=NoiseModel(),
-                              fidelity=vehicle.named_fidelity("high" if p.high_fidelity else "nominal"),
-                              plant=p.plant, vehicle=vehicle, workers=jobs)
-            ds.save(open_path)
-        todo["openloop"] = (open_path, {"flights": n_open, "flight_minutes": n_open * OPEN_LOOP_FLIGHT_S / 60.0,
-                                        "kind": f"open-loop excitation ({p.open_loop})"})
+    # Same minutes of open-loop excitation: pinnmpc data's flights on this plant, in the regime of its best model,
+    # flown at the study's level (at ctbr through the plant's inner loop, pinnmpc data --level ctbr).
+    n_open = max(2, math.ceil(seconds / OPEN_LOOP_FLIGHT_S - 1e-9))
+    open_path = c / "openloop_data.npz"
+    if not open_path.is_file():
+        _say(progress, f"controls: {n_open} open-loop excitation flights of {OPEN_LOOP_FLIGHT_S:g} s "
+                       f"({p.open_loop})")
+        vehicle = load_vehicle(p.vehicle)
+        ds = make_dataset(p.open_loop, n_open, OPEN_LOOP_FLIGHT_S, s.seed, noise=NoiseModel(),
+                          fidelity=vehicle.named_fidelity("high" if p.high_fidelity else "nominal"),
+                          plant=p.plant, vehicle=vehicle, workers=jobs, level=s.level)
+        ds.save(open_path)
+    todo["openloop"] = (open_path, {"flights": n_open, "flight_minutes": n_open * OPEN_LOOP_FLIGHT_S / 60.0,
+                                    "kind": f"open-loop excitation ({p.open_loop})"})
     # The upper bound: the final model's flights plus one iteration's worth of flights of the evaluation reference
     # itself (perturbed, dithered), flown with the final model: what the loop would reach had it been allowed to fly
     # the test.
@@ -865,9 +846,10 @@ def _evaluate(s: LearnSettings, out: Path, models_dir, final: str, controls: dic
     from mpc.prediction.contract import declared_level
 
     models = ["nominal"]
-    best = None if s.spec.best_open_loop is None else Path(models_dir) / s.spec.best_open_loop
+    best = s.spec.best_open_loop_at(s.level)
+    best = None if best is None else Path(models_dir) / best
     if best is not None and not (best.is_file() and declared_level(str(best)) == s.level):
-        best = None             # absent, or at another level (every shipped open-loop model takes wrenches)
+        best = None             # absent, or at another level
     if best is not None:
         models.append(str(best))
     models.append(final)

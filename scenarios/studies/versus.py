@@ -57,7 +57,8 @@ WIN_FRACTION = 0.5
 class VersusPlant:
     """One plant of the study: where it flies, what it adds to the nominal equations, which models it flies.
 
-    ``models`` are paths under the models folder, trained on this plant's own data; ``suffix`` turns a
+    ``models`` are paths under the models folder, trained on this plant's own data (at any level: a study flies those
+    that declare its level); ``suffix`` turns a
     scenario name into this plant's variant (``+highfi`` on the reference simulator); ``oracle``: the plant's
     true equations are known and fly too; ``vehicle`` the vehicle flown (a shipped vehicle's name; None: the
     default vehicle).
@@ -80,12 +81,14 @@ VERSUS_PLANTS = {
         "sim", "+highfi", "our high-fidelity plant (30 ms motor lag, rotor drag, gyroscopic torque)",
         ("identification/baseline_highfi.onnx", "versus/modular_highfi.onnx", "versus/fourier_highfi.onnx",
          "identification/proposed_highfi.onnx", "versus/hybrid_highfi.onnx", "identification/hybrid_lag_highfi.onnx",
-         "versus/hybrid_lag_aggressive_highfi.onnx"),
+         "versus/hybrid_lag_aggressive_highfi.onnx", "versus/ctbr/ctbr_highfi.onnx",
+         "versus/ctbr/ctbr_aggressive_highfi.onnx"),
         True),
     "rotorpy": VersusPlant(
         "rotorpy", "", "RotorPy with its motor lag and aerodynamics",
         tuple(f"versus/{a}_rotorpy.onnx" for a in ("baseline", "modular", "fourier", "proposed", "hybrid",
-                                                   "hybrid_lag")),
+                                                   "hybrid_lag"))
+        + ("versus/ctbr/ctbr_rotorpy.onnx", "versus/ctbr/ctbr_aggressive_rotorpy.onnx"),
         False),
     # No open-loop model is trained on it: the learning study (pinnmpc learn) flies it.
     "crazyflie": VersusPlant("rotorpy", "", "RotorPy's Crazyflie 2.0 preset (72 ms motor lag, rotor drag)", (), False,

@@ -17,6 +17,11 @@ Controller (vectorized over trajectories):
 * inner loop: feedback linearization of the Euler-angle dynamics with LQR
   gains (``control.dlqr``) on each angle;
 * input dither: white Gaussian noise on thrust and torques.
+
+At the ``ctbr`` level (:mod:`sim.levels`) the same flights are flown through the vehicle's inner loop: the
+controller sends collective thrust and body rates (the attitude error through a P gain, :data:`ATTITUDE_RATE_GAIN`,
+plus the reference model's rate, turned into body rates), the plant's onboard rate loop makes the torques, and the
+dither falls on the rates (the torque dither's change of rate in one period, ``std_tau / J * dt``).
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ from scipy.linalg import expm
 from .._version import __version__
 from .._validate import choice, positive_finite, positive_int
 from ..errors import DatasetError, SimInputError
+from ..levels import DATA_LEVELS, DEFAULT_LEVEL, check_level, rate_dither_std
 from ..params import DT, INPUT_LOGS, NOMINAL, Fidelity, NoiseModel, QuadParams
 from ..plants.named import PLANTS, known_equations, make_plant
 from ..equations.simulator import Simulator
@@ -75,6 +81,9 @@ INNER_Q = (2.0e4, 180.0)       # about 12 rad/s, damping 0.9
 OUTER_Q = (5.0, 3.0)           # about 1.5 rad/s, damping 0.9
 EXCITATION_FILTER_RAD_S = 8.0  # critically damped filter on the attitude steps
 YAW_FILTER_RAD_S = 3.0
+#: At ``ctbr``: the Euler-angle rate commanded per radian of attitude error, 1/s (the wrench level's inner LQR has a
+#: proportional-to-derivative ratio of about 6.6 1/s).
+ATTITUDE_RATE_GAIN = 8.0
 STEP_HOLD_S = (0.5, 1.5)       # hold time of each random step
 
 
@@ -120,7 +129,7 @@ class _References:
     dither: np.ndarray    # (B, K, 4) N, N m
 
 
-def _references(rngs, n_steps: int, regime: Regime, p: QuadParams) -> _References:
+def _references(rngs, n_steps: int, regime: Regime, p: QuadParams, level: str = DEFAULT_LEVEL) -> _References:
     B = len(rngs)
     t = np.arange(n_steps) * DT
     out = _References(*(np.zeros((B, n_steps, 3)) for _ in range(4)), np.zeros((B, n_steps, 4)))
@@ -133,9 +142,16 @@ def _references(rngs, n_steps: int, regime: Regime, p: QuadParams) -> _Reference
         out.att[i, :, 0] = _random_steps(rng, n_steps, DT, exc, 0.3)
         out.att[i, :, 1] = _random_steps(rng, n_steps, DT, exc, 0.3)
         out.att[i, :, 2] = _random_steps(rng, n_steps, DT, math.radians(regime.yaw_amplitude_deg), 0.0)
-        out.dither[i] = rng.standard_normal((n_steps, 4)) * np.array(
-            [DITHER_THRUST_FRAC * p.m * p.g, DITHER_TORQUE_XY, DITHER_TORQUE_XY, DITHER_TORQUE_Z])
+        out.dither[i] = rng.standard_normal((n_steps, 4)) * dither_std(p, level)
     return out
+
+
+def dither_std(p: QuadParams, level: str = DEFAULT_LEVEL) -> np.ndarray:
+    """Standard deviations (4,) of the excitation's input dither at ``level``: thrust (N) and torques (N m) at the
+    wrench level; at ``ctbr`` thrust and body rates (rad/s), each rate's the change the torque's makes in one period
+    on the vehicle's inertia."""
+    std = np.array([DITHER_THRUST_FRAC * p.m * p.g, DITHER_TORQUE_XY, DITHER_TORQUE_XY, DITHER_TORQUE_Z])
+    return std if level == DEFAULT_LEVEL else np.r_[std[0], rate_dither_std(std[1:], p)]
 
 
 # ---------------------------------------------------------------- controller
@@ -157,11 +173,19 @@ class ExcitationController:
         Attitude limits.
     x0 : numpy.ndarray, shape (B, 12)
         Initial states; the reference model starts at their attitude, at rest.
+    level : {"wrench", "ctbr"}
+        What it sends: the wrench (N, N m), or collective thrust and body rates (N, rad/s) for an onboard rate loop,
+        the rates clipped to ``max_rate``.
+    max_rate : float
+        At ``ctbr``, the largest body-rate command, rad/s.
     """
 
-    def __init__(self, p: QuadParams, regime: Regime, x0: np.ndarray):
+    def __init__(self, p: QuadParams, regime: Regime, x0: np.ndarray, level: str = DEFAULT_LEVEL,
+                 max_rate: float = math.inf):
         self.p = p
         self.regime = regime
+        self.level = level
+        self.max_rate = max_rate
         self.k_in = double_integrator_gain(INNER_Q)
         self.k_out = double_integrator_gain(OUTER_Q)
         self.J = np.array([p.Jxx, p.Jyy, p.Jzz])
@@ -172,7 +196,7 @@ class ExcitationController:
         self.eta_f_dot = np.zeros_like(self.eta_f)
 
     def __call__(self, x: np.ndarray, pos_ref, vel_ref, acc_ref, att_level) -> np.ndarray:
-        """Wrench command (B, 4) for states ``x`` (B, 12) and the references of one step.
+        """Command (B, 4) at the controller's level for states ``x`` (B, 12) and the references of one step.
 
         Advances the reference model by one control period.
         """
@@ -208,6 +232,15 @@ class ExcitationController:
         eta_dot = np.stack([omega[:, 0] + qs_rc * sth / cth,
                             omega[:, 1] * cphi - omega[:, 2] * sphi, qs_rc / cth], axis=1)
         eta = x[:, 3:6]
+        thrust = p.m * (p.g - a_d[:, 2] - drag[:, 2]) / np.maximum(cphi * cth, 0.3)
+        thrust = np.clip(thrust, 0.05 * p.m * p.g, 2.0 * p.m * p.g)
+        if self.level == "ctbr":
+            # Euler rates that close the attitude error, as body rates: w = W(eta) eta'.
+            de = eta_c_dot + ATTITUDE_RATE_GAIN * (eta_c - eta)
+            rates = np.stack([de[:, 0] - sth * de[:, 2],
+                              cphi * de[:, 1] + sphi * cth * de[:, 2],
+                              -sphi * de[:, 1] + cphi * cth * de[:, 2]], axis=1)
+            return np.column_stack([thrust, np.clip(rates, -self.max_rate, self.max_rate)])
         eta_dd = eta_c_dd - self.k_in[0] * (eta - eta_c) - self.k_in[1] * (eta_dot - eta_c_dot)
 
         # Body angular acceleration for that Euler acceleration: w' = W eta'' + W' eta'.
@@ -221,9 +254,6 @@ class ExcitationController:
             - cphi * sth * dth * dpsi,
         ], axis=1)
         torque = self.J * wd + np.cross(omega, self.J * omega)
-
-        thrust = p.m * (p.g - a_d[:, 2] - drag[:, 2]) / np.maximum(cphi * cth, 0.3)
-        thrust = np.clip(thrust, 0.05 * p.m * p.g, 2.0 * p.m * p.g)
         return np.column_stack([thrust, torque])
 
     def _advance(self, target: np.ndarray) -> None:
@@ -250,14 +280,15 @@ def _critically_damped(omega: float, dt: float):
 class Dataset:
     """Excitation dataset; arrays are (n_traj, n_steps, width).
 
-    Sample ``[i, k]`` holds the measured state ``x`` at ``t_k``, the wrench
-    command ``u`` applied during ``[t_k, t_k + dt)``, the measured rotor
+    Sample ``[i, k]`` holds the measured state ``x`` at ``t_k``, the
+    command ``u`` applied during ``[t_k, t_k + dt)`` (the wrench, or at the
+    dataset's :attr:`level` that level's command), the measured rotor
     speeds during that period and the measured state ``x_next`` at
     ``t_k + dt`` (so ``x_next[i, k] == x[i, k + 1]``).
     """
 
     x: np.ndarray            # measured state at t_k, (n_traj, n_steps, 12)
-    u: np.ndarray            # commanded wrench, N and N m, (n_traj, n_steps, 4)
+    u: np.ndarray            # command at the level: wrench (N, N m) or ctbr (N, rad/s), (n_traj, n_steps, 4)
     rotor_speed: np.ndarray  # measured rotor speeds, RU, (n_traj, n_steps, 4)
     x_next: np.ndarray       # measured state at t_k + dt, (n_traj, n_steps, 12)
     wrench: np.ndarray       # realized wrench (noise-free), (n_traj, n_steps, 4)
@@ -283,6 +314,11 @@ class Dataset:
         if self.valid is None:
             return np.ones(self.x.shape[:2], dtype=bool)
         return np.all(self.valid, axis=-1)
+
+    @property
+    def level(self) -> str:
+        """The command level of ``u`` (:mod:`sim.levels`): ``meta["level"]``, the wrench where it names none."""
+        return self.meta.get("level", DEFAULT_LEVEL)
 
     @property
     def n_traj(self) -> int:
@@ -433,31 +469,45 @@ def _fly_slice(item):
     return _fly_rows(job, lo, hi, False)
 
 
+def _trajectory_plants(plant: str, veh, p: QuadParams, fidelity: Fidelity, level: str, x0: np.ndarray):
+    """One plant per trajectory, each reset to its row of ``x0``: ``plant`` flying ``veh`` with the parameters ``p``
+    at ``level`` (at ``ctbr`` on our simulator: the simulator of ``fidelity`` behind the vehicle's inner loop)."""
+    veh = veh.replace(**{k: getattr(p, k) for k in ("m", "Jxx", "Jyy", "Jzz", "kt", "kq", "d", "c_d", "n_max")})
+    if plant == "sim":
+        from ..plants.inner_loop import InnerLoopPlant
+        from ..plants.plant import SimPlant
+
+        plants = [InnerLoopPlant(SimPlant(veh, fidelity), veh.inner_loop_at(level), level) for _ in x0]
+    else:
+        plants = [make_plant(plant, veh, level=level) for _ in x0]
+    for pl, xi in zip(plants, x0):
+        pl.reset(xi)
+    return plants
+
+
 def _fly_rows(job: tuple, lo: int, hi: int, progress: bool):
     """Fly trajectories ``lo .. hi - 1`` of :func:`make_dataset`'s ``job`` = ``(regime, seed, n_traj, n_steps, params,
-    fidelity, plant, vehicle)``; each trajectory is the same whichever slice flies it (its own random stream).
+    fidelity, plant, vehicle, level)``; each trajectory is the same whichever slice flies it (its own random stream).
 
     Returns ``(x_true (n, n_steps + 1, 12), u, rotor_speed, wrench, saturated (n, n_steps, 4))`` for ``n = hi - lo``.
     """
-    regime, seed, n_traj, n_steps, p, fidelity, plant, veh = job
+    regime, seed, n_traj, n_steps, p, fidelity, plant, veh, level = job
     reg = REGIMES[regime]
     flight_root = np.random.SeedSequence(seed).spawn(3)[0]
     rngs = [np.random.default_rng(s) for s in flight_root.spawn(n_traj)[lo:hi]]
     n = hi - lo
-    refs = _references(rngs, n_steps, reg, p)
+    refs = _references(rngs, n_steps, reg, p, level)
     sim = Simulator(p, fidelity)
     x_true = np.zeros((n, n_steps + 1, 12))
     x0 = np.zeros((n, 12))
     x0[:, 0:3] = refs.pos[:, 0]
     plants = None
-    if plant != "sim":     # one plant per trajectory (RotorPy flies one vehicle), each started at its x0
-        plants = [make_plant(plant, veh.replace(**{k: getattr(p, k) for k in ("m", "Jxx", "Jyy", "Jzz", "kt", "kq",
-                                                                              "d", "c_d", "n_max")}))
-                  for _ in range(n)]
-        for pl, xi in zip(plants, x0):
-            pl.reset(xi)
+    if plant != "sim" or level != DEFAULT_LEVEL:
+        # one plant per trajectory (RotorPy flies one vehicle; an inner loop keeps its own state), each at its x0
+        plants = _trajectory_plants(plant, veh, p, fidelity, level, x0)
     x_true[:, 0] = x0
-    ctrl = ExcitationController(p, reg, x0)
+    max_rate = veh.inner_loop_at(level).max_rate if level != DEFAULT_LEVEL else math.inf
+    ctrl = ExcitationController(p, reg, x0, level, max_rate)
     u = np.zeros((n, n_steps, 4))
     n_log = np.zeros((n, n_steps, 4))
     wrench = np.zeros((n, n_steps, 4))
@@ -485,7 +535,8 @@ def _fly_rows(job: tuple, lo: int, hi: int, progress: bool):
 def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.0, seed: int = 0, *,
                  noise: NoiseModel | None = None, fidelity: Fidelity = NOMINAL,
                  params: QuadParams | None = None, inputs: str = "commanded", progress: bool = False,
-                 with_clean: bool = False, plant: str = "sim", vehicle=None, workers: int = 1):
+                 with_clean: bool = False, plant: str = "sim", vehicle=None, workers: int = 1,
+                 level: str = DEFAULT_LEVEL):
     """Fly seeded excitation trajectories and log them.
 
     Parameters
@@ -522,11 +573,16 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
     progress : bool
         Show a progress bar on stderr (with one process).
     workers : int
-        Processes flying at once where the plant flies one vehicle at a time (RotorPy); the dataset is the same
-        for any number. Our simulator flies every trajectory in one batch and ignores it.
+        Processes flying at once where the plant flies one vehicle at a time (RotorPy, or any plant at ``ctbr``);
+        the dataset is the same for any number. Our simulator flies the wrench level's trajectories in one batch and
+        ignores it.
     with_clean : bool
         Also return the same flights without measurement noise (what the Fisher information is evaluated on),
         without flying them again.
+    level : {"wrench", "ctbr"}
+        What the excitation commands and ``u`` logs: the wrench (default), or collective thrust and body rates
+        flown through the vehicle's inner loop (the vehicle file's ``[inner_loop]``; one plant per trajectory, about
+        five times slower on our simulator). The dataset's ``meta["level"]`` names a level other than the wrench.
 
     Returns
     -------
@@ -541,6 +597,13 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
     if not isinstance(noise, NoiseModel):
         raise SimInputError(f"noise must be a NoiseModel; found {type(noise).__name__}")
     inputs = choice(inputs, "inputs", INPUT_LOGS)
+    level = check_level(level)
+    if level not in DATA_LEVELS:
+        raise SimInputError(f"level must be one of {', '.join(DATA_LEVELS)} for an excitation (none is written for "
+                            f"the others); found {level!r}")
+    if level != DEFAULT_LEVEL and inputs == "realized":
+        raise SimInputError(f"inputs='realized' logs a realized wrench, which is not a {level} command; log the "
+                            f"commands (inputs='commanded') at level {level!r}")
     if not isinstance(fidelity, Fidelity):
         raise SimInputError(f"fidelity must be a Fidelity; found {type(fidelity).__name__}")
     if inputs == "realized" and fidelity.motor_tau > 0:
@@ -549,6 +612,8 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
     veh = load_vehicle(vehicle)
     if params is not None and vehicle is not None and params != veh.params:
         raise SimInputError("give params or vehicle, not both (a vehicle carries its parameters)")
+    if level != DEFAULT_LEVEL:
+        veh.inner_loop_at(level)     # a vehicle without an inner loop is refused before anything flies
     p = veh.params if params is None else params
     if plant not in PLANTS:
         raise SimInputError(f"plant must be one of {', '.join(PLANTS)}; found {plant!r}")
@@ -568,8 +633,8 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
     noise_rngs = [np.random.default_rng(s) for s in noise_root.spawn(n_traj)]
     split_rng = np.random.default_rng(split_root)
     workers = positive_int(workers, "workers")
-    job = (reg.name, int(seed), n_traj, n_steps, p, fidelity, plant, veh)
-    if plant == "sim" or workers == 1 or n_traj == 1:
+    job = (reg.name, int(seed), n_traj, n_steps, p, fidelity, plant, veh, level)
+    if (plant == "sim" and level == DEFAULT_LEVEL) or workers == 1 or n_traj == 1:
         x_true, u, n_log, wrench, sat = _fly_rows(job, 0, n_traj, progress)
     else:      # plants flown one vehicle at a time: slices of the trajectories in worker processes
         from concurrent.futures import ProcessPoolExecutor
@@ -609,6 +674,8 @@ def make_dataset(regime: str = "small", n_traj: int = 100, duration: float = 10.
         "vehicle": veh.name,
         "split_fractions": list(SPLIT_FRACTIONS),
     }
+    if level != DEFAULT_LEVEL:        # named only off the wrench, so that a wrench dataset's meta is as it was
+        meta["level"] = level
     if inputs == "realized":
         u = wrench.copy()
     split = _split(n_traj, split_rng)
