@@ -295,6 +295,29 @@ def export_ctbr_physics(kw: dict, vehicle, path, name: str) -> Path:
     return export_flight_model(module, path, _theta(vehicle), name, level="ctbr")
 
 
+#: Flights of 10 s of the plant the ctbr models are flown on (our simulator flying the stated vehicle through its
+#: inner loop: ``pinnmpc data --level ctbr``, small regime, seed 0) on which :func:`on_flown_plant` scores them.
+FLOWN_PLANT_FLIGHTS = 20
+
+
+def on_flown_plant(models: dict, vehicle, flights: int = FLOWN_PLANT_FLIGHTS) -> dict:
+    """Open-loop errors at the study's horizons of the ctbr models ``models`` (name -> ``(step, start)``) on the
+    plant the best of them is flown on: ``flights`` excitation flights of our simulator flying ``vehicle`` (the
+    stated one) through its inner loop, every window, given the rates reached (:func:`ctbr_inputs`), as on the logs.
+
+    A model learned from the logs is a model of the logged vehicle; this says how good a model it is of the
+    simulated one that it flies.
+    """
+    from pinn.ctbr import FlownSeries, dataset_series
+    from sim.identification.excitation import make_dataset
+
+    ds = make_dataset("small", flights, 10.0, 0, vehicle=vehicle, level="ctbr")
+    series = [FlownSeries(f.name, f.x, ctbr_inputs(f), f.x_ok) for v in dataset_series(ds).values() for f in v]
+    return {"plant": "sim", "vehicle": vehicle.name, "level": "ctbr", "regime": "small", "flights": flights,
+            "models": {name: prediction_errors(step, series, start=start).to_dict()
+                       for name, (step, start) in models.items()}}
+
+
 def _fly_ctbr(name: str, write, vehicle_file, melon, out: Path, plants, progress) -> list[dict]:
     """The best ctbr model (``name``; ``write(path)`` writes its model file) on :data:`CLOSED_LOOP_SCENARIO` and on
     the whole of ``melon``'s logged reference, at the ctbr level, on each plant set up with the vehicle file
@@ -404,8 +427,10 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
     flyable_learned = [n for n in wrench if models[n]["kind"] == "learned" and models[n]["flyable"]]
     best_flyable = min(flyable_learned, key=lambda n: models[n]["validation_score"]) if flyable_learned else None
     out = Path(out_dir)
-    flown = []
+    flown, flown_plant = [], None
     if plants:
+        progress("scoring the ctbr models on the plant they fly")
+        flown_plant = on_flown_plant({c[0]: (c[3], c[4]) for c in candidates if c[2] == "ctbr"}, vehicle)
         ident_file = out / "identified-vehicle.toml"
         write_text(ident_file, identified_vehicle(ident, vehicle).to_toml())
         stated_file = out / "stated-vehicle.toml"
@@ -449,6 +474,8 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
         "delays": {f.name: f.report.delay_samples for f in flights},
         "import": {f.name: dataclasses.asdict(f.report) for f in flights},
         "closed_loop": flown,
+        # the ctbr models on the plant they are flown on (None: nothing flown)
+        "on_flown_plant": flown_plant,
     }
     write_json(out / "realdata.json", result)
     write_text(out / "realdata.md", realdata_markdown(result))
@@ -531,6 +558,15 @@ def realdata_markdown(r: dict) -> str:
             lines.append(_horizons_row(f"{name}, raw test flights (all)", m["raw"]))
             if m["filtered_run1"]:
                 lines.append(_horizons_row(f"{name}, {filtered} filtered", m["filtered_run1"]))
+    fp = r.get("on_flown_plant")
+    if fp:
+        lines += ["", "### The ctbr models on the plant they fly", "",
+                  f"The same errors on {fp['flights']} excitation flights of 10 s of our simulator flying the "
+                  f"{fp['vehicle']} vehicle file through its inner loop (`pinnmpc data --level ctbr`, {fp['regime']} "
+                  f"regime), given the rates reached as on the logs: how good a model of the simulated vehicle, which "
+                  f"the closed loop below flies, each model learned from the logged one is.", "",
+                  *_horizons_head(r["horizons"])]
+        lines += [_horizons_row(name, e) for name, e in fp["models"].items()]
     if r.get("closed_loop"):
         lines += ["", "## Flown with the SQP, each plant set up with the vehicle", "",
                   "| scenario | vehicle | prediction model | level | plant | RMSE (m) | crashed | median solve (ms) | "
