@@ -132,7 +132,9 @@ def _dataset(args):
 def default_name(arch: str, spec: dict) -> str:
     """File stem of a trained model: ARCH, then _REGIME off the small regime, _highfi (or the effect), _realized."""
     name = arch if spec["regime"] == "small" else f"{arch}_{spec['regime']}"
-    name += "" if arch == spec.get("level", "wrench") or "level" not in spec else f"_{spec['level']}"
+    level = spec.get("level", "wrench")
+    if level not in ("wrench", arch):      # a dataset at another level than the architecture's own name
+        name += f"_{level}"
     fidelity = spec.get("fidelity", "nominal")
     if fidelity != "nominal":
         name += "_highfi" if fidelity == "high" else "_" + fidelity.replace("-", "_")
@@ -248,7 +250,8 @@ def _train_ctbr(args: argparse.Namespace, ds, spec: dict) -> int:
     plant = ds.meta.get("plant", "sim")
     name = args.name or default_name("ctbr", spec)
     say = (lambda line: print(line, file=sys.stderr)) if sys.stderr.isatty() else None
-    t = train_ctbr(dataset_series(ds), plant, vehicle, args.seed, args.profile, progress=say)
+    split = dataset_series(ds)
+    t = train_ctbr(split, plant, vehicle, args.seed, args.profile, progress=say)
     res = t.result
     if not np.all(np.isfinite(res.scores)):
         raise ValueError(f"training {name} ended with a non-finite validation score ({res.scores[-1]}); nothing was "
@@ -261,7 +264,7 @@ def _train_ctbr(args: argparse.Namespace, ds, spec: dict) -> int:
     entry = {"files": {"onnx": path.name, "jacobian": f"{name}.jac.onnx"}, "command": cmd, "seed": args.seed,
              "architecture": "ctbr", "recipe": CTBR_ARCH, "level": "ctbr", "profile": args.profile, "data": spec,
              "plant": plant, "vehicle": vehicle.name, "train": dataclasses.asdict(t.config),
-             "flights": {k: len(v) for k, v in dataset_series(ds).items()}, "best_epoch": res.best_epoch,
+             "flights": {k: len(v) for k, v in split.items()}, "best_epoch": res.best_epoch,
              "validation_scores": [float(v) for v in res.scores], "test_errors": t.test_errors,
              "rate_tau_s": t.rate_tau_s, "theta": t.theta, "training_seconds": round(res.seconds, 1),
              "torch_version": torch.__version__, "cpu_count": os.cpu_count()}

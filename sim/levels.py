@@ -15,8 +15,10 @@ command line that names no level flies at it.
 
 from __future__ import annotations
 
+import numpy as np
+
 from .errors import SimInputError
-from .params import INPUT_NAMES
+from .params import DT, INPUT_NAMES
 
 #: The command levels, the default first.
 LEVELS = ("wrench", "ctbr", "ctatt")
@@ -45,12 +47,8 @@ def check_level(level, name: str = "level") -> str:
     return level
 
 
-def rate_dither_std(torque_std, params) -> "np.ndarray":
+def rate_dither_std(torque_std, params) -> np.ndarray:
     """The body-rate dither (3,) at ``ctbr`` that shakes a vehicle about as much as the torque dither ``torque_std``
     (3,) at the wrench level: the change of each rate that torque makes in one control period on the vehicle's
     inertia, ``std_tau / J * dt`` (rad/s; ``params`` a :class:`sim.params.QuadParams`)."""
-    import numpy as np
-
-    from .params import DT
-
     return np.asarray(torque_std, dtype=float) / np.array([params.Jxx, params.Jyy, params.Jzz]) * DT
