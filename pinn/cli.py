@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.files import write_json
+from sim.files import check_writable, write_json
 from sim.params import FIDELITIES, INPUT_LOGS
 
 ARCHS = ("baseline", "modular", "fourier", "proposed", "hybrid", "hybrid_lag")
@@ -169,6 +169,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if not 0.0 <= args.dropout_until <= 1.0:
         raise ValueError(f"--dropout-until must lie in [0, 1]; found {args.dropout_until}")
     overrides = {"dropout_until": args.dropout_until} if args.dropout_until != 1.0 else {}
+    check_writable(args.out, "--out", folder=True)  # before the training, so that its minutes are not lost
     if args.arch == "ctbr":
         for flag, given in (("--recipe", args.recipe is not None), ("--dropout-until", bool(overrides)),
                             ("--inputs", args.inputs != "commanded")):

@@ -91,6 +91,9 @@ def cmd_data(args: argparse.Namespace) -> int:
         raise ValueError(f"--out must end in .npz; found {str(args.out)!r}")
     if args.jobs < 1:
         raise ValueError(f"--jobs must be >= 1; found {args.jobs}")
+    check_writable(args.out, "--out")               # before the flights, so that a refusal costs nothing
+    if args.json:
+        check_writable(args.json, "--json")
     vehicle = load_vehicle(args.vehicle)
     ds = make_dataset(args.regime, args.n_traj, args.duration, args.seed,
                       noise=NoiseModel() if args.noise == "default" else NoiseModel.none(),

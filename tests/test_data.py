@@ -227,3 +227,26 @@ def test_data_at_ctbr_refuses_a_vehicle_without_an_inner_loop_and_writes_nothing
                  "--vehicle", str(path), "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "inner_loop.rate_kp is missing" in err and err.count("\n") == 1 and not out.exists(), err
+
+
+@pytest.mark.parametrize("level", ["wrench", "ctbr"])
+def test_data_and_train_refuse_an_output_they_cannot_write_before_any_work(tmp_path, capsys, level):
+    """Under a file (no folder can be made there): one line naming --out, exit 2, nothing flown or trained."""
+    from scenarios.cli import main
+
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    assert main(["data", "--regime", "small", "--n-traj", "2", "--duration", "1", "--level", level,
+                 "--out", str(blocker / "d.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and "cannot be written" in err and err.count("\n") == 1, err
+    data = tmp_path / "d.npz"
+    make_dataset("small", 8, 1.0, 0, level=level).save(data)
+    arch = "ctbr" if level == "ctbr" else "baseline"
+    assert main(["train", "--arch", arch, "--data", str(data), "--out", str(blocker / "models")]) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and "cannot be written" in err and err.count("\n") == 1, err
+    assert main(["train", "--arch", arch, "--data", str(data), "--out", str(blocker)]) == 2
+    err = capsys.readouterr().err
+    assert "is a file; give a folder" in err and err.count("\n") == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "d.npz"]
