@@ -26,7 +26,8 @@ from sim.flightlogs.flightlog import assign_splits, read_flight
 from sim.flightlogs.logbench import (GOAL_H50, HORIZONS, QUANTITIES, ctbr_inputs, ctbr_physics_step, goal_score,
                                      physics_step, prediction_errors)
 from sim.flightlogs.logformat import load_format
-from sim.flightlogs.logident import fisher_table, identified_model, identified_vehicle, identify
+from sim.flightlogs.logident import (fisher_table, identified_model, identified_vehicle, identify,
+                                     with_identified_drag)
 from sim.vehicles.vehicle import load_vehicle
 
 #: Where the benchmark keeps its raw logs, under its root.
@@ -205,11 +206,12 @@ REFERENCE_GLITCH_M = 0.2
 
 
 def reference_scenario(flight, path, every_s: float = MELON_SAMPLE_S,
-                       length_s: float | None = MELON_FLIGHT_S) -> Path:
+                       length_s: float | None = MELON_FLIGHT_S, high_fidelity: bool = False) -> Path:
     """Write a scenario file (named by the file's stem) whose reference is ``flight``'s logged position reference
     (NED): a ``[flat]`` table of its samples every ``every_s`` seconds, from its first to its last sample at least :data:`REFERENCE_HEIGHT_SHARE`
     of its median height high, glitches (:data:`REFERENCE_GLITCH_M`) left out, times from the first, at most
-    ``length_s`` of it (None: all); the flight ends 1 s after the last."""
+    ``length_s`` of it (None: all); the flight ends 1 s after the last. ``high_fidelity``: the scenario asks our
+    simulator for the vehicle's high-fidelity effects (its motor lag, rotor drag and rotor gyroscopic torque)."""
     if flight.reference is None:
         raise SimInputError(f"flight {flight.name!r} has no reference columns")
     finite = np.all(np.isfinite(flight.reference), axis=1)       # a logger's empty cells are left out
@@ -234,6 +236,7 @@ def reference_scenario(flight, path, every_s: float = MELON_SAMPLE_S,
     fmt = lambda a: "[" + ", ".join(f"{v:.4f}" for v in a) + "]"  # noqa: E731
     text = (f'name = "{Path(path).stem}"\n'
             f'description = "the logged position reference of {flight.name}, every {every_s:g} s"\n'
+            + ("high_fidelity = true\n" if high_fidelity else "") +
             f"[flat]\nt = {fmt(t)}\nx = {fmt(ref[:, 0])}\ny = {fmt(ref[:, 1])}\nz = {fmt(ref[:, 2])}\n")
     write_text(path, text)
     return Path(path)
@@ -300,10 +303,12 @@ def export_ctbr_physics(kw: dict, vehicle, path, name: str) -> Path:
 FLOWN_PLANT_FLIGHTS = 20
 
 
-def on_flown_plant(models: dict, vehicle, flights: int = FLOWN_PLANT_FLIGHTS) -> dict:
+def on_flown_plant(models: dict, vehicle, flights: int = FLOWN_PLANT_FLIGHTS, effects: bool = False) -> dict:
     """Open-loop errors at the study's horizons of the ctbr models ``models`` (name -> ``(step, start)``) on the
-    plant the best of them is flown on: ``flights`` excitation flights of our simulator flying ``vehicle`` (the
-    stated one) through its inner loop, every window, given the rates reached (:func:`ctbr_inputs`), as on the logs.
+    plant the best of them is flown on: ``flights`` excitation flights of our simulator flying ``vehicle`` through
+    its inner loop, every window, given the rates reached (:func:`ctbr_inputs`), as on the logs. ``effects``: with
+    the vehicle's high-fidelity effects (its motor lag, rotor drag and rotor gyroscopic torque), as the scenarios'
+    high-fidelity variants fly it.
 
     A model learned from the logs is a model of the logged vehicle; this says how good a model it is of the
     simulated one that it flies.
@@ -311,34 +316,44 @@ def on_flown_plant(models: dict, vehicle, flights: int = FLOWN_PLANT_FLIGHTS) ->
     from pinn.ctbr import FlownSeries, dataset_series
     from sim.identification.excitation import make_dataset
 
-    ds = make_dataset("small", flights, 10.0, 0, vehicle=vehicle, level="ctbr")
+    fidelity = vehicle.named_fidelity("high" if effects else "nominal")
+    ds = make_dataset("small", flights, 10.0, 0, vehicle=vehicle, level="ctbr", fidelity=fidelity)
     series = [FlownSeries(f.name, f.x, ctbr_inputs(f), f.x_ok) for v in dataset_series(ds).values() for f in v]
     return {"plant": "sim", "vehicle": vehicle.name, "level": "ctbr", "regime": "small", "flights": flights,
+            "effects": bool(effects),
             "models": {name: prediction_errors(step, series, start=start).to_dict()
                        for name, (step, start) in models.items()}}
 
 
-def _fly_ctbr(name: str, write, vehicle_file, melon, out: Path, plants, progress) -> list[dict]:
+def _fly_ctbr(name: str, write, vehicles, melon, out: Path, plants, progress) -> list[dict]:
     """The best ctbr model (``name``; ``write(path)`` writes its model file) on :data:`CLOSED_LOOP_SCENARIO` and on
-    the whole of ``melon``'s logged reference, at the ctbr level, on each plant set up with the vehicle file
-    (``vehicle_file``: the stated vehicle) and its inner loop; recorded as skipped when torch (to write the model
-    file) is missing.
+    the whole of ``melon``'s logged reference, at the ctbr level, on each plant set up with each vehicle of
+    ``vehicles`` (``(label, vehicle file, effects)``; ``effects``: the file carries high-fidelity effects, which our
+    simulator flies in the scenario's high-fidelity variant and RotorPy always flies) and its inner loop; recorded as
+    skipped when torch (to write the model file) is missing.
 
-    The stated vehicle, not the identified one: a ctbr model carries no inertia (the rate loop on board answers for
-    the rotation), and the inertias identified from real logs are those of a torque fit whose regressor the logs
-    barely explain (on the nano-drone benchmark 4.7 and 11 times the stated roll and pitch inertias), which would
-    leave the vehicle's own rate loop short of torque.
+    The stated vehicle's rigid body, not the identified one: a ctbr model carries no inertia (the rate loop on board
+    answers for the rotation), and the inertias identified from real logs are those of a torque fit whose regressor
+    the logs barely explain (on the nano-drone benchmark 4.7 and 11 times the stated roll and pitch inertias), which
+    would leave the vehicle's own rate loop short of torque.
     """
-    scenarios = [CLOSED_LOOP_SCENARIO]
+    scenarios = {False: [CLOSED_LOOP_SCENARIO], True: [CLOSED_LOOP_SCENARIO + "+highfi"]}
     if melon.reference is not None:
-        scenarios.append(reference_scenario(melon, out / f"{melon.name}-reference-whole.toml", length_s=None))
-    label, onnx = f"stated, flying the best ctbr model ({name})", out / "best-ctbr.onnx"
+        stem = f"{melon.name}-reference-whole"
+        for effects in (False, True):
+            scenarios[effects].append(reference_scenario(melon, out / f"{stem}{'+highfi' if effects else ''}.toml",
+                                                         length_s=None, high_fidelity=effects))
+    onnx = out / "best-ctbr.onnx"
+    labels = [f"{label}, flying the best ctbr model ({name})" for label, _, _ in vehicles]
     try:
         write(onnx)
     except ImportError as e:
-        return [{**_flight_row(label, onnx, plant, sc, "ctbr"), "skipped": f"the model file needs torch ({e})"}
-                for sc in scenarios for plant in plants]
-    return fly_models([(label, onnx, vehicle_file, sc, "ctbr") for sc in scenarios], plants, progress)
+        return [{**_flight_row(lb, onnx, plant, sc, "ctbr"), "skipped": f"the model file needs torch ({e})"}
+                for lb, (_, _, effects) in zip(labels, vehicles) for plant in plants
+                for sc in scenarios[effects and plant == "sim"]]
+    return [row for lb, (_, vehicle_file, effects) in zip(labels, vehicles) for plant in plants
+            for row in fly_models([(lb, onnx, vehicle_file, sc, "ctbr") for sc in scenarios[effects and plant == "sim"]],
+                                  [plant], progress)]
 
 
 def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=print,
@@ -427,10 +442,13 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
     flyable_learned = [n for n in wrench if models[n]["kind"] == "learned" and models[n]["flyable"]]
     best_flyable = min(flyable_learned, key=lambda n: models[n]["validation_score"]) if flyable_learned else None
     out = Path(out_dir)
-    flown, flown_plant = [], None
+    flown, flown_plant, flown_plant_drag = [], None, None
     if plants:
-        progress("scoring the ctbr models on the plant they fly")
-        flown_plant = on_flown_plant({c[0]: (c[3], c[4]) for c in candidates if c[2] == "ctbr"}, vehicle)
+        progress("scoring the ctbr models on the plants they fly")
+        at_ctbr_models = {c[0]: (c[3], c[4]) for c in candidates if c[2] == "ctbr"}
+        dragged = with_identified_drag(vehicle, ident)
+        flown_plant = on_flown_plant(at_ctbr_models, vehicle)
+        flown_plant_drag = on_flown_plant(at_ctbr_models, dragged, effects=True)
         ident_file = out / "identified-vehicle.toml"
         write_text(ident_file, identified_vehicle(ident, vehicle).to_toml())
         stated_file = out / "stated-vehicle.toml"
@@ -446,7 +464,11 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
         rec = records[best_ctbr]
         write = rec.export if rec is not None else partial(export_ctbr_physics, ctbr_kw[best_ctbr], vehicle,
                                                             name=best_ctbr)
-        flown += _fly_ctbr(best_ctbr, write, stated_file, melon1[0], out, plants, progress)
+        drag_file = out / "stated-vehicle-drag.toml"
+        write_text(drag_file, dragged.to_toml())
+        flown += _fly_ctbr(best_ctbr, write, [("stated", stated_file, False),
+                                              ("stated with the identified drag", drag_file, True)],
+                           melon1[0], out, plants, progress)
     result = {
         "source": {"logs": str(root), "commit": logs_commit(logs), "format": fmt.name, "vehicle": vehicle.name},
         "horizons": list(HORIZONS),
@@ -476,6 +498,7 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
         "closed_loop": flown,
         # the ctbr models on the plant they are flown on (None: nothing flown)
         "on_flown_plant": flown_plant,
+        "on_flown_plant_drag": flown_plant_drag,
     }
     write_json(out / "realdata.json", result)
     write_text(out / "realdata.md", realdata_markdown(result))
@@ -558,13 +581,16 @@ def realdata_markdown(r: dict) -> str:
             lines.append(_horizons_row(f"{name}, raw test flights (all)", m["raw"]))
             if m["filtered_run1"]:
                 lines.append(_horizons_row(f"{name}, {filtered} filtered", m["filtered_run1"]))
-    fp = r.get("on_flown_plant")
-    if fp:
-        lines += ["", "### The ctbr models on the plant they fly", "",
-                  f"The same errors on {fp['flights']} excitation flights of 10 s of our simulator flying the "
-                  f"{fp['vehicle']} vehicle file through its inner loop (`pinnmpc data --level ctbr`, {fp['regime']} "
-                  f"regime), given the rates reached as on the logs: how good a model of the simulated vehicle, which "
-                  f"the closed loop below flies, each model learned from the logged one is.", "",
+    for key, which in (("on_flown_plant", "the"), ("on_flown_plant_drag", "with the identified drag, the")):
+        fp = r.get(key)
+        if not fp:
+            continue
+        effects = ", with its high-fidelity effects," if fp.get("effects") else ""
+        lines += ["", f"### The ctbr models on the plant they fly ({fp['vehicle']})", "",
+                  f"The same errors on {fp['flights']} excitation flights of 10 s of our simulator flying {which} "
+                  f"{fp['vehicle']} vehicle file{effects} through its inner loop (`pinnmpc data --level ctbr`, "
+                  f"{fp['regime']} regime), given the rates reached as on the logs: how good a model of the simulated "
+                  f"vehicle, which the closed loop below flies, each model learned from the logged one is.", "",
                   *_horizons_head(r["horizons"])]
         lines += [_horizons_row(name, e) for name, e in fp["models"].items()]
     if r.get("closed_loop"):

@@ -264,8 +264,34 @@ def identified_model(ident: RealIdentification, vehicle, hold_rates: bool = True
 def identified_vehicle(ident, vehicle):
     """The vehicle file's vehicle with the identified rigid body: ``kt`` from ``kt/m`` (mass fixed), ``Jxx`` and
     ``Jyy`` from the torque gains, ``Jzz`` from ``kq/Jzz`` with the file's ``kq``. The fitted drags are left out
-    (the plants have no linear body drag)."""
+    (:func:`with_identified_drag` puts the horizontal one on a vehicle as rotor drag)."""
     p = identified_model(ident, vehicle)["p"]
     return vehicle.replace(name=f"{vehicle.name}-identified", kt=p.kt, Jxx=p.Jxx, Jyy=p.Jyy, Jzz=p.Jzz,
                            source=f"{vehicle.name} with kt, Jxx, Jyy and Jzz identified from real flights "
                                   f"(pinnmpc realdata); m and kq as stated")
+
+
+def rotor_drag_for(linear_drag: float, vehicle) -> float:
+    """The in-plane rotor drag per rotor (``rotor_drag``, N s / (m RU)) that gives ``vehicle`` at its hover rotor
+    speed the horizontal body drag ``linear_drag`` (1/s, as an acceleration per unit body velocity).
+
+    The plants' rotor drag is ``F = -rotor_drag * (n_1 + ... + n_4) * (v_bx, v_by, 0)``: at hover, with four rotors
+    at ``n_hover``, a linear drag ``4 rotor_drag n_hover / m``.
+    """
+    if not math.isfinite(linear_drag) or linear_drag < 0:
+        raise ValueError(f"linear_drag must be finite and >= 0 (1/s); found {linear_drag!r}")
+    return float(linear_drag) * vehicle.m / (4.0 * vehicle.params.n_hover)
+
+
+def with_identified_drag(vehicle, ident: RealIdentification):
+    """``vehicle`` with the horizontal linear body drag identified from its flights, as rotor drag
+    (:func:`rotor_drag_for` of the mean of ``k_x`` and ``k_y``); everything else as in the file.
+
+    The rest of the fitted drag stays out, because neither plant can carry it: the vertical drag ``k_z`` (our plant's
+    rotor drag is in-plane) and the quadratic drags (fitted negative on the nano-drone benchmark: they trim the
+    linear drag at speed).
+    """
+    k = 0.5 * (ident.value("k_x") + ident.value("k_y"))
+    return vehicle.replace(name=f"{vehicle.name}-drag", rotor_drag=rotor_drag_for(max(k, 0.0), vehicle),
+                           source=f"{vehicle.name} as stated, with the horizontal linear drag identified from real "
+                                  f"flights (k_x, k_y mean {k:.4g} 1/s; pinnmpc realdata) as rotor drag at hover")
