@@ -136,7 +136,9 @@ def test_bad_input_is_refused_by_name():
     with pytest.raises(SimInputError, match="residual must have shape"):
         TermSamples("x", v, s, t, np.zeros((4, 3)))
     fl = _plant_flights(lambda v: -0.3 * v, 3, 0)
-    with pytest.raises(SimInputError, match="training flights"):
+    with pytest.raises(SimInputError, match="needs training samples"):
         select_terms([], fl)
-    with pytest.raises(SimInputError, match="validation flights"):
+    with pytest.raises(SimInputError, match="needs validation samples"):
         select_terms(fl, [])
+    with pytest.raises(SimInputError, match="needs validation samples"):
+        select_terms(fl, [fl[0].subset(np.zeros(len(fl[0].v), dtype=bool))])

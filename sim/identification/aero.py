@@ -285,10 +285,9 @@ def select_terms(train, val, candidates=tuple(TERMS), min_gain: float = MIN_GAIN
     disagrees most is dropped, and the check repeats on the rest. What is left is claimed. (Forward, one term at a
     time, a term the plant has would look speed-dependent while another it has is still missing.)
     """
-    if not train:
-        raise SimInputError("select_terms needs training flights")
-    if not val:
-        raise SimInputError("select_terms needs validation flights")
+    for what, flights in (("training", train), ("validation", val)):
+        if not sum(len(f.v) for f in flights):
+            raise SimInputError(f"select_terms needs {what} samples; the {what} flights have none")
     for n in candidates:
         if n not in TERMS:
             raise SimInputError(f"aerodynamic term must be one of {', '.join(TERMS)}; found {n!r}")
