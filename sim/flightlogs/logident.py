@@ -37,18 +37,11 @@ import numpy as np
 
 from ..equations.dynamics import rotation_matrix
 from ..params import DT, GRAVITY
+from ..identification.jackknife import half_width
 from ..vehicles.rotors import ROTOR_X, ROTOR_Y, SPIN
 
-#: Student t quantiles (two-sided 95 %) by degrees of freedom; 1.96 beyond the table.
-_T95 = {1: 12.71, 2: 4.30, 3: 3.18, 4: 2.78, 5: 2.57, 6: 2.45, 7: 2.36, 8: 2.31, 9: 2.26, 10: 2.23, 12: 2.18,
-        15: 2.13, 20: 2.09, 30: 2.04}
 EQUATIONS = ("a_x", "a_y", "a_z", "p_dot", "q_dot", "r_dot")
 PARAMS = ("m", "Jxx", "Jyy", "Jzz", "kt", "kq")
-
-
-def _t95(dof: int) -> float:
-    keys = [k for k in sorted(_T95) if k <= dof]
-    return _T95[keys[-1]] if keys and dof <= 30 else 1.96
 
 
 @dataclass(frozen=True)
@@ -136,20 +129,6 @@ _COEFS = {
 }
 
 
-def _jackknife_half_width(per, eq: str) -> np.ndarray:
-    """Half-width of the 95 % interval of each pooled coefficient of equation ``eq``: ``t * se`` with ``se`` the
-    jackknife standard error over flights (the pooled fit with each flight left out in turn); NaN with one flight."""
-    n = len(per)
-    if n < 2:
-        return np.full(per[0][eq][1].shape[1], math.nan)
-    # each refit on the stacked rows (normal equations would square the regressors' condition, 1e7 against 1)
-    loo = np.array([np.linalg.lstsq(np.concatenate([p[eq][1] for j, p in enumerate(per) if j != i]),
-                                    np.concatenate([p[eq][0] for j, p in enumerate(per) if j != i]), rcond=None)[0]
-                    for i in range(n)])
-    se = np.sqrt((n - 1) / n * np.sum((loo - loo.mean(axis=0)) ** 2, axis=0))
-    return _t95(n - 1) * se
-
-
 def identify(flights, vehicle) -> RealIdentification:
     """Fit the ratios, drags and biases of the module docstring on ``flights`` (imported, rotor speeds in rad/s).
 
@@ -164,7 +143,7 @@ def identify(flights, vehicle) -> RealIdentification:
         pooled, *_ = np.linalg.lstsq(A, y, rcond=None)
         explained[eq] = float(1.0 - np.var(y - A @ pooled) / np.var(y))
         each = np.array([np.linalg.lstsq(p[eq][1], p[eq][0], rcond=None)[0] for p in per])
-        half = _jackknife_half_width(per, eq)
+        half = half_width([(p[eq][1], p[eq][0]) for p in per])
         for j, (name, unit) in enumerate(names):
             coefficients[name] = Coefficient(name=name, unit=unit, value=float(pooled[j]),
                                              per_flight=tuple(float(v) for v in each[:, j]),
@@ -285,11 +264,12 @@ def rotor_drag_for(linear_drag: float, vehicle) -> float:
 
 def with_identified_drag(vehicle, ident: RealIdentification):
     """``vehicle`` with the horizontal linear body drag identified from its flights, as rotor drag
-    (:func:`rotor_drag_for` of the mean of ``k_x`` and ``k_y``); everything else as in the file.
+    (:func:`rotor_drag_for` of the mean of ``k_x`` and ``k_y``; none when that mean is negative); everything else as
+    in the file.
 
-    The rest of the fitted drag stays out, because neither plant can carry it: the vertical drag ``k_z`` (our plant's
-    rotor drag is in-plane) and the quadratic drags (fitted negative on the nano-drone benchmark: they trim the
-    linear drag at speed).
+    The rest of the fitted drag stays out: the vertical drag ``k_z``, because our plant's rotor drag is in-plane (only
+    RotorPy's ``k_z`` could carry it, and both plants are to fly the same vehicle), and the quadratic drags, which
+    neither plant has in this form (fitted negative on the nano-drone benchmark: they trim the linear drag at speed).
     """
     k = 0.5 * (ident.value("k_x") + ident.value("k_y"))
     return vehicle.replace(name=f"{vehicle.name}-drag", rotor_drag=rotor_drag_for(max(k, 0.0), vehicle),

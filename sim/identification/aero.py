@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import SimInputError
+from .jackknife import half_width
 
 
 @dataclass(frozen=True)
@@ -167,17 +168,11 @@ def _design(flight: TermSamples, names) -> tuple[np.ndarray, np.ndarray]:
     return A, np.concatenate([flight.residual[:, 0], flight.residual[:, 1], flight.residual[:, 2]])
 
 
-def _t95(dof: int) -> float:
-    """Two-sided 95 % Student t quantile."""
-    from scipy.stats import t
-
-    return float(t.ppf(0.975, dof))
-
-
 @dataclass(frozen=True)
 class TermFit:
-    """Least-squares coefficients of a set of terms, with 95 % intervals (a jackknife over flights; NaN with one
-    flight) and the root-mean-square residual per axis on the fitted flights (m/s^2)."""
+    """Least-squares coefficients of a set of terms, with 95 % intervals (a jackknife over flights,
+    :mod:`sim.identification.jackknife`; NaN with one flight) and the root-mean-square residual of every axis on the
+    fitted flights (m/s^2)."""
 
     terms: tuple[str, ...]
     values: dict                     # coefficient name -> value
@@ -203,13 +198,7 @@ def fit_terms(flights, names) -> TermFit:
     y = np.concatenate([b for _, b in per])
     coef = np.linalg.lstsq(A, y, rcond=None)[0] if A.shape[1] else np.zeros(0)
     rmse = float(np.sqrt(np.mean((y - A @ coef) ** 2)))
-    half = np.full(len(coef), math.nan)
-    if len(per) > 1 and len(coef):
-        loo = np.array([np.linalg.lstsq(np.concatenate([a for j, (a, _) in enumerate(per) if j != i]),
-                                        np.concatenate([b for j, (_, b) in enumerate(per) if j != i]), rcond=None)[0]
-                        for i in range(len(per))])
-        n = len(per)
-        half = _t95(n - 1) * np.sqrt((n - 1) / n * np.sum((loo - loo.mean(axis=0)) ** 2, axis=0))
+    half = half_width(per)
     names_c = [c for n in names for c in TERMS[n].coefficients]
     return TermFit(terms=names, values=dict(zip(names_c, map(float, coef))),
                    low={c: float(v - h) for c, v, h in zip(names_c, coef, half)},
@@ -221,7 +210,7 @@ def residual_rmse(fit: TermFit, flights) -> float:
     err = []
     for f in flights:
         a = term_acceleration(fit.coefficients(), f.v, f.rotor_sum, f.thrust_m)
-        err.append(np.asarray(f.residual) - np.stack([np.broadcast_to(c, (len(f.v),)) for c in a], axis=1))
+        err.append(np.asarray(f.residual) - np.stack(a, axis=1))
     return float(np.sqrt(np.mean(np.concatenate(err) ** 2)))
 
 
