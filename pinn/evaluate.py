@@ -299,8 +299,8 @@ def _spec_task(task) -> tuple[dict, list[dict]]:
 #: Fisher bounds and the classical estimator (``sim``), the metrics (``pinn``) and the model contract.
 EVALUATION_CODE = ("sim", "pinn", "mpc/prediction/contract.py", "mpc/prediction/models.py", "mpc/errors.py")
 #: Code under EVALUATION_CODE that neither the evaluation nor the Fisher table imports (the flight-log import and
-#: its benchmark, the flight models and the ctbr learner), left out of their keys so that work on it does not call for a recomputation (a test holds that
-#: they do not import it).
+#: its benchmark, the flight models and the ctbr learner), left out of their keys so that work on it does not call
+#: for a recomputation (a test holds that they do not import it).
 KEY_EXCLUDES = ("sim/flightlogs", "pinn/flights.py", "pinn/ctbr.py")
 
 

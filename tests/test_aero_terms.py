@@ -1,4 +1,5 @@
-"""The aerodynamic term library: its forms on both backends, the fit, and a selection that claims only terms a plant has."""
+"""The aerodynamic term library: its forms on both backends, the fit, and a selection that claims only the terms
+a plant has."""
 
 import numpy as np
 import pytest

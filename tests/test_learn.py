@@ -236,6 +236,7 @@ def test_the_ctbr_learner_trains_on_flown_flights_and_writes_a_ctbr_model(tmp_pa
     trained on the training flights and scored on the test one; the split counts and the physics' time constants
     (the vehicle file's response) are recorded."""
     from mpc.prediction.contract import check_model
+    from pinn.ctbr import CTBR_HISTORY
     from pinn.flights import register_names
 
     L = learn.PIECE_STEPS
@@ -244,7 +245,7 @@ def test_the_ctbr_learner_trains_on_flown_flights_and_writes_a_ctbr_model(tmp_pa
     rec = learn.train_ctbr_model(s, flights, tmp_path, "m", 1, {"flights": 9})
     info = check_model(tmp_path / "m.onnx")
     assert info.level == "ctbr" and info.jacobian is not None
-    assert tuple(info.extra_states) == register_names(learn.CTBR_HISTORY, "ctbr")
+    assert tuple(info.extra_states) == register_names(CTBR_HISTORY, "ctbr")
     assert rec["flights"] == {"train": 7, "val": 1, "test": 1} and rec["level"] == "ctbr"
     physics, theta = learn.ctbr_physics(s)
     from sim.vehicles.vehicle import load_vehicle

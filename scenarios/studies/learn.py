@@ -41,7 +41,7 @@ import numpy as np
 from sim.files import write_json
 from sim.params import DT
 
-from pinn.ctbr import CTBR_ARCH, CTBR_HISTORY, CTBR_PROFILES, FlownSeries  # noqa: F401  (torch-free settings)
+from pinn.ctbr import CTBR_ARCH, FlownSeries  # torch-free at import
 
 from ..errors import ScenarioError
 from ..sweeps.lock import locks_out_dir
@@ -131,7 +131,6 @@ SETTING_OPTIONS = {"plant": "--plant", "iterations": "--iterations", "per_level"
 #: The command levels the study learns at: the wrench (:data:`LEARN_ARCH`, the rotor speeds as states) and ``ctbr``
 #: (:data:`CTBR_ARCH`). At ``ctatt`` no learner is written.
 LEARN_LEVELS = ("wrench", "ctbr")
-# The ctbr learner's register, description and budgets (pinn.ctbr): CTBR_HISTORY, CTBR_ARCH, CTBR_PROFILES.
 
 
 @dataclass(frozen=True)

@@ -352,8 +352,8 @@ def _fly_ctbr(name: str, write, vehicles, melon, out: Path, plants, progress) ->
                 for lb, (_, _, effects) in zip(labels, vehicles) for plant in plants
                 for sc in scenarios[effects and plant == "sim"]]
     return [row for lb, (_, vehicle_file, effects) in zip(labels, vehicles) for plant in plants
-            for row in fly_models([(lb, onnx, vehicle_file, sc, "ctbr") for sc in scenarios[effects and plant == "sim"]],
-                                  [plant], progress)]
+            for row in fly_models([(lb, onnx, vehicle_file, sc, "ctbr")
+                                   for sc in scenarios[effects and plant == "sim"]], [plant], progress)]
 
 
 def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=print,
@@ -581,13 +581,13 @@ def realdata_markdown(r: dict) -> str:
             lines.append(_horizons_row(f"{name}, raw test flights (all)", m["raw"]))
             if m["filtered_run1"]:
                 lines.append(_horizons_row(f"{name}, {filtered} filtered", m["filtered_run1"]))
-    for key, which in (("on_flown_plant", "the"), ("on_flown_plant_drag", "with the identified drag, the")):
+    for key in ("on_flown_plant", "on_flown_plant_drag"):
         fp = r.get(key)
         if not fp:
             continue
         effects = ", with its high-fidelity effects," if fp.get("effects") else ""
         lines += ["", f"### The ctbr models on the plant they fly ({fp['vehicle']})", "",
-                  f"The same errors on {fp['flights']} excitation flights of 10 s of our simulator flying {which} "
+                  f"The same errors on {fp['flights']} excitation flights of 10 s of our simulator flying the "
                   f"{fp['vehicle']} vehicle file{effects} through its inner loop (`pinnmpc data --level ctbr`, "
                   f"{fp['regime']} regime), given the rates reached as on the logs: how good a model of the simulated "
                   f"vehicle, which the closed loop below flies, each model learned from the logged one is.", "",
