@@ -136,6 +136,8 @@ def test_bad_input_is_refused_by_name():
         term_acceleration({"linear_drag": (0.1,)}, v, s, t)
     with pytest.raises(SimInputError, match="residual must have shape"):
         TermSamples("x", v, s, t, np.zeros((4, 3)))
+    with pytest.raises(SimInputError, match="v holds 1 non-finite"):
+        TermSamples("x", np.where(np.arange(15).reshape(5, 3) == 4, np.nan, v), s, t, np.zeros((5, 3)))
     fl = _plant_flights(lambda v: -0.3 * v, 3, 0)
     with pytest.raises(SimInputError, match="needs training samples"):
         select_terms([], fl)
@@ -143,3 +145,21 @@ def test_bad_input_is_refused_by_name():
         select_terms(fl, [])
     with pytest.raises(SimInputError, match="needs validation samples"):
         select_terms(fl, [fl[0].subset(np.zeros(len(fl[0].v), dtype=bool))])
+
+
+def test_flight_samples_leave_out_the_periods_they_cannot_use():
+    """A state that is NaN though flagged measured, an unmeasured state and a NaN rotor speed each cost the periods
+    they touch, and nothing else: the samples kept are those of the clean flight less those."""
+    v = load_vehicle("crazyflie")
+    ds = make_dataset("small", 1, 2.0, 0, noise=NoiseModel.none(), vehicle=v)
+    x = np.concatenate([ds.x[0], ds.x_next[0, -1:]])
+    n = ds.rotor_speed[0].copy()
+    clean = flight_samples("clean", x, n, v.params)
+    x[10, 9] = np.nan                      # periods 9 and 10
+    ok = np.ones(len(x), dtype=bool)
+    ok[50] = False                         # periods 49 and 50
+    n[100, 2] = np.nan                     # period 100
+    dirty = flight_samples("dirty", x, n, v.params, ok=ok)
+    assert len(dirty.v) == len(clean.v) - 5
+    keep = np.setdiff1d(np.arange(len(clean.v)), [9, 10, 49, 50, 100])
+    np.testing.assert_array_equal(dirty.residual, clean.residual[keep])

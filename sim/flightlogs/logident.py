@@ -272,6 +272,8 @@ def with_identified_drag(vehicle, ident: RealIdentification):
     neither plant has in this form (fitted negative on the nano-drone benchmark: they trim the linear drag at speed).
     """
     k = 0.5 * (ident.value("k_x") + ident.value("k_y"))
+    if not math.isfinite(k):
+        raise ValueError(f"the identified horizontal drag (k_x, k_y) is not finite ({k!r}): the flights cannot tell it")
     return vehicle.replace(name=f"{vehicle.name}-drag", rotor_drag=rotor_drag_for(max(k, 0.0), vehicle),
                            source=f"{vehicle.name} as stated, with the horizontal linear drag identified from real "
                                   f"flights (k_x, k_y mean {k:.4g} 1/s; pinnmpc realdata) as rotor drag at hover")

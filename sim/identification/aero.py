@@ -143,6 +143,11 @@ class TermSamples:
         for what, (found, expected) in shapes.items():
             if found != expected:
                 raise SimInputError(f"flight {self.name!r}: {what} must have shape {expected}; found {found}")
+        for what in shapes:
+            bad = int(np.sum(~np.isfinite(np.asarray(getattr(self, what), dtype=float))))
+            if bad:
+                raise SimInputError(f"flight {self.name!r}: {what} holds {bad} non-finite values (leave those samples "
+                                    f"out: flight_samples does)")
 
     def subset(self, keep) -> "TermSamples":
         """The samples where ``keep`` (N,) is true."""
@@ -331,7 +336,8 @@ def flight_samples(name: str, x, rotor_speed, p, ok=None) -> TermSamples:
     p : QuadParams
         Mass, ``kt`` and gravity.
     ok : array (N + 1,) of bool, optional
-        Which states are measured; a period is used when both its ends are.
+        Which states are measured; a period is used when both its ends are measured and finite and its rotor speeds
+        finite (the others are left out).
 
     The acceleration is the forward difference of the velocity over each period, so the terms read the means of the
     body velocity at its two ends (a bias of second order in the period rather than first).
@@ -345,6 +351,7 @@ def flight_samples(name: str, x, rotor_speed, p, ok=None) -> TermSamples:
         raise SimInputError(f"flight {name!r}: x must be (N + 1, 12) and rotor_speed (N, 4); found {x.shape} and "
                             f"{n.shape}")
     ok = np.ones(len(x), dtype=bool) if ok is None else np.asarray(ok, dtype=bool)
+    ok = ok & np.all(np.isfinite(x), axis=1)
     k = np.flatnonzero(ok[:-1] & ok[1:] & np.all(np.isfinite(n), axis=1))
     R0 = rotation_matrix(x[k, 3], x[k, 4], x[k, 5])
     R1 = rotation_matrix(x[k + 1, 3], x[k + 1, 4], x[k + 1, 5])
