@@ -32,7 +32,7 @@ from mpc.prediction.contract import CONTRACT_VERSION, config_hash, jacobian_path
 from sim import __version__ as code_version
 from sim.params import DT, INPUT_NAMES, STATE_NAMES, THETA_NAMES
 
-from .models import build_model
+from .models import aero_record, build_model
 
 
 class _Next(torch.nn.Module):
@@ -140,6 +140,8 @@ def export_model(model, out_dir, name: str, training_config: dict, dataset_seed:
         meta["extra_states"] = json.dumps(list(extra))
     if hasattr(m64, "tau"):
         meta["motor_tau"] = repr(float(m64.tau.detach()))
+    if getattr(m64, "aero_terms", ()):
+        meta["aero_terms"] = json.dumps(aero_record(m64), sort_keys=True)
     path = out_dir / f"{name}.onnx"
     jac = jacobian_path(path)
     _export(_Next(m64), path, ["x_next"], 12 + len(extra))
@@ -164,6 +166,8 @@ def load_torch_model(path):
     stats.update({k: sd[k] for k in ("abs_in_mean", "abs_in_std", "abs_out_mean", "abs_out_std", "physics",
                                       "n_mean", "n_std", "rotor") if k in sd})
     model = build_model(blob["arch"], stats, sd["log_theta"].exp(), d["hidden"], d["layers"], d["dropout"],
-                        d.get("variant"))
+                        d.get("variant"), d.get("aero"))
     model.load_state_dict(sd)
+    if d.get("aero_identified"):
+        model.aero_identified = dict(d["aero_identified"])
     return model.eval(), blob

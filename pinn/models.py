@@ -46,7 +46,7 @@ VARIANT_DEFAULTS = {"activation": "tanh", "gain": 1.0, "fourier_max": 8, "couple
 #: kinks make the derivative graph disagree with the finite differences the model contract checks it against.)
 ACTIVATIONS = ("tanh", "softplus")
 #: Names of the learnable physical parameters among a model's parameters (not network weights).
-PHYSICAL = ("log_theta", "log_tau")
+PHYSICAL = ("log_theta", "log_tau", "aero_coef")
 
 
 def _softplus(z: torch.Tensor) -> torch.Tensor:
@@ -403,13 +403,18 @@ class HybridLag(Hybrid):
     on the twelve rigid-body states. The network sees the rotor speeds too (normalized), so that effects
     that scale with them (rotor drag, gyroscopic torque) are within its reach. Training needs the
     statistics ``n_mean``, ``n_std`` (rotor telemetry) and ``rotor`` = ``(n_max_sq, lever)``.
+
+    ``aero`` adds aerodynamic terms of :mod:`sim.identification.aero` to the physics (name -> initial coefficients,
+    in the library's order and units): they act at every RK4 stage with that stage's rotor speeds and thrust, and
+    their coefficients are learnable physical parameters like theta-hat (each stored relative to the magnitude of
+    its initial value, so that one learning rate suits coefficients of every unit).
     """
 
     arch = "hybrid_lag"
     extra_states = ROTOR_STATES
 
     def __init__(self, stats: dict, theta_init, hidden: int = 128, layers: int = 5, dropout: float = 0.0,
-                 variant: dict | None = None, tau_init: float = TAU_INIT):
+                 variant: dict | None = None, tau_init: float = TAU_INIT, aero: dict | None = None):
         for key in ("n_mean", "n_std", "rotor"):
             if key not in stats:
                 raise ValueError(f"the motor-lag model needs the training statistic {key!r}")
@@ -425,6 +430,33 @@ class HybridLag(Hybrid):
         if not tau_init > 0:
             raise ValueError(f"tau_init must be > 0 s; found {tau_init}")
         self.log_tau = nn.Parameter(torch.tensor(math.log(tau_init), dtype=torch.float32))
+        self.aero_terms = _aero_terms(aero)
+        #: The terms' identification before training (coefficient -> value, low, high: :func:`aero_record`), when
+        #: the training identified them.
+        self.aero_identified: dict = {}
+        if self.aero_terms:
+            c0 = torch.tensor([float(c) for n in self.aero_terms for c in aero[n]], dtype=torch.float64)
+            scale = torch.where(c0.abs() > 0, c0.abs(), torch.ones_like(c0))
+            self.register_buffer("aero_scale", scale)
+            self.aero_coef = nn.Parameter((c0 / scale).to(torch.float32))
+
+    @property
+    def aero(self) -> dict:
+        """The aerodynamic terms' coefficients: name -> tensor (k,) in the library's units (empty without terms)."""
+        if not self.aero_terms:
+            return {}
+        from sim.identification.aero import TERMS
+
+        c = self.aero_scale.to(self.aero_coef.dtype) * self.aero_coef
+        out, i = {}, 0
+        for n in self.aero_terms:
+            k = len(TERMS[n].coefficients)
+            out[n] = c[i:i + k]
+            i += k
+        return out
+
+    def _aero(self, dtype):
+        return {n: c.to(dtype) for n, c in self.aero.items()}
 
     def build(self, hidden, layers, dropout):
         self.mlp = MLP(N_FEATURES + 4, NX, hidden, layers, dropout, self.opt["activation"])
@@ -446,7 +478,8 @@ class HybridLag(Hybrid):
 
     def physics_increment(self, z, u):
         inc_x, inc_n = lagged_rotor_increment(z[..., :12], z[..., 12:16], u, self.theta.to(z.dtype),
-                                              self.tau.to(z.dtype), self._consts(z.dtype), substeps=PHYSICS_SUBSTEPS)
+                                              self.tau.to(z.dtype), self._consts(z.dtype), substeps=PHYSICS_SUBSTEPS,
+                                              aero=self._aero(z.dtype))
         return torch.cat([inc_x, inc_n], dim=-1)
 
     def residual(self, z, u):
@@ -479,7 +512,7 @@ class HybridLag(Hybrid):
         y, T = self.network_tangent(f, (sel / std.unsqueeze(-1)).expand(n, len(cols), 20))
         inc_x, inc_n, A, B = lagged_rotor_increment(z[..., :12], z[..., 12:16], u, self.theta.to(z.dtype),
                                                     self.tau.to(z.dtype), self._consts(z.dtype),
-                                                    substeps=PHYSICS_SUBSTEPS, tangent=True)
+                                                    substeps=PHYSICS_SUBSTEPS, tangent=True, aero=self._aero(z.dtype))
         J = self.out_scale.unsqueeze(-1) * T                                   # (B, 12, 20)
         J = torch.cat([J, torch.zeros_like(J[:, :4])], dim=1)                  # (B, 16, 20)
         eye = torch.eye(16, dtype=z.dtype, device=z.device).expand(n, 16, 16)
@@ -487,7 +520,26 @@ class HybridLag(Hybrid):
         return nxt, eye + A + J[..., :16], B + J[..., 16:]
 
     def describe(self) -> dict:
-        return {**super().describe(), "extra_states": list(self.extra_states)}
+        out = {**super().describe(), "extra_states": list(self.extra_states)}
+        if self.aero_terms:
+            out["aero"] = {n: [float(v) for v in c.detach()] for n, c in self.aero.items()}
+            if self.aero_identified:
+                out["aero_identified"] = dict(self.aero_identified)
+        return out
+
+
+def _aero_terms(aero) -> tuple[str, ...]:
+    """The names of ``aero`` (name -> coefficients), checked against the library, in its order."""
+    from sim.identification.aero import TERMS
+
+    aero = dict(aero or {})
+    for n, c in aero.items():
+        if n not in TERMS:
+            raise ValueError(f"aero term must be one of {', '.join(TERMS)}; found {n!r}")
+        if len(c) != len(TERMS[n].coefficients) or not all(math.isfinite(float(v)) for v in c):
+            raise ValueError(f"aero term {n!r} needs {len(TERMS[n].coefficients)} finite coefficients "
+                             f"{TERMS[n].coefficients}; found {list(c)}")
+    return tuple(n for n in TERMS if n in aero)
 
 
 #: RK4 steps per period in the physics of :class:`Hybrid`. One step of 10 ms is within 2e-8 (1e-5 relative) of the
@@ -503,8 +555,29 @@ ALL_ARCHITECTURES = tuple(_CLASSES)
 
 
 def build_model(arch: str, stats: dict, theta_init, hidden: int = 128, layers: int = 5,
-                dropout: float = 0.0, variant: dict | None = None) -> ResidualPINN:
-    """Instantiate an architecture by name (one of :data:`ALL_ARCHITECTURES`)."""
+                dropout: float = 0.0, variant: dict | None = None, aero: dict | None = None) -> ResidualPINN:
+    """Instantiate an architecture by name (one of :data:`ALL_ARCHITECTURES`); ``aero`` (aerodynamic terms, name ->
+    initial coefficients) only for the motor-lag model."""
     if arch not in _CLASSES:
         raise ValueError(f"arch must be one of {', '.join(ALL_ARCHITECTURES)}; found {arch!r}")
+    if aero:
+        if arch != "hybrid_lag":
+            raise ValueError(f"aerodynamic terms are carried by the motor-lag model (hybrid_lag); found arch {arch!r}")
+        return HybridLag(stats, theta_init, hidden, layers, dropout, variant, aero=aero)
     return _CLASSES[arch](stats, theta_init, hidden, layers, dropout, variant)
+
+
+def aero_record(model) -> dict:
+    """What a model file records of its aerodynamic terms: the terms, each coefficient's trained value and unit, and
+    (when the training identified them first) the identified value with its 95 % interval."""
+    from sim.identification.aero import TERMS
+
+    out = {"terms": list(model.aero_terms), "coefficients": {}, "units": {}}
+    for n, c in model.aero.items():
+        for name, unit, v in zip(TERMS[n].coefficients, TERMS[n].units, c.detach()):
+            out["coefficients"][name] = float(v)
+            out["units"][name] = unit
+    if model.aero_identified:
+        out["identified"] = dict(model.aero_identified)
+    return out
+

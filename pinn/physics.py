@@ -253,7 +253,7 @@ def rotor_command_torch(u: torch.Tensor, theta: torch.Tensor, consts: dict):
 
 def lagged_rotor_increment(x: torch.Tensor, n: torch.Tensor, u: torch.Tensor, theta: torch.Tensor,
                            tau: torch.Tensor, consts: dict, dt: float = DT, substeps: int = 1,
-                           tangent: bool = False):
+                           tangent: bool = False, aero: dict | None = None):
     """One period of the rigid body driven by four lagging rotors (the motor-lag model), and optionally its Jacobians.
 
     The rotor speeds ``n`` follow the rotor command ``c = sqrt(M(kt, kq)^-1 u)`` (each ``n_i^2`` clipped to the
@@ -284,6 +284,9 @@ def lagged_rotor_increment(x: torch.Tensor, n: torch.Tensor, u: torch.Tensor, th
         RK4 steps of the rigid body per period.
     tangent : bool
         Also return the Jacobians.
+    aero : dict, optional
+        Aerodynamic terms (:mod:`sim.identification.aero`, name -> coefficients) added to the rigid body's
+        acceleration at every RK4 stage, with that stage's rotor speeds and thrust (:func:`aero_acceleration`).
 
     Returns
     -------
@@ -313,6 +316,22 @@ def lagged_rotor_increment(x: torch.Tensor, n: torch.Tensor, u: torch.Tensor, th
     def wrench(nt):
         return (nt * nt) @ S0.T * scale
 
+    def rates(s, j):
+        # the rigid body's rates at stage j (rotor speeds ns[j], wrench ws[j]), plus the aerodynamic terms
+        f = dynamics_torch(s, ws[j], theta, g, c_d)
+        if not aero:
+            return f
+        a = aero_acceleration(s, aero, ns[j].sum(-1), ws[j][..., 0] / theta[0])
+        return torch.cat([f[..., :9], f[..., 9:] + a], dim=-1)
+
+    def rates_tangent(s, j, ds):
+        f, df = dynamics_tangent_torch(s, ws[j], theta, g, c_d, ds, dws[j])
+        if not aero:
+            return f, df
+        a, da = aero_acceleration_tangent(s, aero, ns[j].sum(-1), ws[j][..., 0] / theta[0], ds, dns[j].sum(1),
+                                          dws[j][:, 0] / theta[0])
+        return torch.cat([f[..., :9], f[..., 9:] + a], dim=-1), torch.cat([df[:, :9], df[:, 9:] + da], dim=1)
+
     B_ = x.shape[0]
     if tangent:
         k = 16 + 4
@@ -335,16 +354,16 @@ def lagged_rotor_increment(x: torch.Tensor, n: torch.Tensor, u: torch.Tensor, th
         s = x + z
         if tangent:
             ds = dx0 + dz
-            k1, d1 = dynamics_tangent_torch(s, ws[0], theta, g, c_d, ds, dws[0])
-            k2, d2 = dynamics_tangent_torch(s + 0.5 * h * k1, ws[1], theta, g, c_d, ds + 0.5 * h * d1, dws[1])
-            k3, d3 = dynamics_tangent_torch(s + 0.5 * h * k2, ws[2], theta, g, c_d, ds + 0.5 * h * d2, dws[2])
-            k4, d4 = dynamics_tangent_torch(s + h * k3, ws[3], theta, g, c_d, ds + h * d3, dws[3])
+            k1, d1 = rates_tangent(s, 0, ds)
+            k2, d2 = rates_tangent(s + 0.5 * h * k1, 1, ds + 0.5 * h * d1)
+            k3, d3 = rates_tangent(s + 0.5 * h * k2, 2, ds + 0.5 * h * d2)
+            k4, d4 = rates_tangent(s + h * k3, 3, ds + h * d3)
             dz = dz + h * sixth * (d1 + 2.0 * (d2 + d3) + d4)
         else:
-            k1 = dynamics_torch(s, ws[0], theta, g, c_d)
-            k2 = dynamics_torch(s + 0.5 * h * k1, ws[1], theta, g, c_d)
-            k3 = dynamics_torch(s + 0.5 * h * k2, ws[2], theta, g, c_d)
-            k4 = dynamics_torch(s + h * k3, ws[3], theta, g, c_d)
+            k1 = rates(s, 0)
+            k2 = rates(s + 0.5 * h * k1, 1)
+            k3 = rates(s + 0.5 * h * k2, 2)
+            k4 = rates(s + h * k3, 3)
         z = z + h * sixth * (k1 + 2.0 * (k2 + k3) + k4)
     a_end = rotors(h_s * substeps)
     inc_n = (c - n) * (1.0 - a_end)
@@ -353,3 +372,58 @@ def lagged_rotor_increment(x: torch.Tensor, n: torch.Tensor, u: torch.Tensor, th
     d_inc_n = (dc - dn0) * (1.0 - a_end)
     J = torch.cat([dz, d_inc_n], dim=1)                                       # (B, 16, 20)
     return z, inc_n, J[..., :16], J[..., 16:]
+
+
+def rotation_torch(x: torch.Tensor, partials: bool = False):
+    """Body-to-NED rotation ``R = Rz(psi) Ry(theta) Rx(phi)`` (B, 3, 3) of the states ``x`` (B, >= 6), as
+    :func:`sim.equations.dynamics.rotation_matrix`; with ``partials``, also ``(dR/dphi, dR/dtheta, dR/dpsi)``."""
+    phi, th, psi = x[..., 3], x[..., 4], x[..., 5]
+    one, zero = torch.ones_like(phi), torch.zeros_like(phi)
+
+    def mat(rows):
+        return torch.stack([torch.stack(r, dim=-1) for r in rows], dim=-2)
+
+    sf, cf, st, ct, sp, cp = torch.sin(phi), torch.cos(phi), torch.sin(th), torch.cos(th), torch.sin(psi), \
+        torch.cos(psi)
+    Rx = mat([[one, zero, zero], [zero, cf, -sf], [zero, sf, cf]])
+    Ry = mat([[ct, zero, st], [zero, one, zero], [-st, zero, ct]])
+    Rz = mat([[cp, -sp, zero], [sp, cp, zero], [zero, zero, one]])
+    R = Rz @ Ry @ Rx
+    if not partials:
+        return R
+    dRx = mat([[zero, zero, zero], [zero, -sf, -cf], [zero, cf, -sf]])
+    dRy = mat([[-st, zero, ct], [zero, zero, zero], [-ct, zero, -st]])
+    dRz = mat([[-sp, -cp, zero], [cp, -sp, zero], [zero, zero, zero]])
+    return R, (Rz @ Ry @ dRx, Rz @ dRy @ Rx, dRz @ Ry @ Rx)
+
+
+def aero_acceleration(x: torch.Tensor, terms: dict, rotor_sum: torch.Tensor, thrust_m: torch.Tensor) -> torch.Tensor:
+    """NED acceleration (B, 3), m/s^2, of the aerodynamic terms ``terms`` (:mod:`sim.identification.aero`: name ->
+    coefficients) at the states ``x`` (B, >= 12), the rotor speeds' sum ``rotor_sum`` (B,) RU and the thrust over
+    the mass ``thrust_m`` (B,) m/s^2. The terms act in the body frame: ``a = R a_b(R^T v)``."""
+    from sim.identification.aero import term_acceleration
+
+    R = rotation_torch(x)
+    v_b = (R.transpose(-1, -2) @ x[..., 9:12].unsqueeze(-1)).squeeze(-1)
+    a_b = torch.stack(term_acceleration(terms, v_b, rotor_sum, thrust_m), dim=-1)
+    return (R @ a_b.unsqueeze(-1)).squeeze(-1)
+
+
+def aero_acceleration_tangent(x: torch.Tensor, terms: dict, rotor_sum: torch.Tensor, thrust_m: torch.Tensor,
+                              dx: torch.Tensor, d_sum: torch.Tensor, d_thrust: torch.Tensor):
+    """:func:`aero_acceleration` (B, 3) and its derivative along tangents (B, 3, k): ``dx`` (B, 12, k) of the
+    state, ``d_sum`` (B, k) of the rotor speeds' sum and ``d_thrust`` (B, k) of the thrust over the mass.
+    Written out by hand (plain tensor operations, for the ONNX export); ``tests/test_pinn.py`` holds it to
+    autograd."""
+    from sim.identification.aero import term_acceleration_tangent
+
+    R, dR = rotation_torch(x, partials=True)
+    v = x[..., 9:12].unsqueeze(-1)                                          # (B, 3, 1)
+    Rt = R.transpose(-1, -2)
+    v_b = (Rt @ v).squeeze(-1)
+    dv_b = Rt @ dx[:, 9:12] + sum((Ri.transpose(-1, -2) @ v) * dx[:, 3 + i:4 + i] for i, Ri in enumerate(dR))
+    a_b, da_b = term_acceleration_tangent(terms, v_b, rotor_sum, thrust_m, dv_b, d_sum, d_thrust)
+    a_b = torch.stack(a_b, dim=-1).unsqueeze(-1)                            # (B, 3, 1)
+    da_b = torch.stack(da_b, dim=-2)                                        # (B, 3, k)
+    da = R @ da_b + sum((Ri @ a_b) * dx[:, 3 + i:4 + i] for i, Ri in enumerate(dR))
+    return (R @ a_b).squeeze(-1), da

@@ -93,6 +93,9 @@ class TrainConfig:
     gain: float = 1.0            # multiplies the residual scale s
     fourier_max: int = 8         # Fourier: highest frequency 2**fourier_max rad^-1
     coupled: bool = True         # Modular: False hides the rotational states from the translation module
+    # Aerodynamic terms in the physics (motor-lag model only): "none", or "select" (the library's selection on the
+    # training and validation flights, then trained jointly from the identified coefficients; see AERO_MODES).
+    aero: str = "none"
 
     def variant(self) -> dict:
         """The zoo variant settings that depart from the shipped design."""
@@ -109,7 +112,12 @@ class TrainConfig:
 
 #: Training settings added after the shipped models were trained: left out of to_dict() at these defaults, so
 #: the recorded configurations and hashes of those models stay as they were.
-OMITTED_AT_DEFAULT = {"dropout_until": 1.0}
+OMITTED_AT_DEFAULT = {"dropout_until": 1.0, "aero": "none"}
+#: How a training treats the aerodynamic term library (:mod:`sim.identification.aero`): ``none`` carries no term;
+#: ``select`` first selects and identifies terms by least squares on the training flights, judged on the validation
+#: flights (:func:`sim.identification.aero.select_terms`), then trains the network on what they leave, with their
+#: coefficients learnable beside theta-hat from the identified values.
+AERO_MODES = ("none", "select")
 
 #: Budget per profile: quick is for CI (< 60 s on 2 cores), full for the shipped models.
 PROFILES = {
@@ -141,6 +149,11 @@ def make_config(arch: str, profile: str = "quick", seed: int = 0, recipe: str | 
         raise ValueError(f"recipe must be one of {', '.join(RECIPES)}; found {recipe!r}")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed must be an integer >= 0; found {seed!r}")
+    aero = overrides.get("aero", "none")
+    if aero not in AERO_MODES:
+        raise ValueError(f"aero must be one of {', '.join(AERO_MODES)}; found {aero!r}")
+    if aero != "none" and arch != "hybrid_lag":
+        raise ValueError(f"aero={aero!r} needs the motor-lag model (hybrid_lag); found arch {arch!r}")
     return TrainConfig(arch=arch, profile=profile, seed=seed, **{**PROFILES[profile], **RECIPES[recipe], **overrides})
 
 
@@ -285,6 +298,9 @@ class TrainResult:
     stats: dict = field(default_factory=dict)
     #: {epoch count: evaluation-mode copy of the model after that many epochs} for the requested checkpoints
     checkpoints: dict = field(default_factory=dict)
+    #: The aerodynamic terms' selection before training (:class:`sim.identification.aero.TermSelection`), with
+    #: ``aero="select"``
+    aero_selection: object = None
 
 
 def theta_errors_pct(theta: np.ndarray, truth: np.ndarray) -> dict:
@@ -518,7 +534,14 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
     theta0 = ref.theta * (1.0 + config.theta_bias)
 
     st = training_stats(ds)
-    model = build_model(config.arch, st, theta0, config.hidden, config.layers, config.dropout, config.variant())
+    selection = None
+    if config.aero == "select":
+        selection = select_aero_terms(ds, ref)
+    model = build_model(config.arch, st, theta0, config.hidden, config.layers, config.dropout, config.variant(),
+                        selection.fit.coefficients() if selection is not None else None)
+    if selection is not None and selection.terms:
+        f = selection.fit
+        model.aero_identified = {c: {"value": f.values[c], "low": f.low[c], "high": f.high[c]} for c in f.values}
     data = _TrainData(ds, gen)
     T = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
     lag = bool(getattr(model, "extra_states", ()))
@@ -586,6 +609,8 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
                "theta_err_pct": theta_errors_pct(th, p.theta)}
         if lag:
             rec["tau_m"] = float(model.tau.detach())
+            if model.aero_terms:
+                rec["aero"] = {n: [float(v) for v in c.detach()] for n, c in model.aero.items()}
             tau_true = float(ds.meta.get("fidelity", {}).get("motor_tau", 0.0))
             if tau_true > 0:
                 rec["theta_err_pct"]["tau_m"] = 100.0 * (rec["tau_m"] - tau_true) / tau_true
@@ -598,4 +623,34 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
                                 f"val={rec['val']:.2e} worst theta {worst[0]} {worst[1]:+.2f}%")
     model.eval()
     return TrainResult(model=model, config=config, history=history, seconds=time.perf_counter() - t0, stats=st,
-                       checkpoints=kept)
+                       checkpoints=kept, aero_selection=selection)
+
+
+def aero_samples(ds, p: QuadParams, split: int) -> list:
+    """The library's samples (:class:`sim.identification.aero.TermSamples`) of a simulated dataset's flights of
+    ``split`` (0 train, 1 validation), the rigid body ``p`` explaining thrust and gravity.
+
+    The rotor telemetry is the speed at each period's end; a period's speed is taken as the mean of its two ends (the
+    first period's as its end), which the motor lag makes closer to the period's mean than either end.
+    """
+    from sim.identification.aero import flight_samples
+
+    out = []
+    for i in np.flatnonzero(ds.split == split):
+        n_end = np.asarray(ds.rotor_speed[i], dtype=float)
+        n_mid = 0.5 * (n_end + np.concatenate([n_end[:1], n_end[:-1]]))
+        x = np.concatenate([ds.x[i], ds.x_next[i, -1:]])
+        out.append(flight_samples(f"flight {i}", x, n_mid, p))
+    return out
+
+
+def select_aero_terms(ds, p: QuadParams):
+    """The library's selection on a dataset: fitted on its training flights, judged on its validation flights (the
+    training flights where it has none)."""
+    from sim.identification.aero import select_terms
+
+    if ds.valid is not None:
+        raise ValueError("aero='select' trains on simulated datasets only (the motor-lag model's limit)")
+    train_ = aero_samples(ds, p, 0)
+    val = aero_samples(ds, p, 1) or train_
+    return select_terms(train_, val)

@@ -279,6 +279,10 @@ def register(sub) -> None:
                         "speeds as states; ctbr: collective thrust and body rates through the plant's inner loop, "
                         "the level's nominal model plus a network with a register of the last 2 periods, no "
                         "open-loop control; the study goes in OUT/PLANT_ctbr)")
+    p.add_argument("--aero", choices=("none", "select"), default="none",
+                   help="aerodynamic terms in the physics (wrench level): none (default), or select: the term "
+                        "library's selection on each training's flights, then the network trained on what the "
+                        "identified terms leave, their coefficients learned beside the physical parameters")
     p.add_argument("--jobs", type=int, default=None, help="worker processes (default: number of CPUs)")
     p.add_argument("--publish", action="store_true",
                    help="copy the study's summary, learning curve and models into MODELS/learn/PLANT (PLANT_ctbr at "
@@ -554,7 +558,8 @@ def cmd_learn(args: argparse.Namespace) -> int:
             raise ValueError(f"plant {args.plant} needs RotorPy: python -m pip install -e '.[rotorpy]'")
     settings = LearnSettings(plant=args.plant, iterations=args.iterations, per_level=args.per_level, seed=args.seed,
                              profile=args.profile, members=args.members, curve_members=args.curve_members,
-                             ladder_members=args.ladder_members, controls=not args.no_controls, level=args.level)
+                             ladder_members=args.ladder_members, controls=not args.no_controls, level=args.level,
+                             aero=args.aero)
     check_writable(args.out, "--out", folder=True)
     out = run_learn(settings, args.out, args.models, jobs)
     print(format_learn(out))

@@ -231,6 +231,16 @@ def test_a_ctbr_study_has_its_own_folder_and_names_and_an_old_study_still_resume
         LearnSettings(level="ctatt")
 
 
+def test_the_aerodynamic_terms_are_a_setting_of_the_wrench_level_only():
+    """``--aero select`` is stored with the settings; another mode, or the terms at ctbr (whose model has no rotor
+    speeds for them to read), is refused naming the option."""
+    assert LearnSettings(plant="rotorpy", aero="select").record()["aero"] == "select"
+    with pytest.raises(ScenarioError, match="^--aero must be one of none, select; found 'all'"):
+        LearnSettings(aero="all")
+    with pytest.raises(ScenarioError, match="^--aero select needs the wrench level"):
+        LearnSettings(level="ctbr", aero="select")
+
+
 def test_the_ctbr_learner_trains_on_flown_flights_and_writes_a_ctbr_model(tmp_path):
     """Nine synthetic flights become a model file at ctbr with the register of its history and its derivative graph,
     trained on the training flights and scored on the test one; the split counts and the physics' time constants

@@ -127,7 +127,8 @@ LEARN_PLANTS = {
 #: setting's error names its option as typed, since that is where the value came from on the command line.
 SETTING_OPTIONS = {"plant": "--plant", "iterations": "--iterations", "per_level": "--per-level", "seed": "--seed",
                    "profile": "--profile", "members": "--members", "curve_members": "--curve-members",
-                   "ladder_members": "--ladder-members", "controls": "--no-controls", "level": "--level"}
+                   "ladder_members": "--ladder-members", "controls": "--no-controls", "level": "--level",
+                   "aero": "--aero"}
 #: The command levels the study learns at: the wrench (:data:`LEARN_ARCH`, the rotor speeds as states) and ``ctbr``
 #: (:data:`CTBR_ARCH`). At ``ctatt`` no learner is written.
 LEARN_LEVELS = ("wrench", "ctbr")
@@ -157,6 +158,7 @@ class LearnSettings:
     ladder_members: int = 3      # members per rung of the speed ladder in the evaluation
     controls: bool = True        # train and fly the two controls (at ctbr the upper bound only)
     level: str = "wrench"        # command level flown and learned (LEARN_LEVELS)
+    aero: str = "none"           # aerodynamic terms in the physics (pinn.train.AERO_MODES; the wrench level only)
 
     def __post_init__(self):
         def named(name: str) -> str:
@@ -177,6 +179,13 @@ class LearnSettings:
         if self.profile not in LEARN_PROFILES:
             raise ScenarioError(f"{named('profile')} must be one of {', '.join(LEARN_PROFILES)}; "
                                 f"found {self.profile!r}")
+        from pinn.train import AERO_MODES
+
+        if self.aero not in AERO_MODES:
+            raise ScenarioError(f"{named('aero')} must be one of {', '.join(AERO_MODES)}; found {self.aero!r}")
+        if self.aero != "none" and self.level != "wrench":
+            raise ScenarioError(f"{named('aero')} {self.aero} needs the wrench level, whose model carries the rotor "
+                                f"speeds the terms read; found {named('level')} {self.level}")
         if self.level not in LEARN_LEVELS:
             raise ScenarioError(f"{named('level')} must be one of {', '.join(LEARN_LEVELS)} (no learner is written "
                                 f"for the other levels); found {self.level!r}")
@@ -196,6 +205,8 @@ class LearnSettings:
         out = dataclasses.asdict(self)
         if self.level == "wrench":
             del out["level"]
+        if self.aero == "none":
+            del out["aero"]
         return out
 
 
@@ -530,6 +541,8 @@ def train_model(settings: LearnSettings, data_path, folder, name: str, threads: 
         n_train = int(ds.usable[ds.split == 0].sum())
         steps = math.ceil(PASSES * n_train / (cfg.epochs * cfg.batch))
         changed = {**changed, "steps_per_epoch": max(10, min(PROFILE_STEPS_CAP, steps))}
+    if settings.aero != "none":
+        changed = {**changed, "aero": settings.aero}
     cfg = make_config(LEARN_ARCH, base, settings.seed, threads=threads, **changed)
     res = train(ds, cfg)
     last = res.history[-1]
@@ -544,8 +557,21 @@ def train_model(settings: LearnSettings, data_path, folder, name: str, threads: 
                                                                                           "val")},
            "metrics": metrics, "training_seconds": round(res.seconds, 1), "threads": threads,
            "steps": cfg.epochs * cfg.steps_per_epoch, "batch": cfg.batch}
+    if res.aero_selection is not None:
+        rec["aero"] = aero_summary(res.aero_selection, res.model)
     write_json(Path(folder) / f"{name}.json", rec)
     return rec
+
+
+def aero_summary(selection, model) -> dict:
+    """A training's aerodynamic terms for its record: what the selection claimed (validation error before and after,
+    m/s^2, and every step tried) and the model's record of them (:func:`pinn.models.aero_record`; empty terms when
+    none was claimed)."""
+    from pinn.models import aero_record
+
+    return {"validation_rmse_none": selection.validation_rmse_none, "validation_rmse": selection.validation_rmse,
+            "steps": [dataclasses.asdict(s) for s in selection.steps],
+            **(aero_record(model) if model.aero_terms else {"terms": []})}
 
 
 def _dataset_file(path: Path, flights: list[dict], vehicle) -> Path:

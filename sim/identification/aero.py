@@ -35,7 +35,7 @@ along +z (down). A positive ``k_h`` loses thrust with in-plane speed; translatio
 :func:`fit_terms` fits a set of terms by least squares on flights' samples, with 95 % intervals from a jackknife
 over flights. :func:`select_terms` adds terms one at a time, on the validation flights, and claims a term only when
 it lowers the validation error by a stated share, its coefficients have their physical sign, and the slowest and
-the fastest third of the training samples give it the same coefficients (a physical coefficient does not change
+the fastest third of the training samples give it the same acceleration (a physical coefficient does not change
 with the speed; a term that only bends the fit toward a form the library lacks does).
 """
 
@@ -120,6 +120,50 @@ def term_acceleration(terms: dict, v, rotor_sum, thrust_m) -> tuple:
         for c, col in zip(coefs, cols):
             total = [t + c * a for t, a in zip(total, col)]
     return tuple(total)
+
+
+def term_acceleration_tangent(terms: dict, v, rotor_sum, thrust_m, dv, d_sum, d_thrust) -> tuple[tuple, tuple]:
+    """:func:`term_acceleration` and its derivative along ``k`` tangent directions (forward mode, written out by
+    hand so that a torch model's derivative exports as plain operations; a test holds it to finite differences).
+
+    Parameters
+    ----------
+    terms, v, rotor_sum, thrust_m
+        As in :func:`term_acceleration`: ``v`` (N, 3), ``rotor_sum`` and ``thrust_m`` (N,).
+    dv : array (N, 3, k)
+        Tangent of the body velocity, m/s per direction.
+    d_sum, d_thrust : array (N, k)
+        Tangents of the rotor speeds' sum (RU) and of the thrust over the mass (m/s^2).
+
+    Returns
+    -------
+    a : tuple of 3 arrays (N,)
+        The body-frame acceleration, m/s^2.
+    da : tuple of 3 arrays (N, k)
+        Its derivative along each direction.
+    """
+    a = term_acceleration(terms, v, rotor_sum, thrust_m)
+    vx, vy, vz = v[..., 0:1], v[..., 1:2], v[..., 2:3]            # (N, 1): broadcast against the directions
+    s, tm = rotor_sum[..., None], thrust_m[..., None]
+    dvx, dvy, dvz = dv[..., 0, :], dv[..., 1, :], dv[..., 2, :]
+    zero = 0.0 * dvx
+    da = (zero, zero, zero)
+    for name, c in terms.items():
+        if name == "linear_drag":
+            parts = (-c[0] * dvx, -c[1] * dvy, -c[2] * dvz)
+        elif name == "quadratic_drag":
+            parts = (-2.0 * c[0] * abs(vx) * dvx, -2.0 * c[1] * abs(vy) * dvy, -2.0 * c[2] * abs(vz) * dvz)
+        elif name == "rotor_drag":
+            parts = (-c[0] * (d_sum * vx + s * dvx), -c[0] * (d_sum * vy + s * dvy), zero)
+        elif name == "thrust_loss":
+            parts = (zero, zero, d_thrust * (-c[0] * vz + c[1] * (vx * vx + vy * vy))
+                     + tm * (-c[0] * dvz + 2.0 * c[1] * (vx * dvx + vy * dvy)))
+        elif name == "thrust_bias":
+            parts = (zero, zero, zero)
+        else:
+            raise SimInputError(f"aerodynamic term must be one of {', '.join(TERMS)}; found {name!r}")
+        da = tuple(d + q for d, q in zip(da, parts))
+    return a, da
 
 
 @dataclass(frozen=True)
@@ -221,10 +265,16 @@ def residual_rmse(fit: TermFit, flights) -> float:
 
 #: A term is claimed when it lowers the validation error by at least this share of it.
 MIN_GAIN = 0.02
-#: ... and its coefficients fitted on the slowest and on the fastest third of the training samples agree within this
-#: share of the larger. (Not within their intervals: a form the data do not follow widens the jackknife's spread
-#: over flights, and would pass.)
+#: ... and, fitted on the slowest and on the fastest third of the training samples, it gives the same acceleration
+#: on every training sample within this share of the larger (root-mean-square over the samples). Judged on the
+#: acceleration, not on each coefficient: a coefficient near zero (a drag a plant lacks on one axis) differs by a
+#: large share between two fits of noise yet changes nothing. (And not within the intervals: a form the data do not
+#: follow widens the jackknife's spread over flights, and would pass.)
 AGREE_RTOL = 0.25
+#: Forward, candidates are ranked by their validation error times ``1 + COEF_PENALTY k`` (``k`` coefficients): of
+#: two terms that explain the same, the one with fewer coefficients goes first (rotor drag before the linear drag
+#: per axis at nearly constant rotor speeds). The gain a term must bring is judged on the plain error.
+COEF_PENALTY = 0.002
 
 
 @dataclass(frozen=True)
@@ -251,19 +301,26 @@ class TermSelection:
     steps: list = field(default_factory=list)
 
 
-def _disagreement(chosen, slow, fast) -> tuple[str, float, str]:
-    """The term of ``chosen`` whose coefficients the slow and the fast samples (each fitted with all of ``chosen``)
-    disagree on most, beyond :data:`AGREE_RTOL` of the larger: ``(term, relative difference, why)``; ``("", 0, "")``
-    when they agree on all."""
+def _stacked(flights) -> TermSamples:
+    return TermSamples("all", np.concatenate([f.v for f in flights]), np.concatenate([f.rotor_sum for f in flights]),
+                       np.concatenate([f.thrust_m for f in flights]), np.concatenate([f.residual for f in flights]))
+
+
+def _disagreement(chosen, slow, fast, everything: TermSamples) -> tuple[str, float, str]:
+    """The term of ``chosen`` whose acceleration the slow and the fast samples' fits (each of all of ``chosen``)
+    disagree on most over ``everything``, beyond :data:`AGREE_RTOL` of the larger: ``(term, relative difference,
+    why)``; ``("", 0, "")`` when they agree on all."""
     a, b = fit_terms(slow, chosen), fit_terms(fast, chosen)
     worst = ("", 0.0, "")
     for name in chosen:
-        for c in TERMS[name].coefficients:
-            scale = max(abs(a.values[c]), abs(b.values[c]))
-            rel = abs(a.values[c] - b.values[c]) / scale if scale > 0 else 0.0
-            if rel > AGREE_RTOL and rel > worst[1]:
-                worst = (name, rel, f"{c} is {a.values[c]:.4g} on the slowest third of the samples and "
-                                    f"{b.values[c]:.4g} on the fastest: it changes with the speed")
+        acc = [np.stack(term_acceleration({name: f.coefficients()[name]}, everything.v, everything.rotor_sum,
+                                          everything.thrust_m), axis=1) for f in (a, b)]
+        scale = max(float(np.sqrt(np.mean(q ** 2))) for q in acc)
+        rel = float(np.sqrt(np.mean((acc[0] - acc[1]) ** 2))) / scale if scale > 0 else 0.0
+        if rel > AGREE_RTOL and rel > worst[1]:
+            coefs = ", ".join(f"{c} {a.values[c]:.4g} against {b.values[c]:.4g}" for c in TERMS[name].coefficients)
+            worst = (name, rel, f"its acceleration differs by {100 * rel:.0f} % between the fits on the slowest and "
+                                f"on the fastest third of the samples ({coefs}): it changes with the speed")
     return worst
 
 
@@ -271,11 +328,11 @@ def select_terms(train, val, candidates=tuple(TERMS), min_gain: float = MIN_GAIN
     """Select aerodynamic terms: fitted on ``train``, judged on ``val`` (lists of :class:`TermSamples`).
 
     First forward: each round fits every candidate not yet taken beside the taken ones and tries them best first
-    (lowest validation error); a term is taken when it lowers the validation error by at least ``min_gain`` of it and
+    (lowest validation error, with a small penalty per coefficient: :data:`COEF_PENALTY`); a term is taken when it lowers the validation error by at least ``min_gain`` of it and
     each of its coefficients has its physical sign (:attr:`AeroTerm.signs`). The rounds stop when none is taken.
 
     Then the speed check, backward: fitted together on the slowest and on the fastest third of the training samples
-    (:func:`speed_bands`), the taken terms must have the same coefficients (:data:`AGREE_RTOL`); the term that
+    (:func:`speed_bands`), the taken terms must give the same acceleration (:data:`AGREE_RTOL`); the term that
     disagrees most is dropped, and the check repeats on the rest. What is left is claimed. (Forward, one term at a
     time, a term the plant has would look speed-dependent while another it has is still missing.)
     """
@@ -286,12 +343,14 @@ def select_terms(train, val, candidates=tuple(TERMS), min_gain: float = MIN_GAIN
         if n not in TERMS:
             raise SimInputError(f"aerodynamic term must be one of {', '.join(TERMS)}; found {n!r}")
     slow, fast = speed_bands(train)
+    everything = _stacked(train)
     chosen: list[str] = []
     current = none = residual_rmse(fit_terms(train, []), val)
     steps = []
     while True:
         tried = sorted(((residual_rmse(fit := fit_terms(train, chosen + [n]), val), n, fit)
-                        for n in candidates if n not in chosen), key=lambda t: t[0])
+                        for n in candidates if n not in chosen),
+                       key=lambda t: t[0] * (1.0 + COEF_PENALTY * len(TERMS[t[1]].coefficients)))
         taken = False
         for err, n, fit in tried:
             gain = 1.0 - err / current if current > 0 else 0.0
@@ -311,7 +370,7 @@ def select_terms(train, val, candidates=tuple(TERMS), min_gain: float = MIN_GAIN
         if not taken:
             break
     while chosen:
-        name, _, why = _disagreement(chosen, slow, fast)
+        name, _, why = _disagreement(chosen, slow, fast, everything)
         if not name:
             break
         chosen.remove(name)
@@ -323,7 +382,7 @@ def select_terms(train, val, candidates=tuple(TERMS), min_gain: float = MIN_GAIN
 
 def flight_samples(name: str, x, rotor_speed, p, ok=None) -> TermSamples:
     """A flight's :class:`TermSamples` from its states and rotor speeds, the rigid body ``p`` (:class:`sim.QuadParams`)
-    explaining the thrust ``kt sum n^2`` and gravity.
+    explaining the thrust ``kt sum n^2``, gravity and the nominal model's own drag ``-c_d v|v|`` (NED, per axis).
 
     Parameters
     ----------
@@ -334,7 +393,7 @@ def flight_samples(name: str, x, rotor_speed, p, ok=None) -> TermSamples:
     rotor_speed : array (N, 4)
         Rotor speeds held over each period, RU.
     p : QuadParams
-        Mass, ``kt`` and gravity.
+        Mass, ``kt``, gravity and ``c_d``.
     ok : array (N + 1,) of bool, optional
         Which states are measured; a period is used when both its ends are measured and finite and its rotor speeds
         finite (the others are left out).
@@ -355,7 +414,8 @@ def flight_samples(name: str, x, rotor_speed, p, ok=None) -> TermSamples:
     k = np.flatnonzero(ok[:-1] & ok[1:] & np.all(np.isfinite(n), axis=1))
     R0 = rotation_matrix(x[k, 3], x[k, 4], x[k, 5])
     R1 = rotation_matrix(x[k + 1, 3], x[k + 1, 4], x[k + 1, 5])
-    acc = (x[k + 1, 9:12] - x[k, 9:12]) / DT - np.array([0.0, 0.0, p.g])
+    v_mid = 0.5 * (x[k, 9:12] + x[k + 1, 9:12])
+    acc = (x[k + 1, 9:12] - x[k, 9:12]) / DT - np.array([0.0, 0.0, p.g]) + p.c_d * v_mid * np.abs(v_mid)
     a_b = np.linalg.solve(0.5 * (R0 + R1), acc[:, :, None])[:, :, 0]
     v_b = 0.5 * (np.einsum("nji,nj->ni", R0, x[k, 9:12]) + np.einsum("nji,nj->ni", R1, x[k + 1, 9:12]))
     thrust_m = p.kt * np.sum(n[k] ** 2, axis=1) / p.m
