@@ -49,6 +49,10 @@ def register(sub) -> None:
     p.add_argument("--dropout-until", type=float, default=1.0, metavar="F",
                    help="recipes with dropout: switch it off after this fraction of the epochs (default 1: on "
                         "throughout, the paper's recipe)")
+    p.add_argument("--aero", default="none", choices=("none", "select"),
+                   help="--arch hybrid_lag: aerodynamic terms in the physics (default none; select: the term "
+                        "library's selection on the training flights, judged on the validation flights, then "
+                        "trained jointly from the identified coefficients; the name gets _aero)")
     p.add_argument("--name", default=None, help="file stem (default: ARCH, then _REGIME off the small regime, "
                                                  "_highfi and _realized off the defaults)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
@@ -169,6 +173,11 @@ def cmd_train(args: argparse.Namespace) -> int:
     if not 0.0 <= args.dropout_until <= 1.0:
         raise ValueError(f"--dropout-until must lie in [0, 1]; found {args.dropout_until}")
     overrides = {"dropout_until": args.dropout_until} if args.dropout_until != 1.0 else {}
+    if args.aero != "none":
+        if args.arch != "hybrid_lag":
+            raise ValueError(f"--aero {args.aero} needs --arch hybrid_lag (the model that carries the rotor speeds "
+                             f"the terms read); found --arch {args.arch}")
+        overrides["aero"] = args.aero
     check_writable(args.out, "--out", folder=True)  # before the training, so that its minutes are not lost
     if args.arch == "ctbr":
         for flag, given in (("--recipe", args.recipe is not None), ("--dropout-until", bool(overrides)),
@@ -188,7 +197,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         return _train_ctbr(args, ds, spec)
     own = args.arch if args.arch in ("baseline", "proposed") else "baseline"
     recipe = None if args.recipe in (None, own) else args.recipe
-    name = args.name or default_name(args.arch if recipe is None else f"{args.arch}_{recipe}", spec)
+    name = args.name or default_name(args.arch + ("_aero" if args.aero != "none" else "")
+                                     if recipe is None else f"{args.arch}_{recipe}", spec)
     res, metrics = _train_one(ds, args.arch, args.profile, args.seed, args.threads, recipe,
                               progress=sys.stderr.isatty(), **overrides)
     last = res.history[-1]
@@ -203,7 +213,8 @@ def cmd_train(args: argparse.Namespace) -> int:
            + (f"--data {args.data} " if args.data else f"--regime {spec['regime']} --data-seed {spec['seed']} "
               + (f"--fidelity {spec['fidelity']} " if "fidelity" in spec else "")
               + (f"--inputs {spec['inputs']} " if "inputs" in spec else ""))
-           + (f"--dropout-until {args.dropout_until:g} " if overrides else "")
+           + (f"--dropout-until {args.dropout_until:g} " if args.dropout_until != 1.0 else "")
+           + (f"--aero {args.aero} " if args.aero != "none" else "")
            + f"--threads {args.threads} " + (f"--name {args.name} " if args.name else "") + f"--out {args.out}")
     entry = {
         "files": {k: Path(v).name for k, v in paths.items()},
@@ -218,6 +229,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         "theta_err_pct": last["theta_err_pct"],
         "final_losses": {k: last[k] for k in ("data", "phys", "theta", "rotor", "energy", "smooth", "val")},
         "training_seconds": round(res.seconds, 1),
+        **({"aero": _aero_entry(res)} if res.aero_selection is not None else {}),
         "torch_version": torch.__version__,
         "cpu_count": os.cpu_count(),
     }
@@ -230,7 +242,21 @@ def cmd_train(args: argparse.Namespace) -> int:
           f"100-step MAE position {r['position']:.3g} m, phi {r['phi']:.3g} rad, diverged {r['n_diverged']}/{r['n_rollouts']}")
     print("  theta-hat error %: " + ", ".join(f"{k} {v:+.2f}" for k, v in last["theta_err_pct"].items()))
     print(f"  validation loss {last['val']:.3e} (first epoch {res.history[0]['val']:.3e}); manifest {manifest}")
+    if res.aero_selection is not None:
+        a = _aero_entry(res)
+        print("  aerodynamic terms: " + (", ".join(f"{c} {v:.4g} {a['units'][c]} (identified "
+                                                   f"{a['identified'][c]['value']:.4g}, 95 % "
+                                                   f"{a['identified'][c]['low']:.4g}-{a['identified'][c]['high']:.4g})"
+                                                   for c, v in a["coefficients"].items())
+                                         if a["terms"] else "none claimed"))
     return 0
+
+
+def _aero_entry(res) -> dict:
+    """The manifest's record of a training's aerodynamic terms (the learning study's record, the same form)."""
+    from .train import aero_summary
+
+    return aero_summary(res.aero_selection, res.model)
 
 
 def _train_ctbr(args: argparse.Namespace, ds, spec: dict) -> int:

@@ -654,3 +654,15 @@ def select_aero_terms(ds, p: QuadParams):
     train_ = aero_samples(ds, p, 0)
     val = aero_samples(ds, p, 1) or train_
     return select_terms(train_, val)
+
+
+def aero_summary(selection, model) -> dict:
+    """A training's aerodynamic terms for its record: what the selection claimed (validation error before and after,
+    m/s^2, and every step tried) and the model's record of them (:func:`pinn.models.aero_record`; empty terms when
+    none was claimed)."""
+    from .models import aero_record
+
+    return {"validation_rmse_none": selection.validation_rmse_none, "validation_rmse": selection.validation_rmse,
+            "steps": [dataclasses.asdict(s) for s in selection.steps],
+            **(aero_record(model) if model.aero_terms else {"terms": []})}
+

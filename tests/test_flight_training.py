@@ -504,7 +504,9 @@ def test_train_arch_ctbr_writes_a_ctbr_model_reruns_exactly_and_refuses_the_othe
     for args, message in ((["--arch", "ctbr", "--data", str(wrench)], "--arch ctbr learns from a dataset flown at"),
                           (["--arch", "hybrid", "--data", str(ctbr)], "holds commands at the ctbr level"),
                           (["--arch", "ctbr", "--recipe", "proposed", "--data", str(ctbr)], "--recipe applies to"),
-                          (["--arch", "hybrid", "--profile", "smoke", "--data", str(wrench)], "--profile smoke is")):
+                          (["--arch", "hybrid", "--profile", "smoke", "--data", str(wrench)], "--profile smoke is"),
+                          (["--arch", "hybrid", "--aero", "select", "--data", str(wrench)],
+                           "--aero select needs --arch hybrid_lag")):
         assert main(["train", *args, "--out", str(tmp_path / "c")]) == 2
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1, err

@@ -684,6 +684,27 @@ def test_the_report_section_states_the_goal_with_its_numbers(tmp_path):
     assert "(`figure8-fast+highfi`; 10 members (5 for the models between), 3 per ladder rung, 30 min" in text
 
 
+def test_the_report_states_the_final_models_aerodynamic_terms(tmp_path):
+    """A study trained with the term library names its final model's terms, each trained value beside the identified
+    one and its interval; one whose selection claimed none says so; one trained without the library says nothing."""
+    from reports.build import _figure_md
+    from reports.sections.learn import learn_section
+
+    st = {**_study(18.0, True), "final_model": "learn_highfi_it1"}
+    assert "Aerodynamic terms" not in learn_section({"highfi": st}, tmp_path, _figure_md)
+    aero = {"validation_rmse_none": 0.7183, "validation_rmse": 0.7031, "terms": ["rotor_drag"],
+            "coefficients": {"k_r": 0.018181}, "units": {"k_r": "1/(s RU)"},
+            "identified": {"k_r": {"value": 0.017641, "low": 0.017621, "high": 0.017662}}}
+    st["trainings"] = [{"name": "learn_highfi_it1", "aero": aero}]
+    text = learn_section({"highfi": st}, tmp_path, _figure_md)
+    assert ("Aerodynamic terms of `learn_highfi_it1` (rotor_drag; selected on its validation flights, one-step "
+            "acceleration error 0.718 → 0.703 m/s²): k_r 0.01818 1/(s RU) (identified 0.01764, 95 % "
+            "0.01762–0.01766).") in text
+    st["trainings"] = [{"name": "learn_highfi_it1", "aero": {**aero, "terms": []}}]
+    assert "the selection claimed none (validation error 0.718 m/s² with none)" in learn_section(
+        {"highfi": st}, tmp_path, _figure_md)
+
+
 def test_the_report_reads_a_ctbr_study_beside_the_wrench_one_and_names_its_level(tmp_path):
     """Two studies of one plant at two levels are two studies in the report (keyed by folder name), the ctbr one
     named with its level."""

@@ -127,4 +127,25 @@ def learn_section(studies: dict | None, run_dir: Path, figure_md) -> str:
         parts.append(md_table(["model", "role", "RMSE, mm (95 %)", "crashes", "against nominal (95 %)",
                                "max speed, m/s"], rows))
         parts.append(verdict_sentence(st))
+        terms = aero_sentence(st)
+        if terms:
+            parts.append(terms)
     return "\n\n".join(parts)
+
+
+def aero_sentence(st: dict) -> str | None:
+    """The final model's aerodynamic terms (each coefficient trained, and identified with its 95 % interval before
+    training), or that the selection claimed none; None for a study trained without the term library."""
+    final = [t for t in st.get("trainings", []) if t.get("name") == st.get("final_model")] or st.get("trainings", [])[-1:]
+    if not final or "aero" not in final[0]:
+        return None
+    a = final[0]["aero"]
+    if not a["terms"]:
+        return (f"Aerodynamic terms of `{final[0]['name']}`: the selection claimed none (validation error "
+                f"{fmt(a['validation_rmse_none'], '.3f')} m/s² with none).")
+    coefs = ", ".join(f"{c} {fmt(v, '.4g')} {a['units'][c]} (identified {fmt(a['identified'][c]['value'], '.4g')}, "
+                      f"95 % {fmt(a['identified'][c]['low'], '.4g')}–{fmt(a['identified'][c]['high'], '.4g')})"
+                      for c, v in a["coefficients"].items())
+    return (f"Aerodynamic terms of `{final[0]['name']}` ({', '.join(a['terms'])}; selected on its validation flights, "
+            f"one-step acceleration error {fmt(a['validation_rmse_none'], '.3f')} → {fmt(a['validation_rmse'], '.3f')} "
+            f"m/s²): {coefs}.")

@@ -558,20 +558,11 @@ def train_model(settings: LearnSettings, data_path, folder, name: str, threads: 
            "metrics": metrics, "training_seconds": round(res.seconds, 1), "threads": threads,
            "steps": cfg.epochs * cfg.steps_per_epoch, "batch": cfg.batch}
     if res.aero_selection is not None:
+        from pinn.train import aero_summary
+
         rec["aero"] = aero_summary(res.aero_selection, res.model)
     write_json(Path(folder) / f"{name}.json", rec)
     return rec
-
-
-def aero_summary(selection, model) -> dict:
-    """A training's aerodynamic terms for its record: what the selection claimed (validation error before and after,
-    m/s^2, and every step tried) and the model's record of them (:func:`pinn.models.aero_record`; empty terms when
-    none was claimed)."""
-    from pinn.models import aero_record
-
-    return {"validation_rmse_none": selection.validation_rmse_none, "validation_rmse": selection.validation_rmse,
-            "steps": [dataclasses.asdict(s) for s in selection.steps],
-            **(aero_record(model) if model.aero_terms else {"terms": []})}
 
 
 def _dataset_file(path: Path, flights: list[dict], vehicle) -> Path:
