@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.files import check_writable, write_json
+from sim.identification.aero import AERO_MODES
 from sim.params import FIDELITIES, INPUT_LOGS
 
 ARCHS = ("baseline", "modular", "fourier", "proposed", "hybrid", "hybrid_lag")
@@ -49,7 +50,7 @@ def register(sub) -> None:
     p.add_argument("--dropout-until", type=float, default=1.0, metavar="F",
                    help="recipes with dropout: switch it off after this fraction of the epochs (default 1: on "
                         "throughout, the paper's recipe)")
-    p.add_argument("--aero", default="none", choices=("none", "select"),
+    p.add_argument("--aero", default="none", choices=AERO_MODES,
                    help="--arch hybrid_lag: aerodynamic terms in the physics (default none; select: the term "
                         "library's selection on the training flights, judged on the validation flights, then "
                         "trained jointly from the identified coefficients; the name gets _aero)")

@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from sim.identification.aero import AERO_MODES
 from sim.params import DT, THETA_NAMES, QuadParams
 
 from .models import ALL_ARCHITECTURES, PHYSICAL, VARIANT_DEFAULTS, build_model
@@ -113,11 +114,7 @@ class TrainConfig:
 #: Training settings added after the shipped models were trained: left out of to_dict() at these defaults, so
 #: the recorded configurations and hashes of those models stay as they were.
 OMITTED_AT_DEFAULT = {"dropout_until": 1.0, "aero": "none"}
-#: How a training treats the aerodynamic term library (:mod:`sim.identification.aero`): ``none`` carries no term;
-#: ``select`` first selects and identifies terms by least squares on the training flights, judged on the validation
-#: flights (:func:`sim.identification.aero.select_terms`), then trains the network on what they leave, with their
-#: coefficients learnable beside theta-hat from the identified values.
-AERO_MODES = ("none", "select")
+
 
 #: Budget per profile: quick is for CI (< 60 s on 2 cores), full for the shipped models.
 PROFILES = {

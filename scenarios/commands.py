@@ -234,6 +234,8 @@ def register(sub) -> None:
     _qp_option(p, "every SQP run")
     p.set_defaults(handler=cmd_levels)
 
+    from sim.identification.aero import AERO_MODES
+
     from .studies.learn import LEARN_LEVELS, LEARN_PLANTS, LearnSettings, upper_flights
     from .studies.training_refs import references_per_iteration
 
@@ -241,8 +243,9 @@ def register(sub) -> None:
     p = sub.add_parser("learn", help="learn from the flights it flies: fly, train on the flights, fly the new model",
                        description="On one plant with physics the nominal equations lack, fly the nominal equations "
                                    "with the SQP on random training references (perturbed, with input dither; never "
-                                   "a figure-8), train physics plus network with the rotor speeds as states on every "
-                                   "flight so far, fly the new model on fresh references, and repeat. Each "
+                                   "a figure-8), train physics plus network with the rotor speeds as states and the "
+                                   "aerodynamic terms the flights select on every flight so far, fly the new model on "
+                                   "fresh references, and repeat. Each "
                                    "iteration's model flies the held-out figure8-fast: the learning curve. Then two "
                                    "controls (the same minutes of open-loop excitation, and an upper bound trained "
                                    "on the flights plus flights of figure8-fast itself, "
@@ -279,10 +282,11 @@ def register(sub) -> None:
                         "speeds as states; ctbr: collective thrust and body rates through the plant's inner loop, "
                         "the level's nominal model plus a network with a register of the last 2 periods, no "
                         "open-loop control; the study goes in OUT/PLANT_ctbr)")
-    p.add_argument("--aero", choices=("none", "select"), default="none",
-                   help="aerodynamic terms in the physics (wrench level): none (default), or select: the term "
-                        "library's selection on each training's flights, then the network trained on what the "
-                        "identified terms leave, their coefficients learned beside the physical parameters")
+    p.add_argument("--aero", choices=AERO_MODES, default=None,
+                   help="aerodynamic terms in the physics, at the wrench level: select (the default there): the "
+                        "term library's selection on each training's flights, then the network trained on what the "
+                        "identified terms leave, their coefficients learned beside the physical parameters; none: "
+                        "no terms (the default at ctbr, whose model has no rotor speeds for them)")
     p.add_argument("--jobs", type=int, default=None, help="worker processes (default: number of CPUs)")
     p.add_argument("--publish", action="store_true",
                    help="copy the study's summary, learning curve and models into MODELS/learn/PLANT (PLANT_ctbr at "

@@ -225,6 +225,7 @@ def test_a_ctbr_study_has_its_own_folder_and_names_and_an_old_study_still_resume
     w = LearnSettings(plant="rotorpy")
     shipped = json.loads((SHIPPED / "rotorpy" / "learn.json").read_text())["settings"]
     assert w.tag == "rotorpy" and "level" not in w.record() and w.record() == shipped
+    assert json.loads((SHIPPED / "rotorpy_ctbr" / "learn.json").read_text())["settings"] == s.record()
     assert learn.study_tag({"plant": "rotorpy"}) == "rotorpy"
     assert learn.study_tag({"plant": "rotorpy", "level": "ctbr"}) == "rotorpy_ctbr"
     with pytest.raises(ScenarioError, match="^--level must be one of wrench, ctbr"):
@@ -232,9 +233,12 @@ def test_a_ctbr_study_has_its_own_folder_and_names_and_an_old_study_still_resume
 
 
 def test_the_aerodynamic_terms_are_a_setting_of_the_wrench_level_only():
-    """``--aero select`` is stored with the settings; another mode, or the terms at ctbr (whose model has no rotor
-    speeds for them to read), is refused naming the option."""
-    assert LearnSettings(plant="rotorpy", aero="select").record()["aero"] == "select"
+    """The terms are selected by default at the wrench level and stored with the settings; at ctbr (whose model has
+    no rotor speeds for them to read) the default is none, and asking for them there, or another mode, is refused
+    naming the option. A study trained without them (``--aero none``) stores its settings as before the option."""
+    assert LearnSettings(plant="rotorpy").record()["aero"] == "select"
+    assert LearnSettings(plant="rotorpy", level="ctbr").aero == "none"
+    assert "aero" not in LearnSettings(plant="rotorpy", aero="none").record()
     with pytest.raises(ScenarioError, match="^--aero must be one of none, select; found 'all'"):
         LearnSettings(aero="all")
     with pytest.raises(ScenarioError, match="^--aero select needs the wrench level"):

@@ -40,10 +40,10 @@ REQUIRED_IDENT = {f"{a}_{c}" for a in ("baseline", "proposed")
                      for c in ("highfi", "aggressive_highfi", "aggressive_realized", "seed1", "seed2")} | {
     "proposed_dropout75", "hybrid", "hybrid_proposed", "hybrid_lag_highfi"}
 #: Learned against nominal: the other architectures on the small high-fidelity data, the lag model on the
-#: aggressive one, every architecture on RotorPy's data.
-ARCHS = ("baseline", "modular", "fourier", "proposed", "hybrid", "hybrid_lag")
-REQUIRED_VERSUS = {"modular_highfi", "fourier_highfi", "hybrid_highfi", "hybrid_lag_aggressive_highfi"} | {
-    f"{a}_rotorpy" for a in ARCHS}
+#: aggressive one, every architecture on RotorPy's data; the lag model with the aerodynamic term library on both.
+ARCHS = ("baseline", "modular", "fourier", "proposed", "hybrid", "hybrid_lag", "hybrid_lag_aero")
+REQUIRED_VERSUS = {"modular_highfi", "fourier_highfi", "hybrid_highfi", "hybrid_lag_aggressive_highfi",
+                   "hybrid_lag_aero_aggressive_highfi"} | {f"{a}_rotorpy" for a in ARCHS}
 #: The open-loop models at the ctbr level (models/versus/ctbr, their own manifest): ``pinnmpc train --arch ctbr`` on
 #: ``pinnmpc data --level ctbr`` of each plant of the study, small and aggressive.
 VERSUS_CTBR = VERSUS / "ctbr"
@@ -192,6 +192,28 @@ def test_retraining_a_versus_model_reproduces_it(tmp_path, name):
     """Retrain a models/versus model (5-10 minutes); RotorPy's dataset first, with the manifest's data command
     (about 4 minutes)."""
     _retrain(VERSUS_MANIFEST[name], name, tmp_path)
+
+
+def test_the_open_loop_models_with_the_term_library_record_their_terms():
+    """Each model trained with ``--aero select`` states its terms in its metadata as in its manifest entry; on our
+    high-fidelity plant the one term is the plant's rotor drag, identified with ``rotor_drag / m`` inside its 95 %
+    interval."""
+    import onnx
+
+    from sim.params import FIDELITIES, QuadParams
+
+    for name in ("hybrid_lag_aero_aggressive_highfi", "hybrid_lag_aero_rotorpy"):
+        entry = VERSUS_MANIFEST[name]
+        meta = {p.key: p.value for p in onnx.load(str(VERSUS / entry["files"]["onnx"])).metadata_props}
+        record = json.loads(meta["aero_terms"])
+        assert record["terms"] and record["terms"] == entry["aero"]["terms"]
+        # the file's from the float64 export, the manifest's from the float32 model that was trained
+        assert record["coefficients"] == pytest.approx(entry["aero"]["coefficients"], rel=1e-6)
+        assert "--aero select" in entry["command"]
+    got = VERSUS_MANIFEST["hybrid_lag_aero_aggressive_highfi"]["aero"]
+    truth = FIDELITIES["high"].rotor_drag / QuadParams().m
+    assert got["terms"] == ["rotor_drag"]
+    assert got["identified"]["k_r"]["low"] <= truth <= got["identified"]["k_r"]["high"]
 
 
 def test_the_open_loop_models_at_ctbr_are_shipped_at_their_level_with_their_record():

@@ -96,7 +96,8 @@ def learn_section(studies: dict | None, run_dir: Path, figure_md) -> str:
     if not studies:
         return NO_LEARN
     parts = ["From `pinnmpc learn` (published into `models/learn/`, copied here by `pinnmpc run`). Each iteration "
-             "trains physics plus network with the rotor speeds as states on every flight flown so far (random "
+             "trains physics plus network with the rotor speeds as states (and, where the study says so below, the "
+             "aerodynamic terms its flights select) on every flight flown so far (random "
              "min-snap paths and orbits at 1-3 m/s, perturbed, with input dither; never a figure-8), and its model "
              "flies the next iteration's references. The controls are trained the same way on the same minutes of "
              "open-loop excitation, and (an upper bound only) on the final model's flights plus flights of "

@@ -9,8 +9,9 @@
   (:func:`sim.flightlogs.flightlog.flown_flight`, with the
   motion-capture noise of the open-loop data added);
 * **iteration i >= 1** trains physics plus network with the rotor speeds as states (``hybrid_lag``) on every flight
-  so far, and flies that model on the next iteration's references (the last iteration's model flies only its
-  evaluation);
+  so far, with the aerodynamic terms the flights select (``--aero select``, the default: the term library of
+  :mod:`sim.identification.aero` identified first, then trained jointly), and flies that model on the next
+  iteration's references (the last iteration's model flies only its evaluation);
 * each iteration's model flies the held-out ``figure8-fast`` (``members`` ensemble members for the nominal
   equations and the final model, ``curve_members`` for the models between): one row of the learning curve (RMSE
   against iteration and against the minutes of flight it learned from);
@@ -158,7 +159,8 @@ class LearnSettings:
     ladder_members: int = 3      # members per rung of the speed ladder in the evaluation
     controls: bool = True        # train and fly the two controls (at ctbr the upper bound only)
     level: str = "wrench"        # command level flown and learned (LEARN_LEVELS)
-    aero: str = "none"           # aerodynamic terms in the physics (pinn.train.AERO_MODES; the wrench level only)
+    aero: str | None = None      # aerodynamic terms (pinn.train.AERO_MODES); None: select at the wrench level,
+                                 # none at ctbr (whose model has no rotor speeds for the terms to read)
 
     def __post_init__(self):
         def named(name: str) -> str:
@@ -179,8 +181,10 @@ class LearnSettings:
         if self.profile not in LEARN_PROFILES:
             raise ScenarioError(f"{named('profile')} must be one of {', '.join(LEARN_PROFILES)}; "
                                 f"found {self.profile!r}")
-        from pinn.train import AERO_MODES
+        from sim.identification.aero import AERO_MODES
 
+        if self.aero is None:
+            object.__setattr__(self, "aero", "select" if self.level == "wrench" else "none")
         if self.aero not in AERO_MODES:
             raise ScenarioError(f"{named('aero')} must be one of {', '.join(AERO_MODES)}; found {self.aero!r}")
         if self.aero != "none" and self.level != "wrench":

@@ -81,13 +81,14 @@ VERSUS_PLANTS = {
         "sim", "+highfi", "our high-fidelity plant (30 ms motor lag, rotor drag, gyroscopic torque)",
         ("identification/baseline_highfi.onnx", "versus/modular_highfi.onnx", "versus/fourier_highfi.onnx",
          "identification/proposed_highfi.onnx", "versus/hybrid_highfi.onnx", "identification/hybrid_lag_highfi.onnx",
-         "versus/hybrid_lag_aggressive_highfi.onnx", "versus/ctbr/ctbr_highfi.onnx",
+         "versus/hybrid_lag_aggressive_highfi.onnx", "versus/hybrid_lag_aero_aggressive_highfi.onnx",
+         "versus/ctbr/ctbr_highfi.onnx",
          "versus/ctbr/ctbr_aggressive_highfi.onnx"),
         True),
     "rotorpy": VersusPlant(
         "rotorpy", "", "RotorPy with its motor lag and aerodynamics",
         tuple(f"versus/{a}_rotorpy.onnx" for a in ("baseline", "modular", "fourier", "proposed", "hybrid",
-                                                   "hybrid_lag"))
+                                                   "hybrid_lag", "hybrid_lag_aero"))
         + ("versus/ctbr/ctbr_rotorpy.onnx", "versus/ctbr/ctbr_aggressive_rotorpy.onnx"),
         False),
     # No open-loop model is trained on it: the learning study (pinnmpc learn) flies it.

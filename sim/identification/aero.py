@@ -263,6 +263,12 @@ def residual_rmse(fit: TermFit, flights) -> float:
     return float(np.sqrt(np.mean(np.concatenate(err) ** 2)))
 
 
+#: How a training may use the library (``pinnmpc train --aero``, ``pinnmpc learn --aero``): ``none`` carries no term;
+#: ``select`` first selects and identifies terms by least squares on the training flights, judged on the validation
+#: flights (:func:`select_terms`), then trains the network on what they leave, with their coefficients learnable
+#: beside the physical parameters from the identified values.
+AERO_MODES = ("none", "select")
+
 #: A term is claimed when it lowers the validation error by at least this share of it.
 MIN_GAIN = 0.02
 #: ... and, fitted on the slowest and on the fastest third of the training samples, it gives the same acceleration
