@@ -210,3 +210,20 @@ def test_the_library_is_refused_where_no_model_carries_it():
         make_config("hybrid_lag", "quick", 0, aero="all")
     with pytest.raises(ValueError, match="needs the motor-lag model"):
         make_config("hybrid", "quick", 0, aero="select")
+
+
+@pytest.mark.parametrize("fidelity", ["nominal", "motor-lag"])
+def test_a_plant_without_aerodynamic_effects_gets_no_term_and_a_model_without_terms(fidelity):
+    # The nominal plant (its quadratic drag c_d is the rigid body's own, subtracted before the fit) and the plant with
+    # the motor lag alone: no term lowers the validation error by 2 %, so none is claimed, and the training builds the
+    # motor-lag model without terms and records that none was claimed.
+    from pinn.train import aero_summary, make_config, train
+    from sim.identification.excitation import make_dataset
+    from sim.params import FIDELITIES
+
+    ds = make_dataset("small", 12, 10.0, 1, fidelity=FIDELITIES[fidelity])
+    res = train(ds, make_config("hybrid_lag", "quick", 0, aero="select", epochs=1, steps_per_epoch=2))
+    assert res.aero_selection.terms == (), res.aero_selection.steps
+    assert res.model.aero_terms == () and "aero" not in res.model.describe()
+    summary = aero_summary(res.aero_selection, res.model)
+    assert summary["terms"] == [] and len(summary["steps"]) == len(TERMS)
