@@ -168,6 +168,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from sim.params import THETA_NAMES
 
     from .export import export_model
+    from .train import aero_summary
 
     if args.threads < 1:
         raise ValueError(f"--threads must be >= 1; found {args.threads}")
@@ -202,6 +203,8 @@ def cmd_train(args: argparse.Namespace) -> int:
                                      if recipe is None else f"{args.arch}_{recipe}", spec)
     res, metrics = _train_one(ds, args.arch, args.profile, args.seed, args.threads, recipe,
                               progress=sys.stderr.isatty(), **overrides)
+    # the terms' record, in the learning study's form
+    aero = None if res.aero_selection is None else aero_summary(res.aero_selection, res.model)
     last = res.history[-1]
     if not (np.isfinite(last["val"]) and np.all(np.isfinite(last["theta"]))):
         raise ValueError(f"training {name} ended with a non-finite validation loss ({last['val']}) or parameters; "
@@ -230,7 +233,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         "theta_err_pct": last["theta_err_pct"],
         "final_losses": {k: last[k] for k in ("data", "phys", "theta", "rotor", "energy", "smooth", "val")},
         "training_seconds": round(res.seconds, 1),
-        **({"aero": _aero_entry(res)} if res.aero_selection is not None else {}),
+        **({"aero": aero} if aero is not None else {}),
         "torch_version": torch.__version__,
         "cpu_count": os.cpu_count(),
     }
@@ -243,21 +246,14 @@ def cmd_train(args: argparse.Namespace) -> int:
           f"100-step MAE position {r['position']:.3g} m, phi {r['phi']:.3g} rad, diverged {r['n_diverged']}/{r['n_rollouts']}")
     print("  theta-hat error %: " + ", ".join(f"{k} {v:+.2f}" for k, v in last["theta_err_pct"].items()))
     print(f"  validation loss {last['val']:.3e} (first epoch {res.history[0]['val']:.3e}); manifest {manifest}")
-    if res.aero_selection is not None:
-        a = _aero_entry(res)
-        print("  aerodynamic terms: " + (", ".join(f"{c} {v:.4g} {a['units'][c]} (identified "
-                                                   f"{a['identified'][c]['value']:.4g}, 95 % "
-                                                   f"{a['identified'][c]['low']:.4g}-{a['identified'][c]['high']:.4g})"
-                                                   for c, v in a["coefficients"].items())
-                                         if a["terms"] else "none claimed"))
+    if aero is not None:
+        print("  aerodynamic terms: " + (", ".join(f"{c} {v:.4g} {aero['units'][c]} (identified "
+                                                   f"{aero['identified'][c]['value']:.4g}, 95 % "
+                                                   f"{aero['identified'][c]['low']:.4g}-"
+                                                   f"{aero['identified'][c]['high']:.4g})"
+                                                   for c, v in aero["coefficients"].items())
+                                         if aero["terms"] else "none claimed"))
     return 0
-
-
-def _aero_entry(res) -> dict:
-    """The manifest's record of a training's aerodynamic terms (the learning study's record, the same form)."""
-    from .train import aero_summary
-
-    return aero_summary(res.aero_selection, res.model)
 
 
 def _train_ctbr(args: argparse.Namespace, ds, spec: dict) -> int:

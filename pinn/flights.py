@@ -44,35 +44,11 @@ from torch import nn
 from sim.flightlogs.logbench import GOAL_H50 as GOALS, goal_score as score
 from sim.params import DT
 
+from .physics import cross_columns, rotation_tangent, rotation_torch
+
 
 HORIZONS = (5, 10, 25, 50)
 PHYSICS_SUBSTEPS = 1
-
-
-def rotation_torch(e: torch.Tensor) -> torch.Tensor:
-    """Body-to-world rotation of ZYX Euler angles ``e`` (B, 3) as (B, 3, 3), as
-    :func:`sim.equations.dynamics.rotation_matrix`."""
-    sphi, cphi = torch.sin(e[:, 0]), torch.cos(e[:, 0])
-    sth, cth = torch.sin(e[:, 1]), torch.cos(e[:, 1])
-    spsi, cpsi = torch.sin(e[:, 2]), torch.cos(e[:, 2])
-    row0 = torch.stack([cpsi * cth, cpsi * sth * sphi - spsi * cphi, cpsi * sth * cphi + spsi * sphi], -1)
-    row1 = torch.stack([spsi * cth, spsi * sth * sphi + cpsi * cphi, spsi * sth * cphi - cpsi * sphi], -1)
-    row2 = torch.stack([-sth, cth * sphi, cth * cphi], -1)
-    return torch.stack([row0, row1, row2], -2)
-
-
-def _rotation_tangent(e: torch.Tensor, de: torch.Tensor) -> torch.Tensor:
-    """The small body-frame rotation (B, 3, k) that the Euler-angle tangent ``de`` (B, 3, k) makes at the ZYX angles
-    ``e`` (B, 3): ``d R(e) = R(e) [dth]_x`` with ``dth = E(e) de``, ``E`` the map from Euler rates to body rates."""
-    sphi, cphi = torch.sin(e[:, 0])[:, None], torch.cos(e[:, 0])[:, None]
-    sth, cth = torch.sin(e[:, 1])[:, None], torch.cos(e[:, 1])[:, None]
-    return torch.stack([de[:, 0] - sth * de[:, 2], cphi * de[:, 1] + (cth * sphi) * de[:, 2],
-                        (cth * cphi) * de[:, 2] - sphi * de[:, 1]], 1)
-
-
-def _cross(a: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
-    """``a x t`` for every column ``t`` of ``T`` (B, 3, k), ``a`` (B, 3)."""
-    return a[:, [1, 2, 0], None] * T[:, [2, 0, 1]] - a[:, [2, 0, 1], None] * T[:, [1, 2, 0]]
 
 
 class HeldRatesPhysics(nn.Module):
@@ -134,13 +110,13 @@ class HeldRatesPhysics(nn.Module):
                                dx[:, 7] * cphi[:, None] - dx[:, 8] * sphi[:, None] - qs_rc[:, None] * d_phi,
                                d_qs / cth[:, None] + (qs_rc * sth * sec2)[:, None] * d_th], 1)
         # the acceleration R (w - T/m e_z) - c_d v |v| + g e_z, with dR = R [dth]_x
-        dth = _rotation_tangent(x[:, 3:6], dx[:, 3:6])
+        dth = rotation_tangent(x[:, 3:6], dx[:, 3:6])
         dv = dx[:, 9:12]
-        d_vb = _cross(vb, dth) + torch.matmul(R.transpose(1, 2), dv)
+        d_vb = cross_columns(vb, dth) + torch.matmul(R.transpose(1, 2), dv)
         d_w = -(k + q * vb.abs() * 2.0)[:, :, None] * d_vb
         e_z = torch.eye(3, dtype=x.dtype, device=x.device)[2]
         f_b = w - (u[:, 0] / c[0])[:, None] * e_z
-        d_fb = d_w - _cross(f_b, dth) - (du[:, 0] / c[0])[:, None, :] * e_z[:, None]
+        d_fb = d_w - cross_columns(f_b, dth) - (du[:, 0] / c[0])[:, None, :] * e_z[:, None]
         d_a = torch.matmul(R, d_fb) - (v.abs() * c[2] * 2.0)[:, :, None] * dv
         return self.rates(x, u), torch.cat([dv, d_euler, torch.zeros_like(dx[:, 6:9]), d_a], 1)
 
@@ -349,8 +325,8 @@ def raw_features_tangent(z: torch.Tensor, u: torch.Tensor):
     R = rotation_torch(z[:, 3:6])
     vb = torch.einsum("nji,nj->ni", R, z[:, 9:12])
     # d vb = -[dth]_x R^T v + R^T dv = vb x dth + R^T dv
-    dth = _rotation_tangent(z[:, 3:6], eye[3:6].expand(n, 3, nz + 4))
-    d_vb = _cross(vb, dth) + torch.matmul(R.transpose(1, 2), eye[9:12])
+    dth = rotation_tangent(z[:, 3:6], eye[3:6].expand(n, 3, nz + 4))
+    d_vb = cross_columns(vb, dth) + torch.matmul(R.transpose(1, 2), eye[9:12])
     head = torch.cat([eye[3:5], eye[6:9]]).expand(n, 5, nz + 4)
     tail = torch.cat([eye[nz:], eye[12:nz]]).expand(n, nz - 8, nz + 4)
     return raw_features(z, u), torch.cat([head, d_vb, tail], 1)
@@ -449,8 +425,8 @@ class FlightModel(nn.Module):
         nxt, A, B = self.physics.forward_jacobian(x, u)
         dv = torch.einsum("nij,nj->ni", R, y[:, -3:])
         # d (R y) = R ([dth]_x y + dy) = R (dy - y x dth)
-        dth = _rotation_tangent(x[:, 3:6], eye[3:6].expand(n, 3, nz + 4))
-        d_dv = torch.matmul(R, dy[:, -3:] - _cross(y[:, -3:], dth))
+        dth = rotation_tangent(x[:, 3:6], eye[3:6].expand(n, 3, nz + 4))
+        d_dv = torch.matmul(R, dy[:, -3:] - cross_columns(y[:, -3:], dth))
         if H:
             J = torch.cat([A, torch.zeros_like(A[:, :, :1]).expand(n, 12, 7 * H), B], -1)
         else:

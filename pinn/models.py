@@ -458,6 +458,10 @@ class HybridLag(Hybrid):
     def _aero(self, dtype):
         return {n: c.to(dtype) for n, c in self.aero.items()}
 
+    def aero_values(self) -> dict:
+        """:attr:`aero` as plain floats: name -> list of coefficients (for records)."""
+        return {n: [float(v) for v in c.detach()] for n, c in self.aero.items()}
+
     def build(self, hidden, layers, dropout):
         self.mlp = MLP(N_FEATURES + 4, NX, hidden, layers, dropout, self.opt["activation"])
 
@@ -522,7 +526,7 @@ class HybridLag(Hybrid):
     def describe(self) -> dict:
         out = {**super().describe(), "extra_states": list(self.extra_states)}
         if self.aero_terms:
-            out["aero"] = {n: [float(v) for v in c.detach()] for n, c in self.aero.items()}
+            out["aero"] = self.aero_values()
             if self.aero_identified:
                 out["aero_identified"] = dict(self.aero_identified)
         return out

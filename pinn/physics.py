@@ -374,27 +374,30 @@ def lagged_rotor_increment(x: torch.Tensor, n: torch.Tensor, u: torch.Tensor, th
     return z, inc_n, J[..., :16], J[..., 16:]
 
 
-def rotation_torch(x: torch.Tensor, partials: bool = False):
-    """Body-to-NED rotation ``R = Rz(psi) Ry(theta) Rx(phi)`` (B, 3, 3) of the states ``x`` (B, >= 6), as
-    :func:`sim.equations.dynamics.rotation_matrix`; with ``partials``, also ``(dR/dphi, dR/dtheta, dR/dpsi)``."""
-    phi, th, psi = x[..., 3], x[..., 4], x[..., 5]
-    one, zero = torch.ones_like(phi), torch.zeros_like(phi)
+def rotation_torch(e: torch.Tensor) -> torch.Tensor:
+    """Body-to-world rotation of ZYX Euler angles ``e`` (B, 3) as (B, 3, 3), as
+    :func:`sim.equations.dynamics.rotation_matrix`."""
+    sphi, cphi = torch.sin(e[:, 0]), torch.cos(e[:, 0])
+    sth, cth = torch.sin(e[:, 1]), torch.cos(e[:, 1])
+    spsi, cpsi = torch.sin(e[:, 2]), torch.cos(e[:, 2])
+    row0 = torch.stack([cpsi * cth, cpsi * sth * sphi - spsi * cphi, cpsi * sth * cphi + spsi * sphi], -1)
+    row1 = torch.stack([spsi * cth, spsi * sth * sphi + cpsi * cphi, spsi * sth * cphi - cpsi * sphi], -1)
+    row2 = torch.stack([-sth, cth * sphi, cth * cphi], -1)
+    return torch.stack([row0, row1, row2], -2)
 
-    def mat(rows):
-        return torch.stack([torch.stack(r, dim=-1) for r in rows], dim=-2)
 
-    sf, cf, st, ct, sp, cp = torch.sin(phi), torch.cos(phi), torch.sin(th), torch.cos(th), torch.sin(psi), \
-        torch.cos(psi)
-    Rx = mat([[one, zero, zero], [zero, cf, -sf], [zero, sf, cf]])
-    Ry = mat([[ct, zero, st], [zero, one, zero], [-st, zero, ct]])
-    Rz = mat([[cp, -sp, zero], [sp, cp, zero], [zero, zero, one]])
-    R = Rz @ Ry @ Rx
-    if not partials:
-        return R
-    dRx = mat([[zero, zero, zero], [zero, -sf, -cf], [zero, cf, -sf]])
-    dRy = mat([[-st, zero, ct], [zero, zero, zero], [-ct, zero, -st]])
-    dRz = mat([[-sp, -cp, zero], [cp, -sp, zero], [zero, zero, zero]])
-    return R, (Rz @ Ry @ dRx, Rz @ dRy @ Rx, dRz @ Ry @ Rx)
+def rotation_tangent(e: torch.Tensor, de: torch.Tensor) -> torch.Tensor:
+    """The small body-frame rotation (B, 3, k) that the Euler-angle tangent ``de`` (B, 3, k) makes at the ZYX angles
+    ``e`` (B, 3): ``d R(e) = R(e) [dth]_x`` with ``dth = E(e) de``, ``E`` the map from Euler rates to body rates."""
+    sphi, cphi = torch.sin(e[:, 0])[:, None], torch.cos(e[:, 0])[:, None]
+    sth, cth = torch.sin(e[:, 1])[:, None], torch.cos(e[:, 1])[:, None]
+    return torch.stack([de[:, 0] - sth * de[:, 2], cphi * de[:, 1] + (cth * sphi) * de[:, 2],
+                        (cth * cphi) * de[:, 2] - sphi * de[:, 1]], 1)
+
+
+def cross_columns(a: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
+    """``a x t`` for every column ``t`` of ``T`` (B, 3, k), ``a`` (B, 3)."""
+    return a[:, [1, 2, 0], None] * T[:, [2, 0, 1]] - a[:, [2, 0, 1], None] * T[:, [1, 2, 0]]
 
 
 def aero_acceleration(x: torch.Tensor, terms: dict, rotor_sum: torch.Tensor, thrust_m: torch.Tensor) -> torch.Tensor:
@@ -403,7 +406,7 @@ def aero_acceleration(x: torch.Tensor, terms: dict, rotor_sum: torch.Tensor, thr
     the mass ``thrust_m`` (B,) m/s^2. The terms act in the body frame: ``a = R a_b(R^T v)``."""
     from sim.identification.aero import term_acceleration
 
-    R = rotation_torch(x)
+    R = rotation_torch(x[:, 3:6])
     v_b = (R.transpose(-1, -2) @ x[..., 9:12].unsqueeze(-1)).squeeze(-1)
     a_b = torch.stack(term_acceleration(terms, v_b, rotor_sum, thrust_m), dim=-1)
     return (R @ a_b.unsqueeze(-1)).squeeze(-1)
@@ -413,17 +416,16 @@ def aero_acceleration_tangent(x: torch.Tensor, terms: dict, rotor_sum: torch.Ten
                               dx: torch.Tensor, d_sum: torch.Tensor, d_thrust: torch.Tensor):
     """:func:`aero_acceleration` (B, 3) and its derivative along tangents (B, 3, k): ``dx`` (B, 12, k) of the
     state, ``d_sum`` (B, k) of the rotor speeds' sum and ``d_thrust`` (B, k) of the thrust over the mass.
-    Written out by hand (plain tensor operations, for the ONNX export); ``tests/test_pinn.py`` holds it to
-    autograd."""
+    Written out by hand (plain tensor operations, for the ONNX export); ``tests/test_aero_physics.py`` holds it to
+    autograd. With ``d R = R [dth]_x`` (:func:`rotation_tangent`): ``d v_b = R^T dv - dth x v_b`` and
+    ``d a = R (d a_b + dth x a_b)``."""
     from sim.identification.aero import term_acceleration_tangent
 
-    R, dR = rotation_torch(x, partials=True)
-    v = x[..., 9:12].unsqueeze(-1)                                          # (B, 3, 1)
-    Rt = R.transpose(-1, -2)
-    v_b = (Rt @ v).squeeze(-1)
-    dv_b = Rt @ dx[:, 9:12] + sum((Ri.transpose(-1, -2) @ v) * dx[:, 3 + i:4 + i] for i, Ri in enumerate(dR))
+    R = rotation_torch(x[:, 3:6])
+    dth = rotation_tangent(x[:, 3:6], dx[:, 3:6])                           # (B, 3, k)
+    v_b = (R.transpose(1, 2) @ x[:, 9:12].unsqueeze(-1)).squeeze(-1)
+    dv_b = R.transpose(1, 2) @ dx[:, 9:12] + cross_columns(v_b, dth)
     a_b, da_b = term_acceleration_tangent(terms, v_b, rotor_sum, thrust_m, dv_b, d_sum, d_thrust)
-    a_b = torch.stack(a_b, dim=-1).unsqueeze(-1)                            # (B, 3, 1)
-    da_b = torch.stack(da_b, dim=-2)                                        # (B, 3, k)
-    da = R @ da_b + sum((Ri @ a_b) * dx[:, 3 + i:4 + i] for i, Ri in enumerate(dR))
-    return (R @ a_b).squeeze(-1), da
+    a_b = torch.stack(a_b, dim=-1)                                          # (B, 3)
+    da = R @ (torch.stack(da_b, dim=-2) - cross_columns(a_b, dth))          # (B, 3, k)
+    return (R @ a_b.unsqueeze(-1)).squeeze(-1), da

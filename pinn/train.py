@@ -607,7 +607,7 @@ def train(ds, config: TrainConfig, progress: bool = False, truth: QuadParams | N
         if lag:
             rec["tau_m"] = float(model.tau.detach())
             if model.aero_terms:
-                rec["aero"] = {n: [float(v) for v in c.detach()] for n, c in model.aero.items()}
+                rec["aero"] = model.aero_values()
             tau_true = float(ds.meta.get("fidelity", {}).get("motor_tau", 0.0))
             if tau_true > 0:
                 rec["theta_err_pct"]["tau_m"] = 100.0 * (rec["tau_m"] - tau_true) / tau_true

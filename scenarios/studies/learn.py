@@ -159,8 +159,8 @@ class LearnSettings:
     ladder_members: int = 3      # members per rung of the speed ladder in the evaluation
     controls: bool = True        # train and fly the two controls (at ctbr the upper bound only)
     level: str = "wrench"        # command level flown and learned (LEARN_LEVELS)
-    aero: str | None = None      # aerodynamic terms (pinn.train.AERO_MODES); None: select at the wrench level,
-                                 # none at ctbr (whose model has no rotor speeds for the terms to read)
+    aero: str | None = None      # aerodynamic terms (sim.identification.aero.AERO_MODES); None: select at the wrench
+                                 # level, none at ctbr (whose model has no rotor speeds for the terms to read)
 
     def __post_init__(self):
         def named(name: str) -> str:
