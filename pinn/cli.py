@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.files import check_writable, write_json
+from sim.files import check_writable, json_ready, write_json
 from sim.identification.aero import AERO_MODES
 from sim.params import FIDELITIES, INPUT_LOGS
 
@@ -233,7 +233,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         "theta_err_pct": last["theta_err_pct"],
         "final_losses": {k: last[k] for k in ("data", "phys", "theta", "rotor", "energy", "smooth", "val")},
         "training_seconds": round(res.seconds, 1),
-        **({"aero": aero} if aero is not None else {}),
+        **({"aero": json_ready(aero)} if aero is not None else {}),     # strict JSON (an unknown interval: null)
         "torch_version": torch.__version__,
         "cpu_count": os.cpu_count(),
     }
@@ -247,12 +247,14 @@ def cmd_train(args: argparse.Namespace) -> int:
     print("  theta-hat error %: " + ", ".join(f"{k} {v:+.2f}" for k, v in last["theta_err_pct"].items()))
     print(f"  validation loss {last['val']:.3e} (first epoch {res.history[0]['val']:.3e}); manifest {manifest}")
     if aero is not None:
-        print("  aerodynamic terms: " + (", ".join(f"{c} {v:.4g} {aero['units'][c]} (identified "
-                                                   f"{aero['identified'][c]['value']:.4g}, 95 % "
-                                                   f"{aero['identified'][c]['low']:.4g}-"
-                                                   f"{aero['identified'][c]['high']:.4g})"
-                                                   for c, v in aero["coefficients"].items())
-                                         if aero["terms"] else "none claimed"))
+        def identified(i):
+            interval = (f"95 % {i['low']:.4g}-{i['high']:.4g}" if np.isfinite([i["low"], i["high"]]).all()
+                        else "no interval: one training flight")
+            return f"identified {i['value']:.4g}, {interval}"
+
+        terms = [f"{c} {v:.4g} {aero['units'][c]} ({identified(aero['identified'][c])})"
+                 for c, v in aero.get("coefficients", {}).items()]     # none when none was claimed
+        print("  aerodynamic terms: " + (", ".join(terms) if terms else "none claimed"))
     return 0
 
 

@@ -30,6 +30,7 @@ import torch
 
 from mpc.prediction.contract import CONTRACT_VERSION, config_hash, jacobian_path
 from sim import __version__ as code_version
+from sim.files import json_ready
 from sim.params import DT, INPUT_NAMES, STATE_NAMES, THETA_NAMES
 
 from .models import aero_record, build_model
@@ -141,7 +142,8 @@ def export_model(model, out_dir, name: str, training_config: dict, dataset_seed:
     if hasattr(m64, "tau"):
         meta["motor_tau"] = repr(float(m64.tau.detach()))
     if getattr(m64, "aero_terms", ()):
-        meta["aero_terms"] = json.dumps(aero_record(m64), sort_keys=True)
+        # strict JSON: an interval the identification could not give (one training flight) is null, not NaN
+        meta["aero_terms"] = json.dumps(json_ready(aero_record(m64)), sort_keys=True, allow_nan=False)
     path = out_dir / f"{name}.onnx"
     jac = jacobian_path(path)
     _export(_Next(m64), path, ["x_next"], 12 + len(extra))

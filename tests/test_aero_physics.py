@@ -227,3 +227,16 @@ def test_a_plant_without_aerodynamic_effects_gets_no_term_and_a_model_without_te
     assert res.model.aero_terms == () and "aero" not in res.model.describe()
     summary = aero_summary(res.aero_selection, res.model)
     assert summary["terms"] == [] and len(summary["steps"]) == len(TERMS)
+
+
+def test_an_interval_the_identification_could_not_give_is_null_in_the_model_file(tmp_path):
+    # One training flight leaves the jackknife without a spread: the interval is NaN in the record, and the model
+    # file's metadata, strict JSON, holds null there.
+    from pinn.export import export_model
+
+    m = aero_model({"rotor_drag": (0.02,)}).float()
+    m.aero_identified = {"k_r": {"value": 0.02, "low": float("nan"), "high": float("nan")}}
+    paths = export_model(m, tmp_path, "one_flight", {"arch": "hybrid_lag"}, 0, {}, torch_file=False)
+    meta = {p.key: p.value for p in onnx.load(str(paths["onnx"])).metadata_props}
+    assert "NaN" not in meta["aero_terms"]
+    assert json.loads(meta["aero_terms"])["identified"]["k_r"] == {"value": 0.02, "low": None, "high": None}

@@ -704,6 +704,10 @@ def test_the_report_states_the_final_models_aerodynamic_terms(tmp_path):
     assert ("Aerodynamic terms of `learn_highfi_it1` (rotor_drag; selected on its validation flights, one-step "
             "acceleration error 0.718 → 0.703 m/s²): k_r 0.01818 1/(s RU) (identified 0.01764, 95 % "
             "0.01762–0.01766).") in text
+    one_flight = {**aero, "identified": {"k_r": {"value": 0.017641, "low": None, "high": None}}}
+    st["trainings"] = [{"name": "learn_highfi_it1", "aero": one_flight}]
+    assert "k_r 0.01818 1/(s RU) (identified 0.01764, no interval)." in learn_section({"highfi": st}, tmp_path,
+                                                                                      _figure_md)
     st["trainings"] = [{"name": "learn_highfi_it1", "aero": {**aero, "terms": []}}]
     assert "the selection claimed none (validation error 0.718 m/s² with none)" in learn_section(
         {"highfi": st}, tmp_path, _figure_md)

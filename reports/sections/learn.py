@@ -137,16 +137,21 @@ def learn_section(studies: dict | None, run_dir: Path, figure_md) -> str:
 def aero_sentence(st: dict) -> str | None:
     """The final model's aerodynamic terms (each coefficient trained, and identified with its 95 % interval before
     training), or that the selection claimed none; None for a study trained without the term library."""
-    final = [t for t in st.get("trainings", []) if t.get("name") == st.get("final_model")] or st.get("trainings", [])[-1:]
+    trainings = st.get("trainings", [])
+    final = [t for t in trainings if t.get("name") == st.get("final_model")] or trainings[-1:]
     if not final or "aero" not in final[0]:
         return None
     a = final[0]["aero"]
     if not a["terms"]:
         return (f"Aerodynamic terms of `{final[0]['name']}`: the selection claimed none (validation error "
                 f"{fmt(a['validation_rmse_none'], '.3f')} m/s² with none).")
+    def interval(i):
+        if i["low"] is None or i["high"] is None:      # one training flight: the jackknife has no spread
+            return "no interval"
+        return f"95 % {fmt(i['low'], '.4g')}–{fmt(i['high'], '.4g')}"
+
     coefs = ", ".join(f"{c} {fmt(v, '.4g')} {a['units'][c]} (identified {fmt(a['identified'][c]['value'], '.4g')}, "
-                      f"95 % {fmt(a['identified'][c]['low'], '.4g')}–{fmt(a['identified'][c]['high'], '.4g')})"
-                      for c, v in a["coefficients"].items())
+                      f"{interval(a['identified'][c])})" for c, v in a["coefficients"].items())
     return (f"Aerodynamic terms of `{final[0]['name']}` ({', '.join(a['terms'])}; selected on its validation flights, "
             f"one-step acceleration error {fmt(a['validation_rmse_none'], '.3f')} → {fmt(a['validation_rmse'], '.3f')} "
             f"m/s²): {coefs}.")
