@@ -11,7 +11,8 @@ from sim.identification.excitation import make_dataset
 from sim.files import json_ready
 from sim.flightlogs.logbench import (HORIZONS, ctbr_inputs, ctbr_physics_step, physics_step,
                                      prediction_errors, rotation_angle)
-from sim.flightlogs.logident import _bounds, fisher_table, identify
+from sim.flightlogs.attitudeloop import AttitudeLoop, heading_velocity
+from sim.flightlogs.logident import _bounds, fisher_table, fit_attitude_loop, identify
 from sim.params import DT
 from sim.vehicles.rotors import wrench_from_rotor_sq
 from sim.vehicles.vehicle import load_vehicle
@@ -26,6 +27,8 @@ BOUND_RTOL = 1e-9    # Cramer-Rao bounds against the inverse computed directly
 CTBR_EXACT = 1e-12    # a ctbr model predicts a flight it generated itself (same RK4)
 CTBR_H1_M = 1e-5      # the plant's own equations at ctbr, given the achieved rates: position error after one period, m
 T95 = {3: 3.18}       # Student t, two-sided 95 %, by degrees of freedom (4 flights)
+LOOP_EXACT = 1e-8     # the attitude loop's roll against the damped oscillator's closed form (RK4, 10 substeps), rad
+LOOP_RTOL = 0.02      # fitted attitude-loop coefficients against those that made the flights (measured 0.6 %)
 
 
 def _flights(ds):
@@ -220,3 +223,76 @@ def test_at_ctbr_the_plants_equations_are_given_the_rates_it_reached(crazyflie_f
     e = prediction_errors(ctbr_physics_step(vehicle.params), at_ctbr)
     assert max(e.angular_velocity) <= EXACT
     assert e.position[0] <= CTBR_H1_M, e.position
+
+
+def test_the_attitude_loop_rolls_as_a_damped_oscillator_about_its_held_setpoint():
+    """Roll alone (no pitch, yaw, torque or velocity loop): phi'' = -D phi' - K (phi - phi_sp), in closed form."""
+    p = load_vehicle("crazyflie").params
+    D, K, lead = 3.0, 40.0, 0.05
+    loop = AttitudeLoop(damping=(D, 1.0, 1.0), stiffness=(K, 10.0), lead=lead, torque_gain=(0.0, 0.0, 0.0))
+    x0 = np.zeros((1, 12))
+    x0[0, 3], x0[0, 6] = 0.2, -0.5
+    z = loop.start(x0)
+    assert z.shape == (1, 16) and z[0, 12] == pytest.approx(0.2 - 0.5 * lead, abs=1e-15)
+    step = physics_step(p, attitude_loop=loop)
+    u = np.array([[p.m * 9.81, 0.0, 0.0, 0.0]])
+    for _ in range(50):
+        z = step(z, u)
+    sp, a, w = 0.2 - 0.5 * lead, 0.5 * lead, np.sqrt(K - D * D / 4)
+    t = 50 * DT                                          # phi - sp = e^{-D t / 2} (a cos wt + (phi'0 + D a / 2)/w sin wt)
+    phi = sp + np.exp(-D * t / 2) * (a * np.cos(w * t) + (-0.5 + D * a / 2) / w * np.sin(w * t))
+    assert z[0, 3] == pytest.approx(phi, abs=LOOP_EXACT)
+    assert np.abs(z[0, [4, 5, 7, 8]]).max() == 0.0       # nothing turned pitch or yaw
+
+
+def test_an_attitude_loop_with_no_loop_is_the_rigid_body(crazyflie_flights):
+    """No damping, stiffness, bias or velocity gain and torque gains of 1: Euler's equations, state for state."""
+    vehicle, flights = crazyflie_flights
+    f = flights[0]
+    loop = AttitudeLoop(lead=0.3)                        # the setpoint it starts from is then never used
+    plain = physics_step(vehicle.params)(f.x[:200], f.u[:200])
+    looped = physics_step(vehicle.params, attitude_loop=loop)(loop.start(f.x[:200]), f.u[:200])
+    assert np.abs(looped[:, :12] - plain).max() <= EXACT
+    assert np.array_equal(looped[:, 12:], loop.start(f.x[:200])[:, 12:])    # the extra states are held
+
+
+def test_the_attitude_loops_velocity_loop_pitches_up_against_a_forward_gain_in_speed():
+    """Facing east (yaw pi/2), a world velocity to the north is to the left; a gain in forward speed since the
+    window's start pulls the pitch setpoint up (FRD: nose up brakes), one to the right rolls the setpoint left."""
+    x = np.zeros((1, 16))
+    x[0, 5], x[0, 9] = np.pi / 2, 1.0
+    assert heading_velocity(x)[0] == pytest.approx([0.0, -1.0], abs=1e-15)
+    loop = AttitudeLoop(stiffness=(10.0, 20.0), velocity_gain=0.1, torque_gain=(0.0, 0.0, 0.0))
+    fwd = np.zeros((1, 16))
+    fwd[0, 9] = 1.0                                       # yaw 0: north is forward; the start velocity is 0
+    assert loop.angular_acceleration(fwd, np.zeros((1, 3)), np.ones(3))[0] == pytest.approx([0.0, 20.0 * 0.1, 0.0])
+    right = np.zeros((1, 16))
+    right[0, 10] = 1.0
+    assert loop.angular_acceleration(right, np.zeros((1, 3)), np.ones(3))[0] == pytest.approx([-10.0 * 0.1, 0.0, 0.0])
+
+
+def test_the_attitude_loop_fit_recovers_the_loop_that_made_the_flights():
+    """Flights of one 50-step window each, made by a known loop (so each window's held setpoint is the one the
+    model assumes): the fit from its default start recovers every coefficient."""
+    p = load_vehicle("crazyflie").params
+    true = AttitudeLoop(damping=(3.0, 4.0, 6.0), stiffness=(20.0, 15.0), lead=-0.1, torque_gain=(0.3, 0.2, 1.5),
+                        bias=(0.2, -0.1, 0.05), velocity_gain=0.08)
+    rng = np.random.default_rng(0)
+    step = physics_step(p, substeps=1, attitude_loop=true)
+    flights = []
+    for _ in range(20):
+        x = np.zeros(12)
+        x[3:5], x[5] = rng.normal(0, 0.1, 2), rng.uniform(-3, 3)
+        x[6:9], x[9:12] = rng.normal(0, 0.5, 3), rng.normal(0, 1.0, 3)
+        u = np.zeros((51, 4))
+        u[:, 0] = p.m * 9.81 * (1 + 0.1 * rng.normal(size=51))
+        u[:, 1:4] = 5.0 * rng.normal(size=(51, 3)) * np.array([p.Jxx, p.Jyy, p.Jzz])
+        z, xs = true.start(x[None]), [x]
+        for k in range(50):
+            z = step(z, u[k:k + 1])
+            xs.append(z[0, :12])
+        flights.append(SimpleNamespace(x=np.array(xs), u=u, x_ok=np.ones(51, dtype=bool)))
+    fit = fit_attitude_loop(flights, {"p": p}, stride=1)
+    assert fit.windows == 20 and fit.converged
+    assert fit.cost < 1e-4 * fit.initial_cost
+    assert fit.loop.vector() == pytest.approx(true.vector(), rel=LOOP_RTOL, abs=1e-3)

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..equations.dynamics import rates, rk4_step, rotation_matrix
+from .attitudeloop import AttitudeLoop
 from .flightlog import rotation_vector
 from ..params import DT, QuadParams
 
@@ -115,7 +116,7 @@ def _body_drag(x, k, c, b) -> np.ndarray:
 
 def physics_step(p: QuadParams, hold_rates: bool = False, linear_drag=(0.0, 0.0, 0.0),
                  quadratic_drag=(0.0, 0.0, 0.0), accel_bias=(0.0, 0.0, 0.0), wrench_gain=(1.0, 1.0, 1.0, 1.0),
-                 substeps: int = 10):
+                 substeps: int = 10, attitude_loop: AttitudeLoop | None = None):
     """A batched one-step predictor of the rigid-body equations with parameters ``p``.
 
     ``wrench_gain`` multiplies the logged wrench ``u`` (computed from the rotor speeds with the vehicle file's
@@ -125,13 +126,24 @@ def physics_step(p: QuadParams, hold_rates: bool = False, linear_drag=(0.0, 0.0,
     ``hold_rates`` keeps the body rates constant (the angular acceleration set to zero, as the benchmark's Physics
     model does). In the body frame, per axis, ``-linear_drag * v - quadratic_drag * v |v| + accel_bias`` (1/s,
     1/m, m/s^2) is added to the acceleration. RK4 with ``substeps`` substeps over the 10 ms period.
+
+    ``attitude_loop`` replaces Euler's equations (and ``hold_rates``) by the onboard attitude loop's model
+    (:class:`sim.flightlogs.attitudeloop.AttitudeLoop`); the states are then (B, 16), the window starts
+    ``attitude_loop.start(x)``, and the loop is given the (scaled) logged torques and the inertias of ``p``.
     """
     k, c, b = (np.asarray(a, dtype=float) for a in (linear_drag, quadratic_drag, accel_bias))
     gain = np.asarray(wrench_gain, dtype=float)
     scaled = bool(np.any(gain != 1.0))
     extra = bool(np.any(k) or np.any(c) or np.any(b))
+    inertia = np.array([p.Jxx, p.Jyy, p.Jzz])
 
     def f(x, u):
+        if attitude_loop is not None:
+            d = np.zeros_like(x)
+            body = x[:, :12]
+            d[:, :12] = rates(body, u, p, accel=_body_drag(body, k, c, b) if extra else None)
+            d[:, 6:9] = attitude_loop.angular_acceleration(x, u[:, 1:4], inertia)
+            return d
         d = rates(x, u, p, accel=_body_drag(x, k, c, b) if extra else None)
         if hold_rates:
             d[:, 6:9] = 0.0

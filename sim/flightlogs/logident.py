@@ -30,6 +30,7 @@ once the mass is fixed from the vehicle file.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -39,6 +40,8 @@ from ..equations.dynamics import rotation_matrix
 from ..params import DT, GRAVITY
 from ..identification.jackknife import half_width
 from ..vehicles.rotors import ROTOR_X, ROTOR_Y, SPIN
+from .attitudeloop import AttitudeLoop
+from .logbench import GOAL_H50, physics_step, rotation_angle
 
 EQUATIONS = ("a_x", "a_y", "a_z", "p_dot", "q_dot", "r_dot")
 PARAMS = ("m", "Jxx", "Jyy", "Jzz", "kt", "kq")
@@ -228,8 +231,6 @@ def identified_model(ident: RealIdentification, vehicle, hold_rates: bool = True
     own are. The logged wrench was computed with the vehicle file's ``kt``: ``wrench_gain`` rescales its thrust and
     roll and pitch torques to the identified ``kt`` (the yaw torque keeps the file's ``kq``).
     """
-    import dataclasses
-
     v = ident.value
     kt = v("kt/m") * vehicle.m
     p = dataclasses.replace(vehicle.params, kt=kt, Jxx=kt / v("kt/Jxx"), Jyy=kt / v("kt/Jyy"),
@@ -277,3 +278,109 @@ def with_identified_drag(vehicle, ident: RealIdentification):
     return vehicle.replace(name=f"{vehicle.name}-drag", rotor_drag=rotor_drag_for(max(k, 0.0), vehicle),
                            source=f"{vehicle.name} as stated, with the horizontal linear drag identified from real "
                                   f"flights (k_x, k_y mean {k:.4g} 1/s; pinnmpc realdata) as rotor drag at hover")
+
+
+@dataclass(frozen=True)
+class AttitudeLoopFit:
+    """The onboard attitude loop fitted to open-loop predictions (:func:`fit_attitude_loop`)."""
+
+    loop: AttitudeLoop
+    cost: float               # mean of the squared goal-normalized errors at the fitted horizons
+    initial_cost: float       # the same for the initial coefficients
+    evaluations: int          # predictions of every window made by the fit
+    windows: int              # window starts used
+    converged: bool           # the optimizer met a tolerance before its evaluation budget
+
+
+#: The fit's horizons (steps) and every how many window starts it uses.
+LOOP_HORIZONS = (10, 25, 50)
+LOOP_STRIDE = 20
+#: The fit's initial coefficients: damped, mildly stiff, no torque, no lead.
+LOOP_INITIAL = AttitudeLoop(damping=(2.0, 2.0, 2.0), stiffness=(10.0, 10.0), torque_gain=(0.0, 0.0, 0.0))
+#: Typical sizes of the coefficients (the optimizer's scaling), in :meth:`AttitudeLoop.vector` order.
+_LOOP_SCALE = np.array([1.0, 1.0, 1.0, 10.0, 10.0, 0.05, 0.2, 0.2, 1.0, 0.5, 0.5, 0.5, 0.05])
+#: The fit reports its progress every this many predictions of the windows.
+LOOP_PROGRESS_EVERY = 200
+#: An error that is not finite (a prediction that diverged) counts as this many goals.
+_DIVERGED = 10.0
+
+
+def fit_attitude_loop(flights, physics_kw: dict, initial: AttitudeLoop = LOOP_INITIAL, fixed=(),
+                      horizons=LOOP_HORIZONS, stride: int = LOOP_STRIDE, max_evaluations: int = 150,
+                      progress=None) -> AttitudeLoopFit:
+    """Fit the onboard attitude loop's coefficients to open-loop predictions of ``flights``.
+
+    The model is :func:`sim.flightlogs.logbench.physics_step` with ``physics_kw`` (the identified rigid body and
+    drags) and an :class:`~sim.flightlogs.attitudeloop.AttitudeLoop`. From every ``stride``-th measured window start
+    of each flight it predicts ``max(horizons)`` steps with the logged inputs, and the fit minimizes (trust-region
+    least squares, finite-difference Jacobian) the sum over windows and ``horizons`` of the squared position,
+    velocity, rotation and body-rate errors, each over its goal (:data:`sim.flightlogs.logbench.GOAL_H50`): the
+    benchmark's own score, asked of the training flights. The damping and stiffness are kept at or above zero.
+    The predictions take one RK4 substep a period (the evaluation may take more; the two differ by far less than
+    the errors fitted). The fields named in ``fixed`` (say ``("velocity_gain",)``) keep their ``initial`` value.
+    ``progress``, if given, is called with a line every :data:`LOOP_PROGRESS_EVERY` predictions of the windows.
+    """
+    from scipy.optimize import least_squares
+
+    horizons = tuple(int(h) for h in horizons)
+    if stride < 1 or not horizons or min(horizons) < 1:
+        raise ValueError(f"stride must be >= 1 and horizons non-empty; found {stride!r}, {horizons!r}")
+    H = max(horizons)
+    x0, us, targets, oks = [], [], [], []           # every window of every flight in one batch
+    for f in flights:
+        x, u, ok = np.asarray(f.x, dtype=float), np.asarray(f.u, dtype=float), np.asarray(f.x_ok, dtype=bool)
+        i = np.flatnonzero(ok[: max(len(x) - H, 0)])[::stride]
+        if len(i):
+            x0.append(x[i])
+            us.append(u[i[:, None] + np.arange(H)])
+            targets.append(x[i[:, None] + np.asarray(horizons)])
+            oks.append(ok[i[:, None] + np.asarray(horizons)])
+    if not x0:
+        raise ValueError(f"no flight has a measured window of {H} steps to fit the attitude loop on")
+    x0, us, targets, oks = (np.concatenate(a) for a in (x0, us, targets, oks))
+    kw = {k: v for k, v in physics_kw.items() if k not in ("hold_rates", "substeps")}
+    goals = np.array([GOAL_H50[q] for q in ("position", "velocity", "rotation", "angular_velocity")])
+
+    v0 = initial.vector()
+    unknown = [f.name for f in dataclasses.fields(AttitudeLoop) if f.name not in fixed]
+    if set(fixed) - set(AttitudeLoop.SIZES) or not unknown:
+        raise ValueError(f"fixed must name some of the fields {tuple(AttitudeLoop.SIZES)}; found {tuple(fixed)!r}")
+    free = np.concatenate([np.full(n, name not in fixed) for name, n in AttitudeLoop.SIZES.items()])
+
+    def full(w):
+        v = v0.copy()
+        v[free] = w
+        return v
+
+    calls = [0]
+
+    def residuals(w):
+        calls[0] += 1
+        if progress is not None and calls[0] % LOOP_PROGRESS_EVERY == 0:
+            progress(f"  attitude loop: {calls[0]} predictions of {len(x0)} windows")
+        loop = AttitudeLoop.from_vector(full(w))
+        step = physics_step(**kw, substeps=1, attitude_loop=loop)
+        out = []
+        z = loop.start(x0)
+        for k in range(1, H + 1):
+            z = step(z, us[:, k - 1])
+            if k in horizons:
+                j = horizons.index(k)
+                keep = oks[:, j]
+                xt, zp = targets[keep, j], z[keep]
+                out.append(np.linalg.norm(zp[:, 0:3] - xt[:, 0:3], axis=1) / goals[0])
+                out.append(np.linalg.norm(zp[:, 9:12] - xt[:, 9:12], axis=1) / goals[1])
+                out.append(rotation_angle(zp[:, 3:6], xt[:, 3:6]) / goals[2])
+                out.append(np.linalg.norm(zp[:, 6:9] - xt[:, 6:9], axis=1) / goals[3])
+        r = np.concatenate(out)
+        return np.nan_to_num(r, nan=_DIVERGED, posinf=_DIVERGED, neginf=_DIVERGED) / math.sqrt(len(r))
+
+    lower = np.full(len(v0), -np.inf)
+    lower[:5] = 0.0                                        # damping and stiffness
+    with np.errstate(all="ignore"):
+        cost0 = float(np.sum(residuals(v0[free]) ** 2))
+        sol = least_squares(residuals, np.maximum(v0, lower)[free], bounds=(lower[free], np.inf),
+                            x_scale=_LOOP_SCALE[free], diff_step=1e-3, max_nfev=max_evaluations)
+    return AttitudeLoopFit(loop=AttitudeLoop.from_vector(full(sol.x)), cost=float(2.0 * sol.cost), initial_cost=cost0,
+                           evaluations=int(sol.nfev + sol.njev * int(free.sum())),
+                           windows=len(x0), converged=bool(sol.status > 0))
