@@ -145,6 +145,7 @@ def aero_sentence(st: dict) -> str | None:
     if not a["terms"]:
         return (f"Aerodynamic terms of `{final[0]['name']}`: the selection claimed none (validation error "
                 f"{fmt(a['validation_rmse_none'], '.3f')} m/s² with none).")
+
     def interval(i):
         if i["low"] is None or i["high"] is None:      # one training flight: the jackknife has no spread
             return "no interval"

@@ -138,9 +138,7 @@ ATTITUDE_LOOP_FIXED = ("velocity_gain",)
 
 def _attitude_loop_physics(ident, vehicle) -> dict:
     """``physics_step`` keyword arguments of the rigid body under the fitted attitude loop (its loop not set)."""
-    kw = dict(identified_model(ident, vehicle, hold_rates=False), quadratic_drag=(0.0, 0.0, 0.0))
-    kw.pop("hold_rates")
-    return kw
+    return dict(identified_model(ident, vehicle, hold_rates=False), quadratic_drag=(0.0, 0.0, 0.0))
 
 
 def _ctbr_candidates(ident, vehicle):

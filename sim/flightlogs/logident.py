@@ -342,8 +342,7 @@ def fit_attitude_loop(flights, physics_kw: dict, initial: AttitudeLoop = LOOP_IN
     goals = np.array([GOAL_H50[q] for q in ("position", "velocity", "rotation", "angular_velocity")])
 
     v0 = initial.vector()
-    unknown = [f.name for f in dataclasses.fields(AttitudeLoop) if f.name not in fixed]
-    if set(fixed) - set(AttitudeLoop.SIZES) or not unknown:
+    if set(fixed) - set(AttitudeLoop.SIZES) or set(fixed) >= set(AttitudeLoop.SIZES):
         raise ValueError(f"fixed must name some of the fields {tuple(AttitudeLoop.SIZES)}; found {tuple(fixed)!r}")
     free = np.concatenate([np.full(n, name not in fixed) for name, n in AttitudeLoop.SIZES.items()])
 
