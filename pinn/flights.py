@@ -2,10 +2,10 @@
 
 A real log's rotor speeds explain little of the vehicle's angular acceleration, so the physics this model
 starts from is the one that predicts real flights best over half a second: the identified rigid body with the
-body rates held (``sim.flightlogs.logbench.physics_step`` with ``hold_rates``, its drags and biases). A network adds
-what
-that physics misses, to the body rates and to the velocity (in the body frame, so that the model does not depend
-on the heading)::
+body rates held (``sim.flightlogs.logbench.physics_step`` with ``hold_rates``, its drags and biases), or the same
+rigid body with its rates under the fitted onboard attitude loop (:class:`AttitudeLoopPhysics`, whose held
+setpoint is four extra states of its own). A network adds what that physics misses, to the body rates and to the
+velocity (in the body frame, so that the model does not depend on the heading)::
 
     x_next = Phi(x, u) + (0, 0, s_w NN_w(f), R(x) s_v NN_v(f))
 
@@ -41,7 +41,9 @@ import numpy as np
 import torch
 from torch import nn
 
+from sim.flightlogs.attitudeloop import EXTRA_STATES, NOT_FLYABLE, AttitudeLoop
 from sim.flightlogs.logbench import GOAL_H50 as GOALS, goal_score as score
+from sim.flightlogs.logident import LOOP_SUBSTEPS
 from sim.params import DT
 
 from .physics import cross_columns, rotation_tangent, rotation_torch
@@ -65,6 +67,8 @@ class HeldRatesPhysics(nn.Module):
 
     level = "wrench"
     corrects_rates = True      # a network beside it corrects the body rates too (this physics holds them)
+    extra_states: tuple[str, ...] = ()      # states of its own after the rigid body's (none)
+    not_flyable = ""           # why a model on this physics cannot be flown, if it cannot whatever its network
 
     def __init__(self, m: float, g: float, c_d: float, linear_drag, quadratic_drag, accel_bias):
         super().__init__()
@@ -118,7 +122,8 @@ class HeldRatesPhysics(nn.Module):
         f_b = w - (u[:, 0] / c[0])[:, None] * e_z
         d_fb = d_w - cross_columns(f_b, dth) - (du[:, 0] / c[0])[:, None, :] * e_z[:, None]
         d_a = torch.matmul(R, d_fb) - (v.abs() * c[2] * 2.0)[:, :, None] * dv
-        return self.rates(x, u), torch.cat([dv, d_euler, torch.zeros_like(dx[:, 6:9]), d_a], 1)
+        # (this class's rates, not a subclass's: the tangent is of the rigid body's 12 states)
+        return HeldRatesPhysics.rates(self, x, u), torch.cat([dv, d_euler, torch.zeros_like(dx[:, 6:9]), d_a], 1)
 
     def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """The state one period later (B, 12)."""
@@ -129,15 +134,21 @@ class HeldRatesPhysics(nn.Module):
         (B, 4, k)."""
         return _rk4_tangent(lambda z, dz: self.rates_tangent(z, u, dz, du), x, dx, PHYSICS_SUBSTEPS)
 
+    def start(self, x: np.ndarray) -> np.ndarray:
+        """The :attr:`extra_states` (B, E) at window starts ``x`` (B, 12) of a log: none here."""
+        return np.zeros((len(x), len(self.extra_states)))
+
     def forward_jacobian(self, x: torch.Tensor, u: torch.Tensor):
-        """Next state (B, 12), ``A = dx_next/dx`` (B, 12, 12) and ``B = dx_next/du`` (B, 12, 4).
+        """Next state (B, n), ``A = dx_next/dx`` (B, n, n) and ``B = dx_next/du`` (B, n, 4), with ``n = 12 + E``
+        (:attr:`extra_states`).
 
         Exact (forward-mode tangents through every RK4 stage), written with plain tensor operations so that it
         exports to ONNX with a dynamic batch; ``x_next`` is :meth:`forward`'s, bit for bit.
         """
-        eye = torch.eye(16, dtype=x.dtype, device=x.device).expand(x.shape[0], 16, 16)
-        nxt, d = self.forward_tangent(x, u, eye[:, :12], eye[:, 12:])
-        return nxt, d[..., :12], d[..., 12:]
+        n = 12 + len(self.extra_states)
+        eye = torch.eye(n + 4, dtype=x.dtype, device=x.device).expand(x.shape[0], n + 4, n + 4)
+        nxt, d = self.forward_tangent(x, u, eye[:, :n], eye[:, n:])
+        return nxt, d[..., :n], d[..., n:]
 
 
 def _rk4(f, x: torch.Tensor, substeps: int) -> torch.Tensor:
@@ -299,6 +310,94 @@ class LaggedCtbrPhysics(HeldRatesPhysics):
         return (z, dz) if tangent else z
 
 
+class AttitudeLoopPhysics(HeldRatesPhysics):
+    """:func:`sim.flightlogs.logbench.physics_step` with an ``attitude_loop`` in torch: the translational equations
+    of :class:`HeldRatesPhysics`, and body rates that follow the fitted onboard attitude loop
+    (:class:`sim.flightlogs.attitudeloop.AttitudeLoop`) instead of being held. The state is 16 wide: the rigid body,
+    then the loop's held roll and pitch setpoints and start velocity (:attr:`extra_states`, filled by
+    :meth:`start`), which the loop keeps constant over a prediction. RK4 with ``substeps`` substeps, as the loop was
+    fitted (:data:`sim.flightlogs.logident.LOOP_SUBSTEPS`).
+
+    Parameters
+    ----------
+    m, g, c_d, linear_drag, quadratic_drag, accel_bias
+        As :class:`HeldRatesPhysics`.
+    loop : AttitudeLoop
+        The loop's coefficients.
+    inertia : sequence of 3 float
+        The principal inertias the loop's torques are divided by, kg m^2.
+    substeps : int
+        RK4 substeps a period.
+    """
+
+    extra_states = EXTRA_STATES
+    not_flyable = NOT_FLYABLE
+
+    def __init__(self, m: float, g: float, c_d: float, linear_drag, quadratic_drag, accel_bias, loop: AttitudeLoop,
+                 inertia, substeps: int = LOOP_SUBSTEPS):
+        super().__init__(m, g, c_d, linear_drag, quadratic_drag, accel_bias)
+        J = np.asarray(inertia, dtype=float)
+        if J.shape != (3,) or not np.all(np.isfinite(J)) or np.any(J <= 0):
+            raise ValueError(f"inertia must be 3 finite numbers > 0, kg m^2; found {inertia!r}")
+        if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
+            raise ValueError(f"substeps must be an integer >= 1; found {substeps!r}")
+        self.loop = loop
+        self.register_buffer("coefficients", torch.tensor(loop.vector(), dtype=torch.float64))
+        self.register_buffer("inertia", torch.tensor(J, dtype=torch.float64))
+        self.substeps = substeps
+
+    def start(self, x: np.ndarray) -> np.ndarray:
+        """The loop's extra states (B, 4) at window starts ``x`` (B, 12) of a log (:meth:`AttitudeLoop.start`)."""
+        return self.loop.start(np.asarray(x, dtype=float))[:, 12:]
+
+    def _coefficients(self, dtype):
+        v = self.coefficients.to(dtype)
+        return v[0:3], v[3:5], v[6:9], v[9:12], v[12]         # D, K, G, b, K_v (the lead is in the setpoint)
+
+    def rates(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """dx/dt (B, 16): the rigid body's under the loop, the extra states constant."""
+        D, K, G, b, kv = self._coefficients(x.dtype)
+        J = self.inertia.to(x.dtype)
+        d = HeldRatesPhysics.rates(self, x[:, :12], u)
+        w = x[:, 6:9]
+        alpha = (G * u[:, 1:4] - torch.cross(w, w * J, dim=1)) / J - D * w + b
+        c, s = torch.cos(x[:, 5]), torch.sin(x[:, 5])
+        dv0 = c * x[:, 9] + s * x[:, 10] - x[:, 14]
+        dv1 = -s * x[:, 9] + c * x[:, 10] - x[:, 15]
+        target = torch.stack([x[:, 12] - kv * dv1, x[:, 13] + kv * dv0], -1)
+        alpha = torch.cat([alpha[:, :2] - K * (x[:, 3:5] - target), alpha[:, 2:]], -1)
+        return torch.cat([d[:, :6], alpha, d[:, 9:12], torch.zeros_like(x[:, 12:16])], -1)
+
+    def rates_tangent(self, x: torch.Tensor, u: torch.Tensor, dx: torch.Tensor, du: torch.Tensor):
+        """:meth:`rates` (B, 16), the same values, and its tangent (B, 16, k) along ``dx`` (B, 16, k) and ``du``
+        (B, 4, k)."""
+        D, K, G, b, kv = self._coefficients(x.dtype)
+        J = self.inertia.to(x.dtype)
+        _, dd = HeldRatesPhysics.rates_tangent(self, x[:, :12], u, dx[:, :12], du)
+        w, dw = x[:, 6:9], dx[:, 6:9]
+        wk = w[:, :, None].expand_as(dw)
+        d_gyro = torch.cross(dw, (w * J)[:, :, None].expand_as(dw), dim=1) + torch.cross(wk, J[:, None] * dw, dim=1)
+        d_alpha = (G[:, None] * du[:, 1:4] - d_gyro) / J[:, None] - D[:, None] * dw
+        c, s = torch.cos(x[:, 5]), torch.sin(x[:, 5])
+        hv0 = c * x[:, 9] + s * x[:, 10]
+        hv1 = -s * x[:, 9] + c * x[:, 10]
+        d_psi, d_vx, d_vy = dx[:, 5], dx[:, 9], dx[:, 10]
+        d_dv0 = c[:, None] * d_vx + s[:, None] * d_vy + hv1[:, None] * d_psi - dx[:, 14]
+        d_dv1 = -s[:, None] * d_vx + c[:, None] * d_vy - hv0[:, None] * d_psi - dx[:, 15]
+        d_target = torch.stack([dx[:, 12] - kv * d_dv1, dx[:, 13] + kv * d_dv0], 1)
+        d_alpha = torch.cat([d_alpha[:, :2] - K[:, None] * (dx[:, 3:5] - d_target), d_alpha[:, 2:]], 1)
+        return self.rates(x, u), torch.cat([dd[:, :6], d_alpha, dd[:, 9:12], torch.zeros_like(dx[:, 12:16])], 1)
+
+    def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """The state one period later (B, 16)."""
+        return _rk4(lambda z: self.rates(z, u), x, self.substeps)
+
+    def forward_tangent(self, x: torch.Tensor, u: torch.Tensor, dx: torch.Tensor, du: torch.Tensor):
+        """:meth:`forward` (B, 16), the same values, and its tangent (B, 16, k) along ``dx`` (B, 16, k) and ``du``
+        (B, 4, k)."""
+        return _rk4_tangent(lambda z, dz: self.rates_tangent(z, u, dz, du), x, dx, self.substeps)
+
+
 #: Names of the inputs in a register's extra states, by command level.
 REGISTER_INPUTS = {"wrench": ("T", "tx", "ty", "tz"), "ctbr": ("T", "p", "q", "r")}
 
@@ -309,15 +408,16 @@ def register_names(history: int, level: str = "wrench") -> tuple[str, ...]:
             + tuple(f"{n}{k}" for k in range(1, history + 1) for n in ("p", "q", "r")))
 
 
-def raw_features(z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+def raw_features(z: torch.Tensor, u: torch.Tensor, skip: int = 0) -> torch.Tensor:
     """Unnormalized network features (B, 12 + 7 H): roll, pitch, body rates, body-frame velocity, wrench and the
-    register ``z[:, 12:]``."""
+    register ``z[:, 12 + skip:]`` (``skip``: the physics' own extra states, between the rigid body and the register,
+    which are not features)."""
     R = rotation_torch(z[:, 3:6])
     vb = torch.einsum("nji,nj->ni", R, z[:, 9:12])
-    return torch.cat([z[:, 3:5], z[:, 6:9], vb, u, z[:, 12:]], -1)
+    return torch.cat([z[:, 3:5], z[:, 6:9], vb, u, z[:, 12 + skip:]], -1)
 
 
-def raw_features_tangent(z: torch.Tensor, u: torch.Tensor):
+def raw_features_tangent(z: torch.Tensor, u: torch.Tensor, skip: int = 0):
     """:func:`raw_features` (B, 12 + 7 H), the same values, and their derivatives with respect to ``(z, u)``:
     (B, 12 + 7 H, nz + 4) with ``nz = z.shape[1]``, the state's columns first."""
     n, nz = z.shape[0], z.shape[1]
@@ -328,8 +428,8 @@ def raw_features_tangent(z: torch.Tensor, u: torch.Tensor):
     dth = rotation_tangent(z[:, 3:6], eye[3:6].expand(n, 3, nz + 4))
     d_vb = cross_columns(vb, dth) + torch.matmul(R.transpose(1, 2), eye[9:12])
     head = torch.cat([eye[3:5], eye[6:9]]).expand(n, 5, nz + 4)
-    tail = torch.cat([eye[nz:], eye[12:nz]]).expand(n, nz - 8, nz + 4)
-    return raw_features(z, u), torch.cat([head, d_vb, tail], 1)
+    tail = torch.cat([eye[nz:], eye[12 + skip:nz]]).expand(n, nz - 8 - skip, nz + 4)
+    return raw_features(z, u, skip), torch.cat([head, d_vb, tail], 1)
 
 
 class FlightModel(nn.Module):
@@ -340,8 +440,12 @@ class FlightModel(nn.Module):
     dynamics: the next rates stay the input's; with :class:`LaggedCtbrPhysics` (the ``ctbr`` level, whose input is
     the rates commanded) the rates and the velocity, as the inner loop's response is only assumed.
 
-    State ``z`` (B, 12 + 7 H): the rigid body, then the last ``H`` inputs (newest first) and the last ``H``
-    body rates (newest first). ``forward(z, u)`` gives the next ``z``.
+    With :class:`AttitudeLoopPhysics` (the wrench level, rates under the fitted onboard loop) the network corrects the
+    rates and the velocity it gives; the loop's own extra states come after the rigid body's.
+
+    State ``z`` (B, 12 + E + 7 H): the rigid body, the physics' ``E`` extra states (its ``extra_states``), then the
+    last ``H`` inputs (newest first) and the last ``H`` body rates (newest first). ``forward(z, u)`` gives the next
+    ``z``.
     """
 
     arch = "flight"
@@ -352,7 +456,8 @@ class FlightModel(nn.Module):
         self.history = int(history)
         self.level = physics.level
         self.corrects_rates = bool(physics.corrects_rates)
-        self.extra_states = register_names(self.history, self.level)
+        self.own = len(physics.extra_states)          # the physics' extra states, before the register
+        self.extra_states = tuple(physics.extra_states) + register_names(self.history, self.level)
         n_in = 2 + 3 + 3 + 4 + 7 * self.history
         # given the rates reached, the network's outputs are the velocity corrections alone (the last three of the
         # statistics')
@@ -373,27 +478,29 @@ class FlightModel(nn.Module):
 
     def forward(self, z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         x = z[:, :12]
-        f = (raw_features(z, u) - self.in_mean.to(z.dtype)) / self.in_std.to(z.dtype)
+        f = (raw_features(z, u, self.own) - self.in_mean.to(z.dtype)) / self.in_std.to(z.dtype)
         y = self.out(self.body(f)) * self.out_scale.to(z.dtype)
         R = rotation_torch(x[:, 3:6])
-        nxt = self.physics(x, u)
+        # (the rigid body alone when the physics has no states of its own: the same operations, the same bits)
+        nxt = self.physics(z[:, :12 + self.own] if self.own else x, u)
         dv = torch.einsum("nij,nj->ni", R, y[:, -3:])
         rates = nxt[:, 6:9] + y[:, :3] if self.corrects_rates else nxt[:, 6:9]
-        return self._with_register(torch.cat([nxt[:, :6], rates, nxt[:, 9:12] + dv], -1), z, u)
+        parts = [nxt[:, :6], rates, nxt[:, 9:12] + dv] + ([nxt[:, 12:]] if self.own else [])
+        return self._with_register(torch.cat(parts, -1), z, u)
 
     def _with_register(self, nxt: torch.Tensor, z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """The next rigid-body state ``nxt`` (B, 12) followed by the register of ``z`` shifted by one period: ``u``
-        and the body rates of ``z`` enter as the newest, the oldest leave."""
-        H = self.history
+        """The next state of the physics ``nxt`` (B, 12 + E) followed by the register of ``z`` shifted by one period:
+        ``u`` and the body rates of ``z`` enter as the newest, the oldest leave."""
+        H, r = self.history, 12 + self.own
         if not H:
             return nxt
-        reg_u, reg_w = z[:, 12:12 + 4 * H], z[:, 12 + 4 * H:]
+        reg_u, reg_w = z[:, r:r + 4 * H], z[:, r + 4 * H:]
         return torch.cat([nxt, u, reg_u[:, :4 * (H - 1)], z[:, 6:9], reg_w[:, :3 * (H - 1)]], -1)
 
     def network_tangent(self, z: torch.Tensor, u: torch.Tensor):
         """The scaled network output ``y`` of :meth:`forward` (B, 3 or 6), the same values, and its derivatives
         with respect to ``(z, u)`` (B, 3 or 6, nz + 4)."""
-        raw, T = raw_features_tangent(z, u)
+        raw, T = raw_features_tangent(z, u, self.own)
         std = self.in_std.to(z.dtype)
         h = (raw - self.in_mean.to(z.dtype)) / std
         T = T / std[:, None]
@@ -416,27 +523,27 @@ class FlightModel(nn.Module):
         Written with plain tensor operations so that it exports to ONNX with a dynamic batch; ``x_next`` is
         :meth:`forward`'s, bit for bit.
         """
-        n, H = z.shape[0], self.history
-        nz = 12 + 7 * H
+        n, H, r = z.shape[0], self.history, 12 + self.own
+        nz = r + 7 * H
         x = z[:, :12]
         eye = torch.eye(nz + 4, dtype=z.dtype, device=z.device)
         y, dy = self.network_tangent(z, u)
         R = rotation_torch(x[:, 3:6])
-        nxt, A, B = self.physics.forward_jacobian(x, u)
+        nxt, A, B = self.physics.forward_jacobian(z[:, :r], u)
         dv = torch.einsum("nij,nj->ni", R, y[:, -3:])
         # d (R y) = R ([dth]_x y + dy) = R (dy - y x dth)
         dth = rotation_tangent(x[:, 3:6], eye[3:6].expand(n, 3, nz + 4))
         d_dv = torch.matmul(R, dy[:, -3:] - cross_columns(y[:, -3:], dth))
         if H:
-            J = torch.cat([A, torch.zeros_like(A[:, :, :1]).expand(n, 12, 7 * H), B], -1)
+            J = torch.cat([A, torch.zeros_like(A[:, :, :1]).expand(n, r, 7 * H), B], -1)
         else:
             J = torch.cat([A, B], -1)
         rates = nxt[:, 6:9] + y[:, :3] if self.corrects_rates else nxt[:, 6:9]
         d_rates = J[:, 6:9] + dy[:, :3] if self.corrects_rates else J[:, 6:9]
-        nxt = self._with_register(torch.cat([nxt[:, :6], rates, nxt[:, 9:12] + dv], -1), z, u)
-        J = torch.cat([J[:, :6], d_rates, J[:, 9:12] + d_dv], 1)
+        nxt = self._with_register(torch.cat([nxt[:, :6], rates, nxt[:, 9:12] + dv, nxt[:, 12:]], -1), z, u)
+        J = torch.cat([J[:, :6], d_rates, J[:, 9:12] + d_dv, J[:, 12:]], 1)
         if H:
-            shift = torch.cat([eye[nz:], eye[12:12 + 4 * (H - 1)], eye[6:9], eye[12 + 4 * H:nz - 3]])
+            shift = torch.cat([eye[nz:], eye[r:r + 4 * (H - 1)], eye[6:9], eye[r + 4 * H:nz - 3]])
             J = torch.cat([J, shift.expand(n, 7 * H, nz + 4)], 1)
         return nxt, J[..., :nz], J[..., nz:]
 
@@ -513,7 +620,9 @@ def flight_step(model: FlightModel, gain):
         return inner(z, u * gain)
 
     def start(f, idx):
-        return np.concatenate([f.x[idx], register(f.x, f.u * gain, idx, model.history)], axis=1)
+        x = np.asarray(f.x)
+        return np.concatenate([x[idx], model.physics.start(x[idx]), register(x, f.u * gain, idx, model.history)],
+                              axis=1)
 
     return step, start
 
@@ -521,7 +630,8 @@ def flight_step(model: FlightModel, gain):
 class _Windows:
     """Random training windows of the flights (all flights stacked once, with the wrench times the gain)."""
 
-    def __init__(self, flights, gain, history: int):
+    def __init__(self, flights, gain, history: int, physics: HeldRatesPhysics | None = None):
+        self.physics = physics
         self.x = np.concatenate([f.x for f in flights])
         self.u = np.concatenate([f.u * gain for f in flights])
         self.ok = np.concatenate([f.x_ok for f in flights])
@@ -537,13 +647,14 @@ class _Windows:
         return self._starts[K]
 
     def draw(self, K: int, count: int, gen):
-        """z0 (W, 12 + 7H), states (W, K, 12), wrenches (W, K, 4), measured (W, K)."""
+        """z0 (W, 12 + E + 7H), states (W, K, 12), wrenches (W, K, 4), measured (W, K)."""
         s = self.starts(K)[gen.integers(0, len(self.starts(K)), count)]
         lo = self.bounds[np.searchsorted(self.bounds[:, 1], s, side="right"), 0]
         reg = register(self.x, self.u, s, self.history, lo)
+        own = np.zeros((len(s), 0)) if self.physics is None else self.physics.start(self.x[s])
         idx = s[:, None] + np.arange(1, K + 1)
         T = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
-        return (T(np.concatenate([self.x[s], reg], 1)), T(self.x[idx]), T(self.u[idx - 1]),
+        return (T(np.concatenate([self.x[s], own, reg], 1)), T(self.x[idx]), T(self.u[idx - 1]),
                 torch.as_tensor(self.ok[idx]))
 
 
@@ -572,8 +683,11 @@ def _identified_physics(physics_kw: dict, level: str):
         # one RK4 substep, as the wrench level's held-rates physics: the network answers for what it leaves
         return (CtbrPhysics(p.m, p.g, p.c_d, *drags, thrust_gain=physics_kw.get("thrust_gain", 1.0),
                             substeps=PHYSICS_SUBSTEPS), np.ones(4))
-    return (HeldRatesPhysics(p.m, p.g, p.c_d, *drags),
-            np.asarray(physics_kw.get("wrench_gain", (1.0,) * 4), dtype=float))
+    gain = np.asarray(physics_kw.get("wrench_gain", (1.0,) * 4), dtype=float)
+    if physics_kw.get("attitude_loop") is not None:
+        return (AttitudeLoopPhysics(p.m, p.g, p.c_d, *drags, physics_kw["attitude_loop"], (p.Jxx, p.Jyy, p.Jzz),
+                                    substeps=int(physics_kw.get("substeps", LOOP_SUBSTEPS))), gain)
+    return HeldRatesPhysics(p.m, p.g, p.c_d, *drags), gain
 
 
 def train_flight_model(train_flights, val_flights, physics_kw: dict | None, config: FlightTrainConfig,
@@ -588,7 +702,9 @@ def train_flight_model(train_flights, val_flights, physics_kw: dict | None, conf
         :func:`sim.flightlogs.logbench.ctbr_inputs`).
     physics_kw : dict
         At ``wrench``, :func:`sim.flightlogs.logident.identified_model` with ``hold_rates=True``: ``p``, the drags,
-        the bias and ``wrench_gain`` (:class:`HeldRatesPhysics`). At ``ctbr``, the keyword arguments of
+        the bias and ``wrench_gain`` (:class:`HeldRatesPhysics`); with an ``attitude_loop`` too (and the ``substeps``
+        it was fitted with), the rates under that loop (:class:`AttitudeLoopPhysics`, the keyword arguments of
+        ``physics_step`` for it). At ``ctbr``, the keyword arguments of
         :func:`sim.flightlogs.logbench.ctbr_physics_step` (``p``, the drags, the bias, ``thrust_gain``;
         :class:`CtbrPhysics`).
         None with ``physics``.
@@ -610,7 +726,7 @@ def train_flight_model(train_flights, val_flights, physics_kw: dict | None, conf
         gain = np.ones(4)
     model = FlightModel(physics, flight_stats(train_flights, gain, config.history), config.history, config.hidden,
                         config.layers)
-    windows = _Windows(train_flights, gain, config.history)
+    windows = _Windows(train_flights, gain, config.history, physics)
     params = [q for q in model.parameters() if q.requires_grad]
     opt = torch.optim.Adam(params, lr=config.lr)
     total = config.epochs * config.steps_per_epoch
@@ -728,8 +844,8 @@ class LearnedModel:
     """A model trained on the training flights, at the epoch its validation score chose.
 
     ``step(z, u)`` and ``start(flight, idx)`` are :func:`sim.flightlogs.logbench.prediction_errors`'s (``start`` None:
-    the
-    model's state is the rigid body's); ``export(path)`` writes it as an ONNX model file and returns the path.
+    the model's state is the rigid body's); ``export(path)`` writes it as an ONNX model file and returns the path.
+    ``not_flyable``: why the model cannot be flown whatever it learned (its physics'), or empty.
     """
 
     name: str
@@ -740,15 +856,19 @@ class LearnedModel:
     validation_scores: list
     seconds: float
     export: object
+    not_flyable: str = ""
 
 
-def learned_models(flights: dict, vehicle, ident, fmt, budget: str = "full", progress=print) -> list[LearnedModel]:
+def learned_models(flights: dict, vehicle, ident, fmt, budget: str = "full", progress=print,
+                   attitude_loop_kw: dict | None = None) -> list[LearnedModel]:
     """Train the study's learned models on ``flights["train"]``, each at the epoch chosen on ``flights["val"]``.
 
     The paper's four architectures and physics plus network (:data:`PAPER_ARCHITECTURES`) as they train on
     simulated data (the ``quick`` profile, the stated vehicle as their prior, seed 0); then the identified
     held-rates physics plus a network (:class:`FlightModel`), without and with a register of :data:`HISTORY`
-    periods.
+    periods; and, given ``attitude_loop_kw`` (``physics_step``'s keyword arguments of the identified rigid body
+    with its fitted ``attitude_loop`` and ``substeps``), that physics plus a network the same two ways
+    (:class:`AttitudeLoopPhysics`): the loop is identified first, then the network learns what it leaves.
     """
     from sim.flightlogs.flightlog import flights_to_dataset
     from sim.flightlogs.logbench import prediction_errors
@@ -783,7 +903,11 @@ def learned_models(flights: dict, vehicle, ident, fmt, budget: str = "full", pro
     kw = dict(identified_model(ident, vehicle, hold_rates=True), quadratic_drag=(0.0, 0.0, 0.0))
     iv = identified_vehicle(ident, vehicle)
     theta = {k: getattr(iv, k) for k in ("m", "Jxx", "Jyy", "Jzz", "kt", "kq")}
-    return out + _flight_models(flights, kw, theta, budget, progress, "wrench", "identified physics + network")
+    out += _flight_models(flights, kw, theta, budget, progress, "wrench", "identified physics + network")
+    if attitude_loop_kw is not None:
+        out += _flight_models(flights, attitude_loop_kw, theta, budget, progress, "wrench",
+                              "identified physics, attitude loop + network")
+    return out
 
 
 def ctbr_learned_models(flights: dict, physics_kw: dict, theta: dict, budget: str = "full",
@@ -836,5 +960,5 @@ def _flight_models(flights: dict, physics_kw: dict, theta: dict, budget: str, pr
             return export_flight_model(model, path, theta, name, level=level)
 
         out.append(LearnedModel(name, step, start, res.best_epoch, res.config.epochs, res.scores, res.seconds,
-                                export))
+                                export, res.model.physics.not_flyable))
     return out

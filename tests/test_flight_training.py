@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from pinn.flights import (FlightModel, FlightTrainConfig, HeldRatesPhysics, flight_stats, flight_step, register,
-                          train_flight_model)
+from pinn.flights import (AttitudeLoopPhysics, FlightModel, FlightTrainConfig, HeldRatesPhysics, flight_stats,
+                          flight_step, register, train_flight_model)
+from sim.flightlogs.attitudeloop import EXTRA_STATES, AttitudeLoop
 from pinn.train import _TrainData, make_config, train, training_stats
 from scenarios.studies.realdata import why_not_flyable
 from sim.identification.excitation import make_dataset
@@ -92,6 +93,27 @@ P = QuadParams(m=0.045, Jxx=1e-4, Jyy=2e-4, Jzz=5e-6, kt=4e-8, kq=7.7e-12, d=0.0
 
 def _physics():
     return HeldRatesPhysics(P.m, P.g, P.c_d, **DRAGS)
+
+
+#: An attitude loop with every coefficient nonzero (the velocity loop too), torque gains of both signs.
+LOOP = AttitudeLoop(damping=(1.8, 2.2, 40.0), stiffness=(14.0, 15.0), lead=-0.1, torque_gain=(0.6, -0.4, 3.0),
+                    bias=(0.1, -0.1, 0.05), velocity_gain=0.08)
+
+
+def _loop_physics(substeps=1):
+    return AttitudeLoopPhysics(P.m, P.g, P.c_d, **DRAGS, loop=LOOP, inertia=(P.Jxx, P.Jyy, P.Jzz), substeps=substeps)
+
+
+def test_torch_attitude_loop_physics_is_the_protocols(rng=np.random.default_rng(5)):
+    """One period of the torch loop physics from random states (with a random setpoint and start velocity) is
+    ``physics_step`` with the same loop, at one and at three substeps; a window's extra states are the loop's."""
+    x = rng.normal(size=(64, 16)) * np.r_[1, 1, 1, 0.4, 0.4, 3, 2, 2, 2, 2, 2, 2, 0.3, 0.3, 1, 1]
+    u = np.c_[rng.uniform(0.2, 0.8, 64), rng.normal(size=(64, 3)) * 1e-3]
+    for substeps in (1, 3):
+        want = physics_step(P, substeps=substeps, **DRAGS, attitude_loop=LOOP)(x, u)
+        got = _loop_physics(substeps).double()(torch.as_tensor(x), torch.as_tensor(u)).numpy()
+        np.testing.assert_allclose(got, want, rtol=0, atol=PHYSICS_TOL)
+    np.testing.assert_array_equal(_loop_physics().start(x[:, :12]), LOOP.start(x[:, :12])[:, 12:])
 
 
 def test_torch_held_rates_physics_is_the_protocols(rng=np.random.default_rng(3)):
@@ -302,6 +324,8 @@ def _jacobian_model(kind, level="wrench", history=0, substeps=1):
 
     if kind == "held":
         return _physics().double(), 12, "wrench"
+    if kind == "loop":
+        return _loop_physics(substeps).double(), 16, "wrench"
     if kind in ("ctbr", "lagged"):
         return ctbr().double(), 12, "ctbr"
     rng = np.random.default_rng(11)
@@ -309,13 +333,14 @@ def _jacobian_model(kind, level="wrench", history=0, substeps=1):
     stats = {"in_mean": rng.normal(size=n_in) * 0.3, "in_std": rng.uniform(0.5, 2.0, n_in),
              "out_scale": rng.uniform(0.05, 0.5, 6)}
     torch.manual_seed(2)
-    m = FlightModel(_physics() if level == "wrench" else ctbr(), stats, history=history, hidden=16, layers=2)
+    physics = _loop_physics(substeps) if kind == "loop-flight" else _physics() if level == "wrench" else ctbr()
+    m = FlightModel(physics, stats, history=history, hidden=16, layers=2)
     if kind.startswith("lagged"):
         assert m.corrects_rates and m.out.out_features == 6
     with torch.no_grad():
         m.out.weight.normal_(0.0, 0.3)
         m.out.bias.normal_(0.0, 0.3)
-    return m.double().eval(), 12 + 7 * history, level
+    return m.double().eval(), 12 + len(physics.extra_states) + 7 * history, level
 
 
 def _jacfwd(model, z, u):
@@ -331,6 +356,10 @@ def _jacfwd(model, z, u):
 @pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning")
 @pytest.mark.parametrize("kind,level,history,substeps", [
     pytest.param("held", "wrench", 0, 1, id="held-rates physics"),
+    pytest.param("loop", "wrench", 0, 1, id="attitude-loop physics, 1 substep"),
+    pytest.param("loop", "wrench", 0, 2, id="attitude-loop physics, 2 substeps"),
+    pytest.param("loop-flight", "wrench", 0, 1, id="flight model on the attitude loop"),
+    pytest.param("loop-flight", "wrench", 3, 1, id="flight model on the attitude loop, history 3"),
     pytest.param("ctbr", "ctbr", 0, 1, id="ctbr physics, 1 substep"),
     pytest.param("ctbr", "ctbr", 0, 10, id="ctbr physics, 10 substeps"),
     pytest.param("flight", "wrench", 0, 1, id="flight model, wrench"),
@@ -374,6 +403,41 @@ def test_an_exported_ctbr_history_model_has_its_exact_derivative_graph(tmp_path)
     got = ort.InferenceSession(str(info.jacobian)).run(["x_next", "A", "B"], {"x": z.numpy(), "u": u.numpy()})
     with torch.no_grad():
         want = model.forward_jacobian(z, u)
+    for name, g, w in zip(("x_next", "A", "B"), got, want):
+        np.testing.assert_allclose(g, w.numpy(), rtol=0, atol=ONNX_TOL, err_msg=name)
+
+
+def test_a_model_on_the_attitude_loop_carries_its_states_and_exports_with_its_derivative_graph(tmp_path):
+    """A flight model on the attitude loop: untrained, it is its physics (16 states, the loop's extra states held)
+    with the register after them, shifting exactly; its file names the loop's states then the register's, and
+    onnxruntime's x_next, A and B are torch's."""
+    import onnxruntime as ort
+
+    from mpc.prediction.contract import check_model
+    from pinn.flights import export_flight_model, register_names
+
+    flights = _flights(1)
+    f = flights[0]
+    m = FlightModel(_loop_physics(), flight_stats(flights, np.ones(4), 2), history=2).double()
+    _, start = flight_step(m, np.ones(4))
+    idx = np.arange(5, 40)
+    z = start(f, idx)
+    assert z.shape == (len(idx), 16 + 14)
+    np.testing.assert_array_equal(z[:, 12:16], LOOP.start(f.x[idx])[:, 12:])
+    nxt = m(torch.as_tensor(z), torch.as_tensor(f.u[idx])).detach().numpy()
+    want = physics_step(P, substeps=1, **DRAGS, attitude_loop=LOOP)(z[:, :16], f.u[idx])
+    np.testing.assert_allclose(nxt[:, :16], want, rtol=0, atol=PHYSICS_TOL)
+    np.testing.assert_array_equal(nxt[:, 16:], register(f.x, f.u, idx + 1, 2))
+    assert m.extra_states == EXTRA_STATES + register_names(2)
+    model, nz, _ = _jacobian_model("loop-flight", "wrench", 2)
+    theta = {"m": P.m, "Jxx": P.Jxx, "Jyy": P.Jyy, "Jzz": P.Jzz, "kt": P.kt, "kq": P.kq}
+    path = export_flight_model(model, tmp_path / "loop.onnx", theta, "test")
+    info = check_model(path)
+    assert info.extra_states == model.extra_states and info.jacobian is not None
+    zz, u = _jacobian_states(32, nz, "wrench", seed=9)
+    got = ort.InferenceSession(str(info.jacobian)).run(["x_next", "A", "B"], {"x": zz.numpy(), "u": u.numpy()})
+    with torch.no_grad():
+        want = model.forward_jacobian(zz, u)
     for name, g, w in zip(("x_next", "A", "B"), got, want):
         np.testing.assert_allclose(g, w.numpy(), rtol=0, atol=ONNX_TOL, err_msg=name)
 

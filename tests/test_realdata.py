@@ -133,7 +133,8 @@ def test_learned_models_keep_the_epoch_their_validation_score_chose(bench):
     r, out = bench
     learned = {n: m for n, m in r["models"].items() if m["kind"] == "learned"}
     assert set(learned) == {"baseline", "modular", "fourier", "proposed", "hybrid", "identified physics + network",
-                            "identified physics + network, history 4", "identified physics, ctbr + network",
+                            "identified physics + network, history 4", "identified physics, attitude loop + network",
+                            "identified physics, attitude loop + network, history 4", "identified physics, ctbr + network",
                             "identified physics, ctbr + network, history 4"}
     for n, m in learned.items():
         t = m["training"]
@@ -261,6 +262,10 @@ def test_on_a_plant_without_an_onboard_loop_the_attitude_loop_fit_finds_eulers_e
     models = r["models"]
     looped = models["identified physics, attitude loop"]["raw"]["angular_velocity"][-1]
     assert looped < 0.01 * models["identified physics, rates held"]["raw"]["angular_velocity"][-1]
+    # a model on the loop predicts a logged closed loop around a setpoint no controller sets: never flown
+    for name in ("identified physics, attitude loop", "identified physics, attitude loop + network",
+                 "identified physics, attitude loop + network, history 4"):
+        assert models[name]["flyable"] is False and "setpoint" in models[name]["why_not_flyable"], name
 
 
 def test_the_benchmark_filter_is_zero_phase():
@@ -503,3 +508,19 @@ def test_a_ctbr_model_flies_when_its_rate_commands_turn_it_and_not_when_they_do_
     assert why_not_flyable(ignores_rates, None, u0, du, level="ctbr") == "holds the body rates: no input turns it"
     # the wrench level's rule (the rates must still differ) would call the good model dead
     assert "holds the body rates" in why_not_flyable(step, None, u0, du, level="wrench")
+
+
+def test_a_model_that_turns_the_body_against_its_torque_cannot_fly_and_says_which():
+    """At the wrench level a torque must turn its own axis its way: the rigid body with a negative roll torque gain in
+    its attitude loop (as the loop fitted to the real flights has) is refused for that torque alone."""
+    from scenarios.studies.realdata import why_not_flyable
+    from sim.flightlogs.attitudeloop import AttitudeLoop
+    from sim.flightlogs.logbench import physics_step
+
+    p = load_vehicle("crazyflie").params
+    u0, du = np.array([p.m * p.g, 0.0, 0.0, 0.0]), np.array([0.01, 1e-4, 1e-4, 1e-5])
+    for gains, want in (((1.0, 1.0, 1.0), ""), ((-0.25, 1.0, 1.0), "turns the body against its roll torque"),
+                        ((0.5, -0.7, -2.0), "turns the body against its pitch torque, yaw torque")):
+        loop = AttitudeLoop(damping=(2.0, 2.0, 5.0), stiffness=(14.0, 15.0), torque_gain=gains)
+        step = physics_step(p, substeps=1, attitude_loop=loop)
+        assert why_not_flyable(step, lambda f, i: loop.start(f.x[i]), u0, du) == want, gains

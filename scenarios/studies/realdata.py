@@ -22,12 +22,13 @@ import numpy as np
 
 from sim.errors import SimInputError
 from sim.files import write_json, write_text
+from sim.flightlogs.attitudeloop import NOT_FLYABLE
 from sim.flightlogs.flightlog import assign_splits, read_flight
 from sim.flightlogs.logbench import (GOAL_H50, HORIZONS, QUANTITIES, ctbr_inputs, ctbr_physics_step, goal_score,
                                      physics_step, prediction_errors)
 from sim.flightlogs.logformat import load_format
-from sim.flightlogs.logident import (fisher_table, fit_attitude_loop, identified_model, identified_vehicle,
-                                     identify, with_identified_drag)
+from sim.flightlogs.logident import (LOOP_SUBSTEPS, fisher_table, fit_attitude_loop, identified_model,
+                                     identified_vehicle, identify, with_identified_drag)
 from sim.vehicles.vehicle import load_vehicle
 
 #: Where the benchmark keeps its raw logs, under its root.
@@ -137,8 +138,10 @@ ATTITUDE_LOOP_FIXED = ("velocity_gain",)
 
 
 def _attitude_loop_physics(ident, vehicle) -> dict:
-    """``physics_step`` keyword arguments of the rigid body under the fitted attitude loop (its loop not set)."""
-    return dict(identified_model(ident, vehicle, hold_rates=False), quadratic_drag=(0.0, 0.0, 0.0))
+    """``physics_step`` keyword arguments of the rigid body under the fitted attitude loop (its loop not set), with
+    the substeps the loop is fitted with."""
+    return dict(identified_model(ident, vehicle, hold_rates=False), quadratic_drag=(0.0, 0.0, 0.0),
+                substeps=LOOP_SUBSTEPS)
 
 
 def _ctbr_candidates(ident, vehicle):
@@ -176,7 +179,9 @@ TURNED_STATES = {"wrench": slice(6, 9), "ctbr": slice(3, 6)}
 
 def why_not_flyable(step, start, u0, du, level: str = "wrench") -> str:
     """Empty when each input moves the model within :data:`RESPONSE_PERIODS` periods from rest at the mean logged
-    input: the thrust the velocity, every other input the states of :data:`TURNED_STATES` at ``level``; else the
+    input: the thrust the velocity, every other input the states of :data:`TURNED_STATES` at ``level``; and, at the
+    wrench level, when each torque turns its own axis its way in the period it is applied (a model that turns the
+    body against the torque, as a fit of a closed loop's response may, sends a controller the wrong way); else the
     reason.
 
     ``u0``, ``du``: the input held and the size of the perturbation of each input (4,), in the log's units.
@@ -192,15 +197,19 @@ def why_not_flyable(step, start, u0, du, level: str = "wrench") -> str:
         if k == 0:
             u[1:] += np.diag(du)
         z = step(z, u)
+        if k == 0:
+            first = z.copy()
     turned, labels = TURNED_STATES[level], INPUT_LABELS_AT[level]
     moved = [np.max(np.abs(z[j + 1, 9:12] - z[0, 9:12])) if j == 0 else np.max(np.abs(z[j + 1, turned] - z[0, turned]))
              for j in range(4)]
     dead = [labels[j] for j in range(4) if not moved[j] > RESPONSE_TOL]
-    if not dead:
-        return ""
-    if all(d in dead for d in labels[1:]):
+    if dead and all(d in dead for d in labels[1:]):
         return "holds the body rates: no input turns it"
-    return "does not respond to its " + ", ".join(dead)
+    against = [labels[j] for j in range(1, 4) if level == "wrench" and labels[j] not in dead
+               and (first[j + 1, 5 + j] - first[0, 5 + j]) * du[j] < -RESPONSE_TOL]
+    why = (["does not respond to its " + ", ".join(dead)] if dead else []) + \
+        (["turns the body against its " + ", ".join(against)] if against else [])
+    return "; ".join(why)
 
 
 #: Sampling of the logged reference in the melon scenario file, s.
@@ -281,7 +290,8 @@ def fly_models(rows, plants, progress=print) -> list[dict]:
                 out.append({**row, "skipped": str(e)})
                 continue
             out.append({**row, "rmse_m": result["rmse_position_m"], "crashed": result["crashed"],
-                        "median_solve_ms": result["solve_ms"]["median"],
+                        # (no period solved: a flight that ended in its first period)
+                        "median_solve_ms": (result["solve_ms"] or {}).get("median"),
                         **{k: result[k] for k in ("crash_time_s", "crash_reason", "solve_ms", "deadline_misses")}})
     return out
 
@@ -428,7 +438,8 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
         from pinn.flights import ctbr_learned_models, learned_models
 
         candidates += [(m.name, "learned", "wrench", m.step, m.start, m)
-                       for m in learned_models(by_split, vehicle, ident, fmt, learn, progress)]
+                       for m in learned_models(by_split, vehicle, ident, fmt, learn, progress,
+                                               attitude_loop_kw=dict(loop_kw, attitude_loop=loop_fit.loop))]
         candidates += [(m.name, "learned", "ctbr", m.step, m.start, m)
                        for m in ctbr_learned_models(split_at["ctbr"], ctbr_kw["identified physics, ctbr"],
                                                     _theta(vehicle), learn, progress)]
@@ -438,7 +449,8 @@ def run_realdata(logs_root, out_dir, vehicle="crazyflie-brushless", progress=pri
         progress(f"evaluating {name}")
         fl = split_at[level]
         validation[name] = prediction_errors(step, fl["val"], start=start).to_dict()
-        why = why_not_flyable(step, start, *perturb[level], level=level)
+        why = (NOT_FLYABLE if name == ATTITUDE_LOOP_MODEL else rec.not_flyable if rec is not None else "") or \
+            why_not_flyable(step, start, *perturb[level], level=level)
         models[name] = {"kind": kind, "level": level,
                         "raw": prediction_errors(step, fl["test"], start=start).to_dict(),
                         "filtered_run1": prediction_errors(step, filtered_at[level], start=start).to_dict(),

@@ -35,6 +35,9 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+#: Why a model with the attitude loop is not flown: its extra states are a prediction's construct, not a vehicle's.
+NOT_FLYABLE = ("its roll and pitch are pulled to a setpoint held from the prediction's start, which no controller "
+               "sets: it predicts a logged closed loop, it does not say what a torque does")
 #: Extra states after the 12 of the rigid body: the held roll and pitch setpoints (rad) and the heading-frame
 #: horizontal velocity at the window's start (forward, right; m/s).
 EXTRA_STATES = ("roll setpoint", "pitch setpoint", "start forward velocity", "start right velocity")

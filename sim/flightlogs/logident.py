@@ -295,6 +295,10 @@ class AttitudeLoopFit:
 #: The fit's horizons (steps) and every how many window starts it uses.
 LOOP_HORIZONS = (10, 25, 50)
 LOOP_STRIDE = 20
+#: RK4 substeps a period of the attitude loop's predictions, in its fit and wherever the fitted loop predicts: its
+#: coefficients belong to this integration (the yaw damping fitted on the benchmark's logs, 268 1/s, is near one
+#: RK4 step's stability limit; with ten substeps the same coefficients give other yaw rates at short horizons).
+LOOP_SUBSTEPS = 1
 #: The fit's initial coefficients: damped, mildly stiff, no torque, no lead.
 LOOP_INITIAL = AttitudeLoop(damping=(2.0, 2.0, 2.0), stiffness=(10.0, 10.0), torque_gain=(0.0, 0.0, 0.0))
 #: Typical sizes of the coefficients (the optimizer's scaling), in :meth:`AttitudeLoop.vector` order.
@@ -316,8 +320,8 @@ def fit_attitude_loop(flights, physics_kw: dict, initial: AttitudeLoop = LOOP_IN
     least squares, finite-difference Jacobian) the sum over windows and ``horizons`` of the squared position,
     velocity, rotation and body-rate errors, each over its goal (:data:`sim.flightlogs.logbench.GOAL_H50`): the
     benchmark's own score, asked of the training flights. The damping and stiffness are kept at or above zero.
-    The predictions take one RK4 substep a period (the evaluation may take more; the two differ by far less than
-    the errors fitted). The fields named in ``fixed`` (say ``("velocity_gain",)``) keep their ``initial`` value.
+    The predictions take :data:`LOOP_SUBSTEPS` RK4 substeps a period: predict with the fitted loop as it was fitted.
+    The fields named in ``fixed`` (say ``("velocity_gain",)``) keep their ``initial`` value.
     ``progress``, if given, is called with a line every :data:`LOOP_PROGRESS_EVERY` predictions of the windows.
     """
     from scipy.optimize import least_squares
@@ -358,7 +362,7 @@ def fit_attitude_loop(flights, physics_kw: dict, initial: AttitudeLoop = LOOP_IN
         if progress is not None and calls[0] % LOOP_PROGRESS_EVERY == 0:
             progress(f"  attitude loop: {calls[0]} predictions of {len(x0)} windows")
         loop = AttitudeLoop.from_vector(full(w))
-        step = physics_step(**kw, substeps=1, attitude_loop=loop)
+        step = physics_step(**kw, substeps=LOOP_SUBSTEPS, attitude_loop=loop)
         out = []
         z = loop.start(x0)
         for k in range(1, H + 1):
