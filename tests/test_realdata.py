@@ -304,7 +304,7 @@ def test_the_study_on_the_real_benchmark(real_study):
     assert 0.08 < held["position"][-1] < 0.2
     assert Path(out / "realdata.md").is_file()
     learned = [n for n, m in r["models"].items() if m["kind"] == "learned"]
-    assert len(learned) == 9 and r["best_on_validation"] in r["models"]
+    assert len(learned) == 11 and r["best_on_validation"] in r["models"]
     assert all(len(r["models"][n]["raw"][q]) == 3 for n in r["models"] for q in held)
     whole = "melon_20251017_run1-reference-whole"
     assert {row["scenario"] for row in r["closed_loop"]} == {"figure8-fast", "melon_20251017_run1-reference", whole,
