@@ -69,6 +69,7 @@ class HeldRatesPhysics(nn.Module):
     corrects_rates = True      # a network beside it corrects the body rates too (this physics holds them)
     extra_states: tuple[str, ...] = ()      # states of its own after the rigid body's (none)
     not_flyable = ""           # why a model on this physics cannot be flown, if it cannot whatever its network
+    substeps = PHYSICS_SUBSTEPS  # RK4 substeps a period
 
     def __init__(self, m: float, g: float, c_d: float, linear_drag, quadratic_drag, accel_bias):
         super().__init__()
@@ -126,13 +127,13 @@ class HeldRatesPhysics(nn.Module):
         return HeldRatesPhysics.rates(self, x, u), torch.cat([dv, d_euler, torch.zeros_like(dx[:, 6:9]), d_a], 1)
 
     def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """The state one period later (B, 12)."""
-        return _rk4(lambda z: self.rates(z, u), x, PHYSICS_SUBSTEPS)
+        """The state one period later (B, 12 + E)."""
+        return _rk4(lambda z: self.rates(z, u), x, self.substeps)
 
     def forward_tangent(self, x: torch.Tensor, u: torch.Tensor, dx: torch.Tensor, du: torch.Tensor):
-        """:meth:`forward` (B, 12), the same values, and its tangent (B, 12, k) along ``dx`` (B, 12, k) and ``du``
-        (B, 4, k)."""
-        return _rk4_tangent(lambda z, dz: self.rates_tangent(z, u, dz, du), x, dx, PHYSICS_SUBSTEPS)
+        """:meth:`forward` (B, 12 + E), the same values, and its tangent (B, 12 + E, k) along ``dx`` (B, 12 + E, k)
+        and ``du`` (B, 4, k)."""
+        return _rk4_tangent(lambda z, dz: self.rates_tangent(z, u, dz, du), x, dx, self.substeps)
 
     def start(self, x: np.ndarray) -> np.ndarray:
         """The :attr:`extra_states` (B, E) at window starts ``x`` (B, 12) of a log: none here."""
@@ -149,6 +150,12 @@ class HeldRatesPhysics(nn.Module):
         eye = torch.eye(n + 4, dtype=x.dtype, device=x.device).expand(x.shape[0], n + 4, n + 4)
         nxt, d = self.forward_tangent(x, u, eye[:, :n], eye[:, n:])
         return nxt, d[..., :n], d[..., n:]
+
+
+def _check_substeps(substeps) -> None:
+    """Refuse RK4 substeps that are not an integer >= 1."""
+    if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
+        raise ValueError(f"substeps must be an integer >= 1; found {substeps!r}")
 
 
 def _rk4(f, x: torch.Tensor, substeps: int) -> torch.Tensor:
@@ -252,8 +259,7 @@ class LaggedCtbrPhysics(HeldRatesPhysics):
         tau = np.asarray(rate_tau, dtype=float)
         if tau.shape != (3,) or not np.all(np.isfinite(tau)) or np.any(tau <= 0):
             raise ValueError(f"rate_tau must be 3 finite numbers > 0, s; found {rate_tau!r}")
-        if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
-            raise ValueError(f"substeps must be an integer >= 1; found {substeps!r}")
+        _check_substeps(substeps)
         self.register_buffer("inv_tau", torch.tensor(1.0 / tau, dtype=torch.float64))
         # ones but for the rates' slots: their path is the lag's solution, not integrated
         self.register_buffer("integrated", torch.tensor([1.0] * 6 + [0.0] * 3 + [1.0] * 3, dtype=torch.float64))
@@ -339,8 +345,7 @@ class AttitudeLoopPhysics(HeldRatesPhysics):
         J = np.asarray(inertia, dtype=float)
         if J.shape != (3,) or not np.all(np.isfinite(J)) or np.any(J <= 0):
             raise ValueError(f"inertia must be 3 finite numbers > 0, kg m^2; found {inertia!r}")
-        if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
-            raise ValueError(f"substeps must be an integer >= 1; found {substeps!r}")
+        _check_substeps(substeps)
         self.loop = loop
         self.register_buffer("coefficients", torch.tensor(loop.vector(), dtype=torch.float64))
         self.register_buffer("inertia", torch.tensor(J, dtype=torch.float64))
@@ -356,9 +361,13 @@ class AttitudeLoopPhysics(HeldRatesPhysics):
 
     def rates(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """dx/dt (B, 16): the rigid body's under the loop, the extra states constant."""
+        return self._with_loop(HeldRatesPhysics.rates(self, x[:, :12], u), x, u)
+
+    def _with_loop(self, d: torch.Tensor, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """The held-rates dx/dt ``d`` (B, 12) with the loop's angular acceleration in its rates' slots, and the
+        extra states' zero rates after it (B, 16)."""
         D, K, G, b, kv = self._coefficients(x.dtype)
         J = self.inertia.to(x.dtype)
-        d = HeldRatesPhysics.rates(self, x[:, :12], u)
         w = x[:, 6:9]
         alpha = (G * u[:, 1:4] - torch.cross(w, w * J, dim=1)) / J - D * w + b
         c, s = torch.cos(x[:, 5]), torch.sin(x[:, 5])
@@ -373,7 +382,7 @@ class AttitudeLoopPhysics(HeldRatesPhysics):
         (B, 4, k)."""
         D, K, G, b, kv = self._coefficients(x.dtype)
         J = self.inertia.to(x.dtype)
-        _, dd = HeldRatesPhysics.rates_tangent(self, x[:, :12], u, dx[:, :12], du)
+        d, dd = HeldRatesPhysics.rates_tangent(self, x[:, :12], u, dx[:, :12], du)
         w, dw = x[:, 6:9], dx[:, 6:9]
         wk = w[:, :, None].expand_as(dw)
         d_gyro = torch.cross(dw, (w * J)[:, :, None].expand_as(dw), dim=1) + torch.cross(wk, J[:, None] * dw, dim=1)
@@ -386,16 +395,8 @@ class AttitudeLoopPhysics(HeldRatesPhysics):
         d_dv1 = -s[:, None] * d_vx + c[:, None] * d_vy - hv0[:, None] * d_psi - dx[:, 15]
         d_target = torch.stack([dx[:, 12] - kv * d_dv1, dx[:, 13] + kv * d_dv0], 1)
         d_alpha = torch.cat([d_alpha[:, :2] - K[:, None] * (dx[:, 3:5] - d_target), d_alpha[:, 2:]], 1)
-        return self.rates(x, u), torch.cat([dd[:, :6], d_alpha, dd[:, 9:12], torch.zeros_like(dx[:, 12:16])], 1)
-
-    def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """The state one period later (B, 16)."""
-        return _rk4(lambda z: self.rates(z, u), x, self.substeps)
-
-    def forward_tangent(self, x: torch.Tensor, u: torch.Tensor, dx: torch.Tensor, du: torch.Tensor):
-        """:meth:`forward` (B, 16), the same values, and its tangent (B, 16, k) along ``dx`` (B, 16, k) and ``du``
-        (B, 4, k)."""
-        return _rk4_tangent(lambda z, dz: self.rates_tangent(z, u, dz, du), x, dx, self.substeps)
+        return self._with_loop(d, x, u), torch.cat([dd[:, :6], d_alpha, dd[:, 9:12], torch.zeros_like(dx[:, 12:16])],
+                                                   1)
 
 
 #: Names of the inputs in a register's extra states, by command level.
