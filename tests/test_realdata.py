@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from scenarios.cli import main
-from scenarios.studies.realdata import RAW_DIR, benchmark_filter, logs_commit
+from scenarios.studies.realdata import (LEAST_SQUARES_H50, PUBLISHED_H50, RAW_DIR, benchmark_filter, logs_commit,
+                                       versus_references)
 from sim import NoiseModel
 from sim.identification.excitation import make_dataset
 from sim.vehicles.vehicle import load_vehicle
@@ -45,6 +46,8 @@ DOCUMENTED_H50 = {
 # by its budget, so a machine whose arithmetic differs in the last bits may land a little elsewhere
 DOCUMENTED_LOOP_H50 = {"raw": (0.1057, 0.3481), "filtered_run1": (0.0916, 0.3283)}
 LOOP_DOC = 2e-3          # m, m/s
+# the targets of the comparison with the references: 10 % below the better reference (position m, velocity m/s)
+TARGETS = {"raw": (0.9 * 0.1135, 0.9 * 0.4864), "filtered_run1": (0.9 * 0.1046, 0.9 * 0.4642)}
 FLIGHTS = ["melon_20251017_run1", "melon_20251017_run2", "square_20251017_run1", "square_20251017_run2",
            "random1_20251017_run1", "random1_20251017_run4"]
 
@@ -102,6 +105,45 @@ def test_the_study_holds_melon_out_and_skips_lfs_pointers(bench):
     assert r["splits"]["val"] == ["random1_20251017_run4"]
     assert len(r["skipped"]) == 1 and "multisine_20251017_run1.parquet" in r["skipped"][0]
     assert (out / "realdata.md").read_text().count("(published, melon run 1 filtered)") == 4
+
+
+def _h50(raw, filtered):
+    """A model record whose h=50 errors are ``raw`` and ``filtered`` (position, velocity); shorter horizons NaN."""
+    pad = [float("nan")] * 2
+    return {s: {"position": pad + [v[0]], "velocity": pad + [v[1]]}
+            for s, v in (("raw", raw), ("filtered_run1", filtered))}
+
+
+def test_the_references_are_the_better_of_the_published_best_and_least_squares():
+    # the best published filtered errors are Phys+Res's 0.1057 m and 0.5425 m/s; the least-squares ones are lower
+    assert min(v[0] for v in PUBLISHED_H50.values()) == 0.1057 > LEAST_SQUARES_H50["filtered_run1"][0]
+    models = {"meets": _h50((0.10, 0.40), (0.09, 0.40)), "beats": _h50((0.11, 0.45), (0.10, 0.45)),
+              "loses": _h50((0.12, 0.50), (0.11, 0.50))}
+    vs = versus_references(models, {role: role for role in models} | {"none": None})
+    for setup, (position, velocity) in TARGETS.items():
+        assert vs["target"][setup]["position"] == pytest.approx(position, rel=EXACT)
+        assert vs["target"][setup]["velocity"] == pytest.approx(velocity, rel=EXACT)
+    assert vs["reference"]["filtered_run1"] == {"position": 0.1046, "velocity": 0.4642}
+    assert vs["none"] is None and vs["beats"]["error"]["raw"] == {"position": 0.11, "velocity": 0.45}
+    for role, (beats, meets) in {"meets": (True, True), "beats": (True, False), "loses": (False, False)}.items():
+        for setup in TARGETS:
+            assert set(vs[role]["beats"][setup].values()) == {beats}, (role, setup)
+            assert set(vs[role]["meets"][setup].values()) == {meets}, (role, setup)
+
+
+def test_the_study_compares_its_choices_with_the_references(bench):
+    r, out = bench
+    vs = r["versus_references"]
+    for role in ("best_on_validation", "best_physics_on_validation"):
+        c = vs[role]
+        assert c["name"] == r[role]
+        for setup, qs in c["error"].items():
+            for q, e in qs.items():
+                assert e == r["models"][c["name"]][setup][q][-1]
+                assert c["meets"][setup][q] == (e <= vs["target"][setup][q])
+    md = (out / "realdata.md").read_text()
+    assert "## Against the better of the published best and the least-squares fit, h = 50" in md
+    assert f"| physics chosen on validation: {r['best_physics_on_validation']} | raw test flights |" in md
 
 
 def test_the_plants_own_equations_predict_its_flights_exactly(bench):
@@ -317,6 +359,18 @@ def test_the_study_on_the_real_benchmark(real_study):
         (sc + ("+highfi" if plant == "sim" else ""), plant) for sc, plant in stated}
     # the best ctbr model flies both without a crash, on both plants, with both vehicles
     assert not any(row["crashed"] for row in ctbr), ctbr
+
+
+@pytest.mark.slow
+def test_the_physics_chosen_on_validation_beats_both_references_on_the_real_benchmark(real_study):
+    """The physics chosen on the validation flights (the attitude loop, measured 0.1057 m, 0.348 m/s raw; 0.0916 m,
+    0.328 m/s filtered) errs less than the better of the published best and the least-squares fit in both set-ups.
+    The model chosen among all on validation (a network, 0.1241 m raw) does not, and the physics misses the 10 %
+    margin in raw position (target 0.1022 m): these are reported in the study, not asserted."""
+    r, _ = real_study
+    c = r["versus_references"]["best_physics_on_validation"]
+    assert c["name"] == "identified physics, attitude loop"
+    assert all(ok for qs in c["beats"].values() for ok in qs.values()), c
 
 
 @pytest.mark.slow
