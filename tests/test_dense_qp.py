@@ -7,7 +7,8 @@ import scipy.sparse as sp
 
 pytest.importorskip("daqp")
 
-from mpc.controllers.dense_qp import LTVQP, condense, condense_matrices, kkt_residuals, solve_ltv_qp  # noqa: E402
+from mpc.controllers.dense_qp import (LTVQP, condense, condense_matrices, kkt_residuals, prepare_ltv_qp,  # noqa: E402
+                                     solve_ltv_qp, solve_prepared)
 from mpc.errors import ConfigurationError  # noqa: E402
 
 #: Tolerances: KKT residuals of the dense solution (it is exact up to rounding); agreement with OSQP solved to
@@ -18,7 +19,10 @@ TOL = {"kkt": 1e-8, "primal": 1e-6, "dual": 1e-5, "controller_inputs": 1e-5,
        # may pass their bounds by rounding only (measured 4e-16); a constraint within `active` of its bound
        # counts as active; the dense plan against OSQP's polished one of the same controller QP, in inputs
        # (N, N m) and states (measured 1.1e-9 and 6.4e-8).
-       "bound": 1e-9, "active": 1e-7, "plan_inputs": 1e-6, "plan_states": 1e-6}
+       "bound": 1e-9, "active": 1e-7, "plan_inputs": 1e-6, "plan_states": 1e-6,
+       # the QP prepared for every initial state, then given one, against the QP condensed with it (rounding: the
+       # initial state enters through Phi instead of the forward recursion)
+       "prepared": 1e-10}
 
 
 def random_qp(seed: int, N: int = 30, nx: int = 12, nu: int = 4, tight: bool = True) -> LTVQP:
@@ -85,6 +89,22 @@ def test_the_dense_solution_is_the_sparse_qps_and_meets_its_kkt_conditions(seed,
         np.testing.assert_allclose(mine, its, atol=TOL["dual"])
     if tight:                                   # the test means something: constraints bind
         assert np.sum(np.abs(sol.y_u) > 1e-6) + np.sum(np.abs(sol.y_s) > 1e-6) >= 5
+
+
+@pytest.mark.parametrize("seed,tight", [(0, True), (5, True), (2, False)])
+def test_a_qp_prepared_for_any_initial_state_solves_as_the_one_condensed_with_it(seed, tight):
+    """The real-time iteration's split: condensed before the state is known, then given it. The same inputs and
+    states as the QP condensed with the state, for two states (the preparation does not depend on either)."""
+    qp = random_qp(seed, tight=tight)
+    prep = prepare_ltv_qp(qp)
+    for x0 in (qp.x0, qp.x0 + 0.03 * np.random.default_rng(seed).standard_normal(qp.x0.shape)):
+        whole = solve_ltv_qp(LTVQP(**{**qp.__dict__, "x0": x0}))
+        fb = solve_prepared(prep, x0)
+        assert whole.solved and fb.solved
+        np.testing.assert_allclose(fb.u, whole.u, rtol=0, atol=TOL["prepared"])
+        np.testing.assert_allclose(prep.states(x0, fb.u.ravel()), whole.x, rtol=0, atol=TOL["prepared"])
+        if tight:
+            assert np.sum(np.abs(fb.lam) > 1e-6) >= 5      # constraints bind: the bounds' shift by x0 matters
 
 
 def test_condensed_states_follow_the_dynamics():

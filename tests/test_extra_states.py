@@ -275,6 +275,9 @@ def test_the_history_model_passes_and_its_register_holds_the_commands_sent(histo
         def applied(self, u):
             ctrl.applied(u)
 
+        def prepare_next(self, until=None):
+            ctrl.prepare_next(until)
+
     clock = IdealClock(plant.hover_input, sc.delay_steps)
     tr = fly_loop(plant, StateSensor(), Recording(), clock, x_ref, K)
     assert tr.crash_step is None and not np.any(tr.solver_failed)

@@ -61,7 +61,8 @@ def test_expected_times_are_the_recent_median_and_the_longest_line_search():
 
 @pytest.mark.parametrize("recent", [RECENT_PERIODS, 3])
 def test_slow_periods_age_out_and_the_work_they_held_back_runs_again(recent):
-    """One slow period of each kind of optional work (a line search, a full refresh, a cold start), and a stretch
+    """One slow period of each kind of optional work (a line search, a full refresh, a cold start, the real-time
+    iteration's preparation), and a stretch
     of ``recent`` slow first derivatives, hold that work back only while they are among the last ``recent``
     periods: once as many normal periods followed, every rule lets it run again. A history that never dropped old
     periods would keep a line search off for the rest of the flight after one slow one."""
@@ -81,6 +82,7 @@ def test_slow_periods_age_out_and_the_work_they_held_back_runs_again(recent):
         c.begin(fake(), deadline=fake() + 4e-3)
         out.update({k: c.fits(c.expect[k]) for k in ("full_derivatives", "cold_start")})
         out["derivatives"] = not c.no_time_to_start()
+        out["preparation"] = c.ends_in_time(c.expect["preparation"])
         return out
 
     kinds = (*OPTIONAL, "derivatives")
@@ -133,12 +135,19 @@ def test_optional_work_is_expected_to_take_its_longest_recent_time_and_the_rest_
     for k in RECORDED:
         want = 7e-3 if k in OPTIONAL else 2e-3
         assert c.expect[k] == pytest.approx(want, abs=TOL["seconds"]), k
-    assert set(OPTIONAL) == {"line_search", "full_derivatives", "cold_start"}
+    assert set(OPTIONAL) == {"line_search", "full_derivatives", "cold_start", "preparation"}
     # A full refresh is judged by its longest recent time: 7 ms of it, then the assembly and the solve.
     c.begin(fake(), deadline=fake() + 7e-3 + 2e-3 + 2e-3 + 1e-6)
     assert c.fits(c.expect["full_derivatives"])
     c.begin(fake(), deadline=fake() + 7e-3 + 2e-3 + 2e-3 - 1e-6)
     assert not c.fits(c.expect["full_derivatives"])
+    # A preparation by its longest recent time alone: nothing follows it before its deadline.
+    c.begin(fake(), deadline=fake() + 7e-3 + 1e-6)
+    assert c.ends_in_time(c.expect["preparation"])
+    c.begin(fake(), deadline=fake() + 7e-3 - 1e-6)
+    assert not c.ends_in_time(c.expect["preparation"])
+    c.begin(fake())
+    assert c.ends_in_time(1e9)                           # no deadline
 
 
 def test_the_qp_window_is_what_is_left_before_the_deadline_after_the_assembly():

@@ -164,6 +164,9 @@ class DeadlineRecorder:
     def applied(self, u):
         pass
 
+    def prepare_next(self, until=None):
+        pass
+
     def __call__(self, x, t):
         self.starts.append(time.perf_counter())
         return HOVER_U.copy(), ControlInfo(solve_time_s=0.0, status="optimal")

@@ -72,6 +72,11 @@ class Controller(Protocol):
         """After each period: the input (4,) that was in effect during it (a model with extra states carries
         them with it)."""
 
+    def prepare_next(self, until: float | None = None) -> None:
+        """After each call, once its input is out: work for the next period (the real-time iteration's
+        preparation), to end by ``until`` (``time.perf_counter``, s: the next measurement; None: no limit). The
+        closed loop charges it to the period, not to the input's latency. Most controllers have none."""
+
     def set_deadline(self, at: float | None) -> None:
         """In real time, before each call: the time (``time.perf_counter``, s) by which the input must be out,
         or None for none. A controller that cannot keep a deadline ignores it."""
@@ -99,6 +104,9 @@ class ControllerBase:
     def applied(self, u) -> None:
         """The input (4,) in effect during the period just flown (to carry the model's extra states)."""
         self.tracker.applied(u)
+
+    def prepare_next(self, until: float | None = None) -> None:
+        """Nothing: this controller does all its work in its call."""
 
     def set_deadline(self, at: float | None) -> None:
         """Ignored: this controller's call has no budget to keep."""

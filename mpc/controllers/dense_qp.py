@@ -198,6 +198,117 @@ def condense(qp: LTVQP, matrices: Condensed | None = None):
     return matrices.H, f, matrices.C, lo, hi, matrices.G, w
 
 
+@dataclass(frozen=True)
+class PreparedQP:
+    """An :class:`LTVQP` condensed for every initial state at once: what the real-time iteration's preparation
+    builds before the state is measured, so that its feedback only embeds the state and solves.
+
+    The states are ``x_k = G_k u + Phi_k x_0 + v_k``; the dense QP's linear cost is ``f0 + F x_0`` and its bounds
+    ``lo0 - E x_0 <= C u <= hi0 - E x_0``. ``qp`` is the QP it was made from (its ``x0`` unused).
+
+    Attributes
+    ----------
+    H : ndarray, shape (n, n)
+    C : ndarray, shape (r, n)
+    f0 : ndarray, shape (n,)
+    F : ndarray, shape (n, nx)
+    lo0, hi0 : ndarray, shape (r,)
+    E : ndarray, shape (r, nx)
+    G : ndarray, shape (N + 1, nx, n)
+    Phi : ndarray, shape (N + 1, nx, nx)
+    v : ndarray, shape (N + 1, nx)
+    """
+
+    qp: LTVQP
+    H: np.ndarray
+    C: np.ndarray
+    f0: np.ndarray
+    F: np.ndarray
+    lo0: np.ndarray
+    hi0: np.ndarray
+    E: np.ndarray
+    G: np.ndarray
+    Phi: np.ndarray
+    v: np.ndarray
+
+    def states(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The states (N + 1, nx) of the inputs ``u`` (N nu,) from ``x0`` (nx,)."""
+        N1, nx, n = self.G.shape
+        return (self.G.reshape(-1, n) @ u).reshape(N1, nx) + self.Phi @ x0 + self.v
+
+
+def prepare_ltv_qp(qp: LTVQP, matrices: Condensed | None = None) -> PreparedQP:
+    """Condense ``qp`` for any initial state (its ``x0`` is not used): a :class:`PreparedQP`.
+
+    ``matrices``: the :class:`Condensed` part of a QP with the same matrices, reused as it is.
+    """
+    if matrices is None:
+        matrices = condense_matrices(qp)
+    N, nx, nu = qp.B.shape
+    n = N * nu
+    Phi = np.empty((N + 1, nx, nx))
+    Phi[0] = np.eye(nx)
+    v = np.empty((N + 1, nx))
+    v[0] = 0.0
+    for k in range(N):
+        np.matmul(qp.A[k], Phi[k], out=Phi[k + 1])
+        v[k + 1] = qp.A[k] @ v[k] + qp.c[k]
+    WG = matrices.WG.reshape(-1, n).T                   # (n, (N + 1) nx)
+    f0 = WG @ (v - qp.ref).ravel() - (qp.u_ref @ qp.R).ravel()
+    F = WG @ Phi.reshape(-1, nx)
+    m, p = qp.L.shape[0], qp.S.shape[0]
+    Sv = (v[1:] @ qp.S.T).ravel()
+    E = np.zeros((N * (m + p), nx))
+    E[N * m:] = np.matmul(qp.S, Phi[1:]).reshape(N * p, nx)
+    lo0 = np.concatenate([np.tile(qp.lo_u, N), np.tile(qp.lo_s, N) - Sv])
+    hi0 = np.concatenate([np.tile(qp.hi_u, N), np.tile(qp.hi_s, N) - Sv])
+    return PreparedQP(qp=qp, H=matrices.H, C=matrices.C, f0=f0, F=F, lo0=lo0, hi0=hi0, E=E, G=matrices.G,
+                      Phi=Phi, v=v)
+
+
+@dataclass(frozen=True)
+class Feedback:
+    """What :func:`solve_prepared` found: the inputs ``u`` (N, nu), DAQP's ``flag`` and ``iterations``, the constraint
+    multipliers ``lam`` (r,) and ``solve_s``, s."""
+
+    u: np.ndarray
+    flag: int
+    iterations: int
+    lam: np.ndarray
+    solve_s: float
+
+    @property
+    def solved(self) -> bool:
+        """DAQP found a solution and it is finite."""
+        return self.flag in SOLVED_FLAGS and bool(np.all(np.isfinite(self.u)))
+
+
+def solve_prepared(prep: PreparedQP, x0: np.ndarray, time_limit_s: float | None = None) -> Feedback:
+    """The real-time iteration's feedback: the prepared QP with the initial state ``x0`` (nx,), solved by DAQP.
+
+    Its inputs equal :func:`solve_ltv_qp`'s for the same QP with that ``x0``. A failure of DAQP is data
+    (``flag``, ``solved``).
+    """
+    from ctypes import c_int
+
+    import daqp
+
+    t0 = time.perf_counter()
+    x0 = np.asarray(x0, dtype=float)
+    f = prep.f0 + prep.F @ x0
+    ex = prep.E @ x0
+    opts = {} if time_limit_s is None else {"time_limit": float(time_limit_s)}
+    try:
+        u, _, flag, info = daqp.solve(prep.H, f, prep.C, prep.hi0 - ex, prep.lo0 - ex,
+                                      np.zeros(len(ex), dtype=c_int), **opts)
+    except Exception as e:  # noqa: BLE001 - DAQP's own errors, wrapped with what was asked of it
+        raise SolverError(f"DAQP failed on a QP of {prep.H.shape[0]} inputs and {prep.C.shape[0]} rows: {e}") from e
+    nu = prep.qp.B.shape[2]
+    lam = np.asarray(info.get("lam", np.full(len(ex), np.nan)), dtype=float)
+    return Feedback(u=np.asarray(u, dtype=float).reshape(-1, nu), flag=int(flag),
+                    iterations=int(info.get("iterations", 0)), lam=lam, solve_s=time.perf_counter() - t0)
+
+
 def daqp_installed() -> bool:
     """DAQP (the optional extra ``dense``) can be imported."""
     import importlib.util

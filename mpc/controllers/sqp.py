@@ -46,6 +46,17 @@ good first guess, and the periods after it go on converging). With a budget, eac
 left in it as OSQP's own time limit, so that one hard QP cannot overrun it. Cold starts are counted
 (``counts["cold_starts"]``) and flagged in the info record.
 
+The real-time iteration (``scheme="rti"``) splits a period in two, as
+acados does. After the input is out, the *preparation*
+(:meth:`SQPMPC.prepare_next`, called by the closed loop) shifts the plan by
+one period, linearizes the model along it and builds the next QP for every
+initial state (condensed with DAQP, or loaded into OSQP); when the next
+state arrives, the *feedback* embeds it, solves that QP and sends its first
+input, full step. The measurement waits for one QP (about 0.1-0.3 ms
+condensed), not for the derivatives. The QP is prepared with the
+disturbance estimate and target of its own period: the feedback that uses
+it is one estimate later.
+
 The time budget is a wall-clock rule, so a run that uses it is not
 reproducible bit for bit; ``time_budget_s=None`` iterates to ``step_tol``
 or ``max_sqp_iter`` only (the deterministic ``ideal`` timing of the
@@ -58,17 +69,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.params import NU
+from sim.params import DT, NU
 
 from .base import shift_stages
 from .controller import ControlInfo, Timer, check_state
 from ..errors import ConfigurationError
 from .ltv import DEADLINE_STATUS, NON_FINITE_STATUS, SPLIT, LTVMPC, LTVSettings, csc_in_entry_order
+from .timing import MIN_TIME_LIMIT_S, NO_TIME_LIMIT
 
 #: Central-difference step of the exact Hessian, in acceptable deviations (of the default weights).
 EXACT_FD_STEP = 1e-4
 #: Smallest eigenvalue of a stage's exact Hessian block, in acceptable deviations (where the cost's is 1).
 EIGEN_FLOOR = 1e-2
+
+#: The SQP's iteration schemes (:attr:`SQPSettings.scheme`).
+SCHEMES = ("sqp", "rti")
 
 #: Armijo constant and backtracking of the line search.
 ARMIJO = 1e-4
@@ -129,6 +144,15 @@ class SQPSettings(LTVSettings):
     # ensemble members, figure8-fast / figure8-slow / hover): median RMSE within 0.7 % of "full" for every shipped
     # model, the oracle's within 0.01 mm; per period about 0.65-0.8 times the time.
     jacobian_refresh: str = "partial"
+    # The iteration scheme: "sqp" (each period iterates from the measured state, as above) or "rti", the real-time
+    # iteration. There, once a period's input is out, its *preparation* shifts the plan, linearizes the model along
+    # it (by jacobian_refresh's rules) and builds the next period's QP for a state still unknown (with qp="daqp",
+    # condensed for every initial state); when the next state arrives, the *feedback* embeds it, solves that one
+    # QP and sends its first input, full step: the input waits for one QP, not for the derivatives. A preparation
+    # that, at the longest recent one's time, would end past the next measurement is not started, and the next
+    # feedback solves the last QP prepared (counted in counts["preparations_reused"], and said in its record). A
+    # period without a plan (the first without a pre-flight plan, after an LQR fallback) is an SQP period.
+    scheme: str = "sqp"
     refresh_tol: float = 0.05               # acceptable deviations (max over the state and input)
     max_refresh_stages: int = 8             # stages refreshed per iteration at most
     full_refresh_above: int = 15            # more stages than this moved (the plan changed): all are refreshed
@@ -150,12 +174,38 @@ class SQPSettings(LTVSettings):
             raise ConfigurationError(f"tail must be 'model' or 'hold'; found {self.tail!r}")
         if self.jacobian_refresh not in ("full", "partial"):
             raise ConfigurationError(f"jacobian_refresh must be 'full' or 'partial'; found {self.jacobian_refresh!r}")
+        if self.scheme not in SCHEMES:
+            raise ConfigurationError(f"scheme must be one of {', '.join(SCHEMES)}; found {self.scheme!r}")
+        if self.scheme == "rti" and self.hessian != "gauss-newton":
+            raise ConfigurationError("scheme 'rti' needs hessian 'gauss-newton' (its one QP has the cost's Hessian); "
+                                     f"found {self.hessian!r}")
         if self.cold_start not in ("rollout", "hold"):
             raise ConfigurationError(f"cold_start must be 'rollout' or 'hold'; found {self.cold_start!r}")
         for name in ("step_tol", "defect_tol", "refresh_tol"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ConfigurationError(f"{name} must be >= 0; found {v}")
+
+
+@dataclass
+class Preparation:
+    """The real-time iteration's QP for one period, built before its state is measured (:attr:`SQPSettings.scheme`).
+
+    ``t``: the period it was prepared for, s; ``X`` (N + 1, nx), ``U`` (N, 4): the plan it linearizes about;
+    ``dense``: the condensed QP (:class:`mpc.controllers.dense_qp.PreparedQP`) or None (OSQP holds the QP: ``lo``,
+    ``hi``, its bounds, whose first ``nx`` rows the feedback sets to the state); ``seconds``: its time;
+    ``refreshed``: the stages whose Jacobians it evaluated; ``full``: it evaluated all of them.
+    """
+
+    t: float
+    X: np.ndarray
+    U: np.ndarray
+    dense: object
+    lo: np.ndarray | None
+    hi: np.ndarray | None
+    seconds: float
+    refreshed: int
+    full: bool
 
 
 def _same(a, b) -> bool:
@@ -207,6 +257,11 @@ class SQPMPC(LTVMPC):
         self._refreshed = 0                       # stages whose Jacobians this period evaluated
         self._full_refreshes = 0                  # iterations of this period that evaluated all of them
         self._cold_period = False                 # this period is a cold start (or the pre-flight plan)
+        self.counts["preparations"] = 0           # the real-time iteration's QPs prepared
+        self.counts["preparations_skipped"] = 0   # preparations not started: they would end past the measurement
+        self.counts["preparations_reused"] = 0    # feedbacks that solved a QP prepared for an earlier period
+        self._prepared: Preparation | None = None  # the QP the next feedback solves (scheme "rti")
+        self._t_call: float | None = None         # the time of the last call, s
 
     _preflight = False          # planning before take-off (prepare): a cold start without a budget
     _plan_is_current = False    # the plan was made for the next call's time (a pre-flight plan): no shift
@@ -237,6 +292,9 @@ class SQPMPC(LTVMPC):
             self._preflight = False
         self.preflight = ControlInfo(solve_time_s=tm.elapsed, **fields)
         self._plan_is_current = self._plan_x is not None
+        if self.s.scheme == "rti" and self._plan_x is not None:
+            # the first period's QP, along the pre-flight plan: the first input waits for its feedback only
+            self._prepare_qp(0.0, self.clock.begin(self.clock.now()), shift=False)
 
     def _shifts_plan(self) -> bool:
         """This period's first iterate is the previous plan shifted by one period (not a cold start, and not a plan
@@ -257,13 +315,133 @@ class SQPMPC(LTVMPC):
             return X, U
         return self.rollout(x, ref, u_ref)
 
+    def __call__(self, x, t: float):
+        """Input (4,) and :class:`ControlInfo` for the measured state ``x`` at time ``t`` (s)."""
+        self._t_call = float(t)
+        return super().__call__(x, t)
+
     def _period(self, x, ref, u_ref, tm, guess=None):
-        """The SQP iterations of one period; ``(u, ControlInfo fields)``.
+        """One period: the real-time iteration's feedback when a QP is prepared, else the SQP iterations;
+        ``(u, ControlInfo fields)``.
 
         ``x``: the full state (nx,); ``tm``: the call's :class:`Timer`. ``guess``: a first iterate
         ``(X (N + 1, nx), U (N, 4))`` that replaces the shifted plan (and the cold start), also as OSQP's primal
         start.
         """
+        if guess is None and self._prepared is not None and self._plan_x is not None:
+            return self._feedback(x, ref, u_ref, tm)
+        self._prepared = None       # this period's plan replaces the one the QP was prepared along
+        return self._iterate(x, ref, u_ref, tm, guess)
+
+    # ----------------------------------------------------------- the real-time iteration
+    def _feedback(self, x, ref, u_ref, tm):
+        """The real-time iteration's feedback: the prepared QP with the state ``x`` (nx,), solved; the plan it gives,
+        full step. ``(u, ControlInfo fields)``."""
+        prep = self._prepared      # kept: a feedback whose next preparation is not made solves it again
+        t = prep.t if self._t_call is None else self._t_call
+        age = int(round((t - prep.t) / DT))     # periods since the one it was prepared for (0: this one)
+        if age:
+            self.counts["preparations_reused"] += 1
+        deadline = self._take_deadline()
+        clock = self.clock.begin(tm.start, None, deadline)
+        split = dict.fromkeys(SPLIT, 0.0)
+        limit = None if deadline is None else max(deadline - clock.now(), MIN_TIME_LIMIT_S)
+        X = U = None
+        t0 = clock.now()
+        if prep.dense is not None:
+            from .dense_qp import solve_prepared
+
+            fb = solve_prepared(prep.dense, x, limit)
+            ok, optimal, iterations = fb.solved, fb.solved, fb.iterations
+            status = "solved" if ok else f"DAQP exit flag {fb.flag}"
+            if ok:
+                U = fb.u
+                X = prep.dense.states(x, U.ravel())
+        else:
+            lo, hi = prep.lo, prep.hi
+            lo[:self.nx] = hi[:self.nx] = x
+            self._solver.update(l=lo, u=hi)
+            self.update_settings(time_limit=NO_TIME_LIMIT if limit is None else limit)
+            res = self._solver.solve(raise_error=False)
+            ok, iterations, status = self._solved(res), int(res.info.iter), res.info.status
+            optimal = ok and res.info.status_val == self._status.OSQP_SOLVED
+            if ok:
+                X, U = (a.copy() for a in self._unpack(res.x))
+        split["osqp"] += clock.now() - t0
+        if not ok and clock.missed():
+            status = DEADLINE_STATUS
+        u, fields = self._finish(ok, X, U, status, optimal, x, ref, u_ref)
+        fields["iterations"] = int(ok)
+        fields["extra"].update(qp_iterations=iterations, converged=False, cold_start=False, line_search_failures=0,
+                               late_full_steps=0, time_split_s=split, merit=[], step_lengths=[1.0] if ok else [],
+                               refreshed_stages=prep.refreshed, full_refreshes=int(prep.full),
+                               rti={"preparation_s": prep.seconds, "age": age, "reused": age > 0})
+        return u, fields
+
+    def prepare_next(self, until: float | None = None) -> None:
+        """After a call, once its input is out: with ``scheme="rti"``, prepare the next period's QP.
+
+        ``until``: the time (the controller's clock, s) of the next measurement, or None for no limit. A
+        preparation that, at the longest recent preparation's time, would end past it is not started (counted in
+        ``counts["preparations_skipped"]``): the next feedback solves the last QP prepared. Its derivatives follow
+        :attr:`SQPSettings.jacobian_refresh` under the same limit (a full refresh that would not fit is cut to a
+        partial one).
+        """
+        if self.s.scheme != "rti" or self._plan_x is None or self._t_call is None:
+            return
+        clock = self.clock.begin(self.clock.now(), None, until)
+        if not clock.ends_in_time(clock.expect["preparation"]):
+            self.counts["preparations_skipped"] += 1
+            return
+        self._prepare_qp(self._t_call + DT, clock, shift=True)
+
+    def _prepare_qp(self, t: float, clock, shift: bool) -> None:
+        """Build the QP of the period at ``t`` (s) along the plan (``shift``: moved on by one period, as a plan made
+        for the period before), for the next feedback (:class:`Preparation`)."""
+        N = self.N
+        t0 = clock.now()
+        ref, u_ref = self._horizon_reference(t)
+        if shift:
+            X, U = self._nominal(self._plan_x[1], u_ref)   # the plan moved on; its next state where it starts
+            if self.s.tail == "model":
+                U[-1] = self._tail_input(X[-2], ref[-2], u_ref[-1])
+            self._shift_kept()
+        else:
+            X, U = self._plan_x.copy(), self._plan_u.copy()
+        self._refreshed = self._full_refreshes = 0
+        self._cold_period = False
+        split = dict.fromkeys(SPLIT, 0.0)
+        fx, A, B = self._derivatives(X, U, clock, split, first=True)
+        if not self._finite(fx, A, B):
+            self._drop_kept()       # the next call is an SQP period, whose first derivatives evaluate every stage
+            self._prepared = None
+            return
+        if shift and self.s.tail == "model":
+            X[-1] = fx[-1]
+        self._keep_steps(X, U, fx)
+        c = fx - (A @ X[:N, :, None])[:, :, 0] - (B @ U[:, :, None])[:, :, 0]
+        dense = lo = hi = None
+        if self.s.qp == "daqp":
+            from .dense_qp import LTVQP, prepare_ltv_qp
+
+            L, lo_u, hi_u, S, lo_s, hi_s = self._dense_constraints
+            dense = prepare_ltv_qp(LTVQP(A=A, B=B, c=c, x0=X[0], Q=self.Q, P=self.P, R=self.R, ref=ref,
+                                         u_ref=u_ref, L=L, lo_u=lo_u, hi_u=hi_u, S=S, lo_s=lo_s, hi_s=hi_s))
+        else:
+            self._condensed = None
+            lo, hi = self._l0.copy(), self._u0.copy()
+            lo[:self.nx] = hi[:self.nx] = X[0]
+            lo[self.nx:self._n_eq] = hi[self.nx:self._n_eq] = -c.ravel()
+            self._solver.update(q=self._linear_cost(ref, u_ref), l=lo, u=hi, Ax=self._constraint_values(A, B))
+            self._solver.warm_start(x=np.concatenate([X.ravel(), U.ravel()]))
+        seconds = clock.now() - t0
+        clock.record("preparation", seconds)
+        self.counts["preparations"] += 1
+        self._prepared = Preparation(t=t, X=X, U=U, dense=dense, lo=lo, hi=hi, seconds=seconds,
+                                     refreshed=self._refreshed, full=self._full_refreshes > 0)
+
+    def _iterate(self, x, ref, u_ref, tm, guess=None):
+        """The SQP iterations of one period; ``(u, ControlInfo fields)`` (see :meth:`_period`)."""
         N, s = self.N, self.s
         max_it, budget = s.max_sqp_iter, s.time_budget_s
         cold = shifted = deferred = quick = False

@@ -37,13 +37,14 @@ MIN_TIME_LIMIT_S = 1e-4
 #: periods (one slow period does not make the next ones give up); that of work a period may leave out (a line
 #: search, a full refresh of the Jacobians), the longest of them.
 RECENT_PERIODS = 20
-#: Work a period may leave out (a cold start in flight: the LQR flies meanwhile): its expected time is the longest
-#: recent one.
-OPTIONAL = ("line_search", "full_derivatives", "cold_start")
+#: Work a period may leave out (a cold start in flight: the LQR flies meanwhile; the real-time iteration's
+#: preparation: the last QP prepared is solved instead): its expected time is the longest recent one.
+OPTIONAL = ("line_search", "full_derivatives", "cold_start", "preparation")
 #: What the clock keeps recent times of: a period's first derivatives, QP assembly and QP solve, line searches, the
 #: derivatives of every stage (a full refresh of the SQP's partial path), and a cold start's time to its first plan
-#: (from the period's start: the rollout, the derivatives and the first QP).
-RECORDED = ("derivatives", "assembly", "qp", "line_search", "full_derivatives", "cold_start")
+#: (from the period's start: the rollout, the derivatives and the first QP), and the real-time iteration's
+#: preparations.
+RECORDED = ("derivatives", "assembly", "qp", "line_search", "full_derivatives", "cold_start", "preparation")
 
 
 def _median(values) -> float:
@@ -107,6 +108,11 @@ class PeriodClock:
         at least :data:`MIN_QP_TIME_S`), ends before the deadline (or there is none)."""
         return self.deadline is None or \
             self.now() + seconds + self.expect["assembly"] + max(self.expect["qp"], MIN_QP_TIME_S) <= self.deadline
+
+    def ends_in_time(self, seconds: float) -> bool:
+        """Work of ``seconds`` started now, and nothing after it, ends before the deadline (or there is none): asked
+        before the real-time iteration's preparation, whose deadline is the next measurement."""
+        return self.deadline is None or self.now() + seconds <= self.deadline
 
     def qp_window(self, first: bool) -> bool:
         """After the derivatives: set what OSQP may take before the deadline once its problem is assembled; False

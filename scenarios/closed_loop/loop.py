@@ -9,8 +9,9 @@ Each part is a small object with one job, and each can be replaced::
     clock      IdealClock | RealtimeClock when each computed input takes effect
 
 Per control period ``k`` (``t = k dt``): if the controller is idle, the
-sensor reads the plant, the controller is called and timed, and the clock
-is told when its input takes effect; then the clock flies the plant through
+sensor reads the plant, the controller is called and timed, it may then
+prepare the next period (``prepare_next``, timed too), and the clock is
+told when its input takes effect and how long the controller was busy; then the clock flies the plant through
 the period with whatever input is in effect, and the controller is told
 the command that entered the actuators during the period (its time average,
 when it changed mid-way; before any input delay, which is the plant's): a
@@ -80,8 +81,9 @@ class Clock(Protocol):
     def idle(self, k: int) -> bool:
         """True when the controller may be called at the start of period ``k``."""
 
-    def command(self, k: int, u: np.ndarray, latency_s: float) -> None:
-        """The input ``u`` (4,) computed at period ``k`` in ``latency_s`` seconds of wall time."""
+    def command(self, k: int, u: np.ndarray, latency_s: float, load_s: float | None = None) -> None:
+        """The input ``u`` (4,) computed at period ``k``, out after ``latency_s`` seconds of wall time; the
+        controller busy for ``load_s`` s in all (its work for the next period included; None: ``latency_s``)."""
 
     def fly_period(self, plant, k: int) -> np.ndarray:
         """Advance ``plant`` (:class:`sim.plants.plant.Plant`) through period ``k``; the input in effect at its
@@ -207,7 +209,7 @@ class IdealClock:
     def idle(self, k: int) -> bool:
         return True
 
-    def command(self, k: int, u: np.ndarray, latency_s: float) -> None:
+    def command(self, k: int, u: np.ndarray, latency_s: float, load_s: float | None = None) -> None:
         self._pending.append(u)
         self.u = self._pending.pop(0)
         self.sent = u
@@ -219,15 +221,22 @@ class IdealClock:
         return self.u
 
 
+def _whole_ms(seconds: float) -> int:
+    """``seconds`` of wall time rounded up to the plant's resolution (whole ms, at least one), ms."""
+    return max(SUBSTEP_MS, int(np.ceil(seconds * 1e3 / SUBSTEP_MS - 1e-9)) * SUBSTEP_MS)
+
+
 class RealtimeClock:
     """When each computed input takes effect under real-time timing.
 
     The controller is called at a period boundary ``k dt`` only when it is
     idle. A call that took ``L`` seconds of wall time returns ``ceil(L / 1 ms)``
-    ms later; its input takes effect from then on (plus the delay periods)
-    and the controller is idle again from then. Until then the previous input
-    stays applied (before the first one, ``hover``). A period whose input
-    changes mid-way is flown in pieces of whole milliseconds.
+    ms later; its input takes effect from then on (plus the delay periods).
+    The controller is idle again once the work that followed (the real-time
+    iteration's preparation of the next period) is done too, its whole load
+    rounded up the same way. Until then the previous input stays applied
+    (before the first one, ``hover``). A period whose input changes mid-way is
+    flown in pieces of whole milliseconds.
     """
 
     realtime = True
@@ -247,11 +256,11 @@ class RealtimeClock:
     def idle(self, k: int) -> bool:
         return self.busy_until_ms <= PERIOD_MS * k
 
-    def command(self, k: int, u: np.ndarray, latency_s: float) -> None:
-        lat_ms = max(SUBSTEP_MS, int(np.ceil(latency_s * 1e3 / SUBSTEP_MS - 1e-9)) * SUBSTEP_MS)
-        self.busy_until_ms = PERIOD_MS * k + lat_ms
-        self.events.append((self.busy_until_ms + self.delay_ms, np.array(u, dtype=float)))
-        self._sent_events.append((self.busy_until_ms, np.array(u, dtype=float)))
+    def command(self, k: int, u: np.ndarray, latency_s: float, load_s: float | None = None) -> None:
+        out_ms = PERIOD_MS * k + _whole_ms(latency_s)
+        self.busy_until_ms = max(out_ms, PERIOD_MS * k + _whole_ms(latency_s if load_s is None else load_s))
+        self.events.append((out_ms + self.delay_ms, np.array(u, dtype=float)))
+        self._sent_events.append((out_ms, np.array(u, dtype=float)))
 
     def fly_period(self, plant, k: int) -> np.ndarray:
         """Advance the plant through period ``k`` in pieces; the input in effect at its end."""
@@ -285,8 +294,11 @@ class Trace:
     x_measured: np.ndarray    # (K, 12) what the controller saw (NaN where it was not called)
     u: np.ndarray             # (K, 4) input in effect at the end of each period
     u_command: np.ndarray     # (K, 4) the controller's output (NaN where it was not called)
-    solve_s: np.ndarray       # (K,) the controller's own solve time, s
-    latency_s: np.ndarray     # (K,) wall time of the call, s (NaN where not called)
+    solve_s: np.ndarray       # (K,) the controller's own solve time (and its preparation of the next period), s
+    latency_s: np.ndarray     # (K,) wall time of the call, s: from the measurement to the input out (NaN where not
+    #                           called)
+    load_s: np.ndarray        # (K,) wall time of the period's work: the call and what followed it, s (NaN where not
+    #                           called)
     called: np.ndarray        # (K,) bool: the controller was called this period
     iterations: np.ndarray    # (K,)
     status: np.ndarray        # (K,) the controller's status string
@@ -311,7 +323,7 @@ class Trace:
     def empty(cls, K: int) -> "Trace":
         return cls(x=np.full((K + 1, NX), np.nan), x_measured=np.full((K, NX), np.nan),
                    u=np.full((K, NU), np.nan), u_command=np.full((K, NU), np.nan), solve_s=np.zeros(K),
-                   latency_s=np.full(K, np.nan), called=np.zeros(K, dtype=bool),
+                   latency_s=np.full(K, np.nan), load_s=np.full(K, np.nan), called=np.zeros(K, dtype=bool),
                    iterations=np.zeros(K, dtype=np.int64), status=np.full(K, "", dtype="<U40"),
                    solver_failed=np.zeros(K, dtype=bool), lqr_fallback=np.zeros(K, dtype=bool),
                    rotor_speed=np.full((K + 1, 4), np.nan))
@@ -336,7 +348,7 @@ def nees(x_true: np.ndarray, x_est: np.ndarray, P: np.ndarray) -> float:
 
 
 def fly_loop(plant: Plant, sensor: Sensor, controller: Controller, clock: Clock, x_ref: np.ndarray, steps: int,
-             progress=None, estimator: StateEstimator | None = None) -> Trace:
+             progress=None, estimator: StateEstimator | None = None, wall=time.perf_counter) -> Trace:
     """Fly ``steps`` control periods from the plant's current state; the :class:`Trace`.
 
     ``x_ref`` (steps + 1, 12): the reference at each period boundary (the
@@ -345,6 +357,7 @@ def fly_loop(plant: Plant, sensor: Sensor, controller: Controller, clock: Clock,
     (``sensor`` is then unused). The loop ends early at a crash, and when the
     estimator loses the state (:class:`mpc.errors.EstimatorError`: the run is
     recorded as crashed at that period, its reason ``"estimator failed: ..."``).
+    ``wall``: the wall clock the calls are timed on, s (``time.perf_counter``; a test passes a fake one).
     """
     from mpc.controllers.controller import collector_paused
     from mpc.errors import EstimatorError
@@ -366,7 +379,7 @@ def fly_loop(plant: Plant, sensor: Sensor, controller: Controller, clock: Clock,
             # In real time the garbage collector waits until the call has returned: a collection triggered
             # by the plant's allocations is not the controller's time.
             with collector_paused(clock.realtime):
-                c0 = time.perf_counter()
+                c0 = wall()
                 if clock.realtime:      # a controller that can keep a deadline (the MPCs on OSQP) keeps this one
                     controller.set_deadline(c0 + DT - DEADLINE_MARGIN_S)
                 if estimator is not None:
@@ -377,9 +390,13 @@ def fly_loop(plant: Plant, sensor: Sensor, controller: Controller, clock: Clock,
                         break
                     xm = est.x
                     controller.set_disturbance(est.disturbance, est.x)
-                c1 = time.perf_counter()
+                c1 = wall()
                 u_cmd, info = controller(xm, t)
-                tr.latency_s[k] = time.perf_counter() - c0
+                tr.latency_s[k] = wall() - c0
+                # Once the input is out, the controller may prepare the next period (the real-time iteration),
+                # by the next measurement: charged to the period's load, not to the input's latency.
+                controller.prepare_next(c0 + DT - DEADLINE_MARGIN_S if clock.realtime else None)
+                tr.load_s[k] = wall() - c0
             if estimator is not None:
                 tr.estimator_s[k] = c1 - c0
                 tr.x_measured[k] = xm[:NX]
@@ -390,12 +407,12 @@ def fly_loop(plant: Plant, sensor: Sensor, controller: Controller, clock: Clock,
                 tr.nees[k] = nees(plant.x, xm, est.P)
             tr.called[k] = True
             tr.u_command[k] = u_cmd
-            tr.solve_s[k] = info.solve_time_s
+            tr.solve_s[k] = info.solve_time_s + (tr.load_s[k] - tr.latency_s[k])    # the preparation's time too
             tr.iterations[k] = info.iterations
             tr.status[k] = info.status
             tr.solver_failed[k] = info.fallback is not None
             tr.lqr_fallback[k] = info.fallback == "lqr"
-            clock.command(k, u_cmd, tr.latency_s[k])
+            clock.command(k, u_cmd, tr.latency_s[k], tr.load_s[k])
         tr.u[k] = clock.fly_period(plant, k)
         controller.applied(clock.sent)
         if estimator is not None:

@@ -38,7 +38,7 @@ CRASH_TILT_RAD = np.deg2rad(80.0)
 #: Fields that measure this machine's wall time; everything else in a result is reproducible exactly.
 TIMING_FIELDS = ("solve_ms", "deadline_misses", "deadline_fallbacks", "wall_time_s", "preflight_ms")
 #: Trace arrays that measure wall time.
-TRACE_TIMING_FIELDS = ("solve_s", "latency_s")
+TRACE_TIMING_FIELDS = ("solve_s", "latency_s", "load_s")
 
 
 def crash_reason(x: np.ndarray, x_ref: np.ndarray) -> str | None:

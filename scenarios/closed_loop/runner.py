@@ -362,7 +362,8 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
         scenario_spec=sc.to_dict(), plant_spec=plant.describe(), vehicle_spec=vehicle.to_dict(), **estimated)
     trace = {"t": t_all[:k_end + 1], "x": tr.x[:k_end + 1], "x_ref": X_ref[:k_end + 1],
              "x_measured": tr.x_measured[:k_end], "u": tr.u[:k_end], "u_command": tr.u_command[:k_end],
-             "solve_s": tr.solve_s[:k_end], "latency_s": tr.latency_s[:k_end], "called": tr.called[:k_end],
+             "solve_s": tr.solve_s[:k_end], "latency_s": tr.latency_s[:k_end], "load_s": tr.load_s[:k_end],
+             "called": tr.called[:k_end],
              "iterations": tr.iterations[:k_end], "status": tr.status[:k_end], "solver_failed": failed,
              "lqr_fallback": lqr_fb, "rotor_speed": tr.rotor_speed[:k_end + 1]}
     if tr.x_estimate is not None:

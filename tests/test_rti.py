@@ -1,0 +1,244 @@
+"""The SQP's real-time iteration (scheme="rti"): its feedback against the QP it prepared, its rules on fake clocks,
+and the closed loop's charging of its two phases."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mpc.controllers.controller import ControlInfo
+from mpc.controllers.sqp import SQPMPC, SQPSettings
+from mpc.controllers.timing import PeriodClock
+from mpc.errors import ConfigurationError
+from mpc.prediction.models import AnalyticModel, OnnxModel
+from mpc.references.trajectory import Figure8
+from scenarios.closed_loop.loop import DEADLINE_MARGIN_S, RealtimeClock, StateSensor, fly_loop
+from sim import QuadParams, Simulator
+from sim.params import DT
+from sim.plants.plant import SimPlant
+
+pytest.importorskip("daqp")
+
+ROOT = Path(__file__).resolve().parents[1]
+FIG8_FAST = Figure8(0.75, 3.0, 1.0)
+IDEAL = dict(time_budget_s=None, cold_start_budget_s=None)
+RTI = dict(scheme="rti", qp="daqp", **IDEAL)
+P = QuadParams()
+HOVER_U = np.array([P.m * P.g, 0.0, 0.0, 0.0])
+
+TOL = {
+    # The feedback's input against the same prepared QP solved again with the same state (DAQP: exact active set).
+    "same_qp_inputs": 1e-10,
+    # The first RTI input against one full-step SQP iteration along the same plan (the same QP, condensed once
+    # with the state and once for any state).
+    "first_input": 1e-9,
+    # A closed-loop figure-8 (1.5 s from 6 cm off, ideal timing, RMSE 30.8 mm): RTI on the dense QP against RTI on
+    # OSQP (the same QPs, OSQP to its tolerance; measured 2.3e-8 m), m.
+    "dense_vs_osqp_rmse_m": 1e-6,
+    # and RTI against the converged SQP on the oracle (measured 1e-14 m: on the exact model one full step along
+    # the shifted plan is the converged plan), m.
+    "oracle_rmse_m": 1e-6,
+}
+
+
+class FakeClock:
+    """A wall clock that moves only when told."""
+
+    def __init__(self, t: float = 0.0):
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def start(offset=(0.05, -0.03, 0.0)):
+    x = FIG8_FAST(np.array([0.0]))[0].copy()
+    x[0:3] += offset
+    return x
+
+
+def fly(settings, model=None, seconds=1.5):
+    """The SQP on ``model`` (the oracle) flying the fast figure-8 on the simulator, each call followed by its
+    preparation; ``(controller, RMSE m, infos)``."""
+    c = SQPMPC(AnalyticModel() if model is None else model, FIG8_FAST, SQPSettings(**settings))
+    x = start()
+    c.prepare(seconds, x0=x)
+    sim, err, infos = Simulator(), [], []
+    for k in range(int(round(seconds / DT))):
+        u, info = c(x, k * DT)
+        c.prepare_next()
+        c.applied(u)
+        infos.append(info)
+        x = sim.step(x, u)
+        err.append(np.linalg.norm(x[:3] - FIG8_FAST(np.array([(k + 1) * DT]))[0, :3]))
+    return c, float(np.sqrt(np.mean(np.square(err)))), infos
+
+
+def test_every_period_after_the_preflight_is_one_feedback_on_a_qp_prepared_for_it():
+    c, rmse, infos = fly(RTI, seconds=0.5)
+    assert all(i.is_optimal() and i.iterations == 1 for i in infos)
+    assert all(i.extra["rti"]["age"] == 0 and not i.extra["rti"]["reused"] for i in infos)
+    # the pre-flight plan's QP, then one per period
+    assert c.counts["preparations"] == len(infos) + 1 and c.counts["preparations_skipped"] == 0
+    assert all(i.extra["time_split_s"]["derivatives"] == 0.0 for i in infos)    # the input waits for no derivative
+
+
+def test_the_first_input_is_one_full_step_along_the_preflight_plan():
+    """Period 0's feedback solves the QP along the pre-flight plan with the measured state: what one SQP iteration
+    without a line search makes of the same plan (float64 Jacobians of every stage, so that both QPs are equal)."""
+    exact = dict(jacobians="float64", jacobian_refresh="full", line_search=False)    # the same pre-flight plans
+    x = start()
+    rti = SQPMPC(AnalyticModel(), FIG8_FAST, SQPSettings(**RTI, **exact))
+    one = SQPMPC(AnalyticModel(), FIG8_FAST, SQPSettings(max_sqp_iter=1, qp="daqp", **IDEAL, **exact))
+    for c in (rti, one):
+        c.prepare(1.0, x0=x)
+    np.testing.assert_array_equal(rti._plan_u, one._plan_u)
+    u_rti, _ = rti(x, 0.0)
+    u_one, _ = one(x, 0.0)
+    np.testing.assert_allclose(u_rti, u_one, rtol=0, atol=TOL["first_input"])
+    np.testing.assert_allclose(rti._plan_x, one._plan_x, rtol=0, atol=TOL["first_input"])
+
+
+def test_the_dense_and_the_sparse_rti_fly_alike_and_near_the_converged_sqp():
+    _, dense, _ = fly(RTI)
+    _, sparse, infos = fly(dict(scheme="rti", qp="osqp", **IDEAL))
+    _, sqp, _ = fly(dict(qp="daqp", **IDEAL))
+    assert all(i.is_optimal() for i in infos)
+    assert abs(dense - sparse) <= TOL["dense_vs_osqp_rmse_m"]
+    assert abs(dense - sqp) <= TOL["oracle_rmse_m"], (dense, sqp)
+
+
+def test_a_preparation_that_would_overrun_the_next_measurement_is_not_started_and_its_feedback_says_so():
+    """On a fake clock: the longest recent preparation took 20 ms; with 9 ms to the next measurement the next one is
+    not started, and the next feedback solves the QP prepared for the period before, with its state; it says so.
+    With the time, the preparation is made again."""
+    c = SQPMPC(AnalyticModel(), FIG8_FAST, SQPSettings(**RTI))
+    fake = FakeClock()
+    c.clock = PeriodClock(fake)
+    x = start()
+    c.prepare(1.0, x0=x)
+    _, info = c(x, 0.0)
+    assert info.extra["rti"] == {"preparation_s": 0.0, "age": 0, "reused": False}
+    c.clock.record("preparation", 0.02)
+    kept = c._prepared
+    c.prepare_next(until=0.009)
+    assert c.counts["preparations_skipped"] == 1 and c._prepared is kept
+    x1 = x + 0.001
+    u, info = c(x1, DT)
+    assert info.extra["rti"]["reused"] and info.extra["rti"]["age"] == 1 and info.is_optimal()
+    assert c.counts["preparations_reused"] == 1
+    from mpc.controllers.dense_qp import solve_prepared
+
+    again = solve_prepared(kept.dense, x1)
+    np.testing.assert_allclose(u, c._rotor_feasible(again.u[0]), rtol=0, atol=TOL["same_qp_inputs"])
+    # a wrong rule would skip it too: 20 ms fit before a measurement 21 ms away
+    c.prepare_next(until=0.021)
+    assert c.counts["preparations_skipped"] == 1 and c._prepared is not kept and c._prepared.t == 2 * DT
+    _, info = c(x1, 2 * DT)
+    assert info.extra["rti"]["age"] == 0 and not info.extra["rti"]["reused"]
+
+
+def test_a_preparation_cuts_a_full_refresh_that_would_overrun_to_a_partial_one():
+    c = SQPMPC(AnalyticModel(), FIG8_FAST, SQPSettings(jacobian_refresh="partial", **RTI))
+    fake = FakeClock()
+    c.clock = PeriodClock(fake)
+    x = start()
+    c.prepare(1.0, x0=x)
+    c(x, 0.0)
+    c.clock.record("full_derivatives", 1.0)          # a full refresh took 1 s lately (a very slow machine)
+    c._jac_points = c._jac_points + 10.0              # every stage far from where its Jacobians were taken
+    c.prepare_next(until=0.5)
+    assert c._prepared.refreshed == c.s.max_refresh_stages and not c._prepared.full
+    c._jac_points = c._jac_points + 10.0
+    c.prepare_next(until=None)                       # no limit: every stage
+    assert c._prepared.full and c._prepared.refreshed == c.N
+
+
+def test_a_period_after_an_lqr_fallback_is_an_sqp_period_and_the_iteration_resumes():
+    c = SQPMPC(AnalyticModel(), FIG8_FAST, SQPSettings(**RTI))
+    x = start()
+    c.prepare(1.0, x0=x)
+    c(x, 0.0)
+    c.prepare_next()
+    c._plan_x = c._plan_u = c._z = None               # what the LQR fallback leaves
+    c.prepare_next()                                  # no plan: nothing to prepare
+    _, info = c(x, DT)
+    assert "rti" not in info.extra and info.extra["cold_start"] and info.is_optimal()
+    c.prepare_next()
+    _, info = c(x, 2 * DT)
+    assert info.extra["rti"]["age"] == 0
+
+
+@pytest.mark.parametrize("field,value,match", [("scheme", "acados", "scheme must be one of sqp, rti"),
+                                               ("hessian", "exact", "scheme 'rti' needs hessian 'gauss-newton'")])
+def test_bad_rti_settings_are_refused_by_name(field, value, match):
+    with pytest.raises(ConfigurationError, match=match):
+        SQPSettings(**{"scheme": "rti", field: value})
+
+
+class TwoPhase:
+    """A controller whose call takes ``call_s`` and whose preparation takes ``prep_s`` on the fake wall clock."""
+
+    def __init__(self, wall: FakeClock, call_s: float, prep_s: float):
+        self.wall, self.call_s, self.prep_s = wall, call_s, prep_s
+        self.until, self.calls, self.sent = [], [], []
+
+    def set_deadline(self, at):
+        pass
+
+    def applied(self, u):
+        self.sent.append(np.array(u))
+
+    def prepare_next(self, until=None):
+        self.until.append(until)
+        self.wall.t += self.prep_s
+
+    def __call__(self, x, t):
+        self.calls.append(t)
+        self.wall.t += self.call_s
+        return command(len(self.calls)), ControlInfo(solve_time_s=self.call_s, status="optimal")
+
+
+def command(i):
+    """The ``i``-th call's input (``i`` = 0: hover, before the first): every one differs, so when each takes effect
+    shows."""
+    return HOVER_U + [0.01 * i, 0.0, 0.0, 0.0]
+
+
+def _hover_flight(call_s, prep_s, steps=4):
+    wall = FakeClock(100.0)
+    x = np.zeros(12)
+    x[2] = -1.0
+    plant = SimPlant()
+    plant.reset(x)
+    ctrl = TwoPhase(wall, call_s, prep_s)
+    tr = fly_loop(plant, StateSensor(None, None), ctrl, RealtimeClock(HOVER_U), np.tile(x, (steps + 1, 1)), steps,
+                  wall=wall)
+    return tr, ctrl
+
+
+def test_the_input_goes_out_at_the_feedbacks_end_and_the_preparation_is_charged_to_the_period():
+    """A 0.4 ms call and a 6 ms preparation: each input takes effect 1 ms into its period (the call's time rounded
+    up to the plant's millisecond), not 7 ms; the controller is called every period, and told the next
+    measurement as its preparation's limit."""
+    tr, ctrl = _hover_flight(4e-4, 6e-3)
+    assert tr.called.all() and len(ctrl.calls) == 4
+    np.testing.assert_allclose(tr.latency_s, 4e-4, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(tr.load_s, 6.4e-3, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(tr.solve_s, 6.4e-3, rtol=0, atol=1e-12)
+    starts = 100.0 + 6.4e-3 * np.arange(4)
+    np.testing.assert_allclose(ctrl.until, starts + DT - DEADLINE_MARGIN_S, rtol=0, atol=1e-12)
+    # over period k the command was the last call's for 1 ms, then its own for 9 ms
+    for k in range(4):
+        np.testing.assert_allclose(ctrl.sent[k], 0.1 * command(k) + 0.9 * command(k + 1), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(tr.u[k], command(k + 1), rtol=0, atol=1e-12)
+
+
+def test_a_preparation_past_the_period_keeps_the_controller_busy_into_the_next_one():
+    """A 0.4 ms call and a 12 ms preparation: the controller is still busy at the next period's start, which is
+    skipped; its input still went out after 1 ms."""
+    tr, ctrl = _hover_flight(4e-4, 12e-3)
+    assert tr.called.tolist() == [True, False, True, False]
+    np.testing.assert_allclose(tr.latency_s[tr.called], 4e-4, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(ctrl.sent[0], 0.1 * command(0) + 0.9 * command(1), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(ctrl.sent[1], command(1), rtol=0, atol=1e-12)
