@@ -11,6 +11,14 @@ twice as slow for the models (:func:`slow_machine`: every model call takes twice
 each vehicle flown in its own rotor unit and in normalized units (``n_max`` = 1): the same QP, so the same time
 (:func:`unit_cost`).
 
+The speed benchmark times each period's **input latency** (from the state handed over to the input returned)
+and its **load** (that and the real-time iteration's preparation of the next period, which runs after the input
+is out): ``latency_ms`` and ``solve_ms`` (median, p95, p99, max) per model and path. ``--paths P,Q`` picks the
+SQP's paths (default every one it can fly: :func:`speed_paths`). ``--load N`` flies every case N times at once,
+each in a process, and pools their periods: what contention does (the main job flies two runs at once). Beside
+the shipped models it flies the learning studies' final models (16 states) on their own plants: our
+high-fidelity simulator, and RotorPy when it is installed.
+
 ``python -m mpc.bench --answers [--members 5] [--jobs 2] [--compare BASE,NEW]`` compares the answers of two of
 the SQP's paths (:data:`ALL_PATHS`; by default the full and the partial derivative path) in ideal timing: median RMSE over ensemble members on figure8-fast, figure8-slow and hover with the
 oracle and every shipped model, and the crashes of every zoo model on figure8-fast (:func:`same_answers`,
@@ -65,24 +73,34 @@ from .controllers.sqp import SQPMPC, SQPSettings
 from .references.trajectory import Figure8
 
 HORIZON = 30
+#: The real-time iteration's preparation must end this long before the next period's measurement, s (the closed
+#: loop's margin: :data:`scenarios.closed_loop.loop.DEADLINE_MARGIN_S`).
+PREPARATION_MARGIN_S = 0.001
 CONTROLLERS = ("nmpc", "sqp", "ltv", "lqr")
 SPLIT = ("derivatives", "assembly", "osqp", "line_search")
 #: The SQP's two ways to its derivatives, flown side by side: today's (every Jacobian in every iteration that
 #: evaluates them) and the partial refresh (:class:`mpc.controllers.sqp.SQPSettings`).
-PATHS = {"full": {"jacobian_refresh": "full"}, "partial": {"jacobian_refresh": "partial"}}
+PATHS = {"full": {"jacobian_refresh": "full", "scheme": "sqp"},
+         "partial": {"jacobian_refresh": "partial", "scheme": "sqp"}}
 #: The speed benchmark also flies the partial path with the condensed QP solved by DAQP
 #: (:mod:`mpc.controllers.dense_qp`), when
 #: DAQP is installed.
-DENSE_PATH = {"dense": {"jacobian_refresh": "partial", "qp": "daqp"}}
+DENSE_PATH = {"dense": {"jacobian_refresh": "partial", "qp": "daqp", "scheme": "sqp"}}
+#: And the real-time iteration (:attr:`mpc.controllers.sqp.SQPSettings.scheme`) on the dense QP, when DAQP is
+#: installed: the input waits for the feedback's QP; the derivatives follow it (their partial refresh).
+RTI_PATH = {"rti": {"jacobian_refresh": "partial", "qp": "daqp", "scheme": "rti"}}
 #: Every path a benchmark can fly by name.
-ALL_PATHS = {**PATHS, **DENSE_PATH}
+ALL_PATHS = {**PATHS, **DENSE_PATH, **RTI_PATH}
+#: The paths that need DAQP.
+DAQP_PATHS = (*DENSE_PATH, *RTI_PATH)
 #: The cases of the same-answers comparison.
 ANSWER_CASES = ("figure8-fast", "figure8-slow", "hover")
 
 
 def speed_paths() -> dict:
-    """The SQP's paths the speed benchmark flies: :data:`PATHS`, and :data:`DENSE_PATH` when DAQP is installed."""
-    return {**PATHS, **(DENSE_PATH if daqp_installed() else {})}
+    """The SQP's paths the speed benchmark flies: :data:`PATHS`, and :data:`DENSE_PATH` and :data:`RTI_PATH` when
+    DAQP is installed."""
+    return {**PATHS, **({**DENSE_PATH, **RTI_PATH} if daqp_installed() else {})}
 
 
 def _controller(kind: str, model, reference, path: str = "full"):
@@ -95,28 +113,51 @@ def _controller(kind: str, model, reference, path: str = "full"):
     return LQRController(reference, model)
 
 
-def run(kind: str, model, reference, x0: np.ndarray, seconds: float, fidelity=None, path: str = "full") -> dict:
+def _percentiles(ms) -> dict:
+    """Median, p95, p99 and max of per-period times ``ms`` (ms)."""
+    ms = np.asarray(ms, dtype=float)
+    return {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)),
+            "p99": float(np.percentile(ms, 99)), "max": float(ms.max())}
+
+
+def run(kind: str, model, reference, x0: np.ndarray, seconds: float, fidelity=None, path: str = "full",
+        plant=None, raw: bool = False) -> dict:
     """Fly one case; solve-time statistics, counts, position RMSE and (SQP) iterations and time split.
 
     ``fidelity``: the simulator's (nominal when None); with a motor lag its rotor speeds carry over. ``path``: the
-    SQP's way to its derivatives (:data:`ALL_PATHS`).
+    SQP's way to its derivatives (:data:`ALL_PATHS`). ``plant``: a :class:`sim.plants.plant.Plant` flown instead
+    of the simulator.
+
+    Each period's input latency (the call: from the state handed over to the input returned) and its load (the
+    call and the preparation of the next period after it, the real-time iteration's) are timed: ``latency_ms``
+    and ``solve_ms`` (the load, as the other paths' solve time) with median, p95, p99 and max. ``raw``: also the
+    per-period times (``_load_ms``, ``_latency_ms``, ms) and cold starts (``_cold``), for pooling.
     """
     from sim.params import NOMINAL
 
     ctrl = _controller(kind, model, reference, path)
     steps = int(round(seconds / DT))
     ctrl.prepare(steps * DT, x0=x0)   # the SQP plans its first period before take-off
-    sim = Simulator(fidelity=NOMINAL if fidelity is None else fidelity)
+    sim = None
+    if plant is None:
+        sim = Simulator(fidelity=NOMINAL if fidelity is None else fidelity)
+    else:
+        plant.reset(x0)
     n = None
     x = x0.copy()
-    times, err, iters, cold, full = [], [], [], [], []
+    times, latency, err, iters, cold, full = [], [], [], [], [], []
     split = dict.fromkeys(SPLIT, 0.0)
     failures = fallbacks = 0
     for k in range(steps):
         t = k * DT
         with collector_paused():   # the garbage collector runs between periods, as in real-time runs
+            c0 = time.perf_counter()
             u, info = ctrl(x, t)
-        times.append(info.solve_time_s)
+            c1 = time.perf_counter()
+            ctrl.prepare_next(c0 + DT - PREPARATION_MARGIN_S)    # by the next measurement
+            c2 = time.perf_counter()
+        times.append(info.solve_time_s + (c2 - c1))
+        latency.append(c1 - c0)
         failures += info.status not in ("optimal", "lqr")
         fallbacks += info.fallback is not None
         if kind == "sqp":
@@ -125,16 +166,23 @@ def run(kind: str, model, reference, x0: np.ndarray, seconds: float, fidelity=No
             full.append(info.extra["full_refreshes"] > 0)
             for key in SPLIT:
                 split[key] += info.extra["time_split_s"][key]
-        out = sim.step_full(x, u, rotor_speed=n)
-        x, n = out.x, out.rotor_speed
+            rti = info.extra.get("rti")
+            if rti is not None and not rti["reused"]:       # the preparation it solved, made after the last input
+                for key, v in rti["preparation_split_s"].items():
+                    split[key] += v
+        if plant is None:
+            out = sim.step_full(x, u, rotor_speed=n)
+            x, n = out.x, out.rotor_speed
+        else:
+            x = plant.advance(u, DT).x
         ctrl.applied(u)       # the command just flown (the controller carries its model's extra states)
         err.append(np.linalg.norm(x[0:3] - reference(np.array([t + DT]))[0, 0:3]))
         if not np.all(np.isfinite(x)) or err[-1] > 2.0:
             break
     ms = 1e3 * np.array(times)
     warm = ms[~np.array(cold, dtype=bool)] if cold else ms
-    out = {"solve_ms": {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)), "max": float(ms.max()),
-                        "max_without_cold_starts": float(warm.max()) if warm.size else None},
+    out = {"solve_ms": {**_percentiles(ms), "max_without_cold_starts": float(warm.max()) if warm.size else None},
+           "latency_ms": _percentiles(1e3 * np.array(latency)),
            "deadline_misses": int(np.sum(ms > 1e3 * DT)), "solver_failures": int(failures),
            "fallbacks": int(fallbacks), "rmse_position_m": float(np.sqrt(np.mean(np.square(err)))),
            "steps": len(times)}
@@ -145,6 +193,9 @@ def run(kind: str, model, reference, x0: np.ndarray, seconds: float, fidelity=No
         parts["python"] = float(np.mean(ms)) - sum(parts.values())
         out.update(iterations={"mean": float(it.mean()), "counts": np.bincount(it).tolist()},
                    cold_starts=int(np.sum(cold)), time_split_ms=parts, full_refresh_share=float(np.mean(full)))
+    if raw:
+        out.update(_load_ms=ms, _latency_ms=1e3 * np.array(latency),
+                   _cold=np.array(cold, dtype=bool) if cold else np.zeros(len(ms), dtype=bool))
     return out
 
 
@@ -227,6 +278,12 @@ def main(argv=None) -> int:
     ap.add_argument("--models", type=Path, default=Path("models"))
     ap.add_argument("--controllers", default=",".join(CONTROLLERS))
     ap.add_argument("--cases", default="hover,figure8-fast")
+    ap.add_argument("--paths", default=None, metavar="P,Q",
+                    help="the SQP's paths the speed benchmark flies (default: all it can, full, partial and with DAQP "
+                         "dense and rti)")
+    ap.add_argument("--load", type=int, default=1, metavar="N",
+                    help="fly every case N times at once, each in a process, and pool their periods: what contention "
+                         "does to the times (the main job flies two runs at once; default 1)")
     ap.add_argument("--json", type=Path, default=None, help="output (default bench_mpc.json, or "
                     "bench_derivatives.json with --derivatives)")
     ap.add_argument("--derivatives", action="store_true",
@@ -256,8 +313,10 @@ def main(argv=None) -> int:
     if len(args.compare) != 2 or len(set(args.compare)) != 2 or not set(args.compare) <= set(ALL_PATHS):
         raise SystemExit(f"--compare: two different paths of {', '.join(ALL_PATHS)} expected; found "
                          f"{','.join(args.compare) or 'none'}")
-    if "dense" in args.compare and (args.answers or args.slowdown is not None) and not daqp_installed():
-        raise SystemExit('--compare: the dense path needs DAQP: python -m pip install -e ".[dense]"')
+    needs = [p for p in args.compare if p in DAQP_PATHS]
+    if needs and (args.answers or args.slowdown is not None) and not daqp_installed():
+        what = " and ".join(needs) + (" paths need" if len(needs) > 1 else " path needs")
+        raise SystemExit(f'--compare: the {what} DAQP: python -m pip install -e ".[dense]"')
     if args.slowdown is not None:
         if not args.slowdown >= 1.0:
             raise SystemExit(f"--slowdown: a factor >= 1 expected; found {args.slowdown:g}")
@@ -277,46 +336,48 @@ def main(argv=None) -> int:
     bad = set(kinds) - set(CONTROLLERS)
     if bad:
         raise SystemExit(f"--controllers: unknown {sorted(bad)}; choose from {', '.join(CONTROLLERS)}")
-    fig8 = Figure8(0.75, 3.0, 1.0)
-    x_hover = np.zeros(NX)
-    x_hover[0:3] = [0.3, 0.0, -1.0]
-    all_cases = {"hover": (hover_reference(), x_hover, 5.0), "figure8-fast": (fig8, fig8(np.array([0.0]))[0], 6.0)}
     cases = [c for c in args.cases.split(",") if c]
-    bad = set(cases) - set(all_cases)
+    bad = set(cases) - set(SPEED_CASES)
     if bad:
-        raise SystemExit(f"--cases: unknown {sorted(bad)}; choose from {', '.join(all_cases)}")
+        raise SystemExit(f"--cases: unknown {sorted(bad)}; choose from {', '.join(SPEED_CASES)}")
     if not args.models.is_dir():
         raise SystemExit(f"--models: {str(args.models)!r} is not a folder")
-    files = model_files(args.models)
-    from sim.params import HIGH_FIDELITY
-
-    models = [("oracle", AnalyticModel()), ("oracle_highfi", AnalyticModel(fidelity=HIGH_FIDELITY))] + [
-        (f.stem, OnnxModel(f)) for f in files]
-    out = {"python": platform.python_version(), "cpus": os.cpu_count(), "horizon": HORIZON, "cases": []}
-    print(f"{'ctrl':<12}{'model':<22}{'case':<14}{'median':>8}{'p95':>8}{'max':>8}{'max*':>8} ms"
-          f"{'misses':>8}{'fail':>6}{'fallb':>6}{'RMSE m':>9}{'floor us':>10}{'f32 us':>8}")
-    sqp_rows = []
-    for name, model in models:
-        fl = floor_us(model)
-        fl32 = floor_us(model, single=True)
+    paths = speed_paths() if args.paths is None else [p for p in args.paths.split(",") if p]
+    bad = set(paths) - set(speed_paths())
+    if bad or not paths:
+        raise SystemExit(f"--paths: paths of {', '.join(speed_paths())} expected; found {args.paths!r}")
+    if isinstance(args.load, bool) or args.load < 1:
+        raise SystemExit(f"--load: an integer >= 1 expected; found {args.load}")
+    sources = speed_models(args.models)
+    out = {"python": platform.python_version(), "cpus": os.cpu_count(), "horizon": HORIZON, "load": args.load,
+           "cases": []}
+    tasks, floors = [], {}
+    for name, (source, plant) in sources.items():
+        model = _bench_model(source)
+        floors[name] = (floor_us(model), floor_us(model, single=True))
         for kind in kinds:
             if kind == "lqr" and name not in ("oracle", "oracle_highfi"):
                 continue  # LQR uses the analytic hover linearization whatever the model
             if kind == "nmpc" and model.n_extra:
                 continue  # about 0.4 s per IPOPT solve with the 16-state high-fidelity equations
-            for case in cases:
-                ref, x0, secs = all_cases[case]
-                for path in (speed_paths() if kind == "sqp" else ("full",)):
-                    r = run(kind, model, ref, x0, secs, fidelity=getattr(model, "fidelity", None), path=path)
-                    label = f"sqp/{path}" if kind == "sqp" else kind
-                    out["cases"].append({"controller": kind, "path": path if kind == "sqp" else None, "model": name,
-                                         "case": case, "floor_us": fl, "floor_single_us": fl32, **r})
-                    s = r["solve_ms"]
-                    print(f"{label:<12}{name:<22}{case:<14}{s['median']:>8.2f}{s['p95']:>8.2f}{s['max']:>8.1f}"
-                          f"{s['max_without_cold_starts']:>8.1f}   {r['deadline_misses']:>8}{r['solver_failures']:>6}"
-                          f"{r['fallbacks']:>6}{r['rmse_position_m']:>9.4f}{fl:>10.0f}{fl32:>8.0f}", flush=True)
-                    if kind == "sqp":
-                        sqp_rows.append((name, case, path, r))
+            tasks += [(kind, name, case, path) for case in cases for path in (paths if kind == "sqp" else ("full",))]
+    results = _fly_speed(tasks, sources, args.load)
+    print(f"{'ctrl':<12}{'model':<22}{'case':<14}{'median':>8}{'p95':>8}{'max':>8}{'max*':>8} ms"
+          f"{'lat med':>8}{'lat p99':>8}{'misses':>8}{'fail':>6}{'fallb':>6}{'RMSE m':>9}{'floor us':>10}"
+          f"{'f32 us':>8}")
+    sqp_rows = []
+    for (kind, name, case, path), r in results.items():
+        fl, fl32 = floors[name]
+        label = f"sqp/{path}" if kind == "sqp" else kind
+        out["cases"].append({"controller": kind, "path": path if kind == "sqp" else None, "model": name,
+                             "plant": sources[name][1], "case": case, "floor_us": fl, "floor_single_us": fl32, **r})
+        s, lat = r["solve_ms"], r["latency_ms"]
+        print(f"{label:<12}{name:<22}{case:<14}{s['median']:>8.2f}{s['p95']:>8.2f}{s['max']:>8.1f}"
+              f"{s['max_without_cold_starts']:>8.1f}   {lat['median']:>8.2f}{lat['p99']:>8.2f}{r['deadline_misses']:>8}"
+              f"{r['solver_failures']:>6}{r['fallbacks']:>6}{r['rmse_position_m']:>9.4f}{fl:>10.0f}{fl32:>8.0f}",
+              flush=True)
+        if kind == "sqp":
+            sqp_rows.append((name, case, path, r))
     if sqp_rows:
         print("\nmax*: without the SQP's counted cold-start periods. SQP iterations, time split per period (ms) and "
               "the share of periods with a full Jacobian refresh:")
@@ -340,6 +401,113 @@ def main(argv=None) -> int:
     write_json(args.json, out)
     print(f"wrote {args.json}")
     return 0
+
+
+#: The speed benchmark's cases: reference, start state, seconds.
+def _speed_cases() -> dict:
+    fig8 = Figure8(0.75, 3.0, 1.0)
+    x_hover = np.zeros(NX)
+    x_hover[0:3] = [0.3, 0.0, -1.0]
+    return {"hover": (hover_reference(), x_hover, 5.0), "figure8-fast": (fig8, fig8(np.array([0.0]))[0], 6.0)}
+
+
+SPEED_CASES = ("hover", "figure8-fast")
+
+
+def speed_models(models_dir) -> dict:
+    """The models the speed benchmark flies: ``{name: (source, plant)}``. ``source`` is ``"oracle"``,
+    ``"oracle_highfi"`` or an ONNX file; ``plant`` is None (the simulator, at the model's own fidelity) or the
+    learning study's plant the model was learned on (its key of :data:`scenarios.studies.learn.LEARN_PLANTS`): the
+    oracle, the high-fidelity equations, every shipped model, and the final models of the learning studies on our
+    high-fidelity plant and on RotorPy (16 states: the rotor speeds carried), each on its own plant (RotorPy's only
+    when RotorPy is installed)."""
+    from scenarios.studies.campaign import learned_models
+    from sim.plants.named import rotorpy_available
+
+    out = {"oracle": ("oracle", None), "oracle_highfi": ("oracle_highfi", None)}
+    out.update({f.stem: (str(f), None) for f in model_files(models_dir)})
+    for key in ("highfi", "rotorpy"):
+        if key == "rotorpy" and not rotorpy_available():
+            continue
+        out.update({Path(m).stem: (m, key) for m in learned_models(models_dir, key)})
+    return out
+
+
+_MODELS: dict = {}
+
+
+def _bench_model(source: str):
+    """The prediction model of ``source`` (:func:`speed_models`), loaded once per process."""
+    from sim.params import HIGH_FIDELITY
+
+    if source not in _MODELS:
+        _MODELS[source] = (AnalyticModel() if source == "oracle" else
+                           AnalyticModel(fidelity=HIGH_FIDELITY) if source == "oracle_highfi" else OnnxModel(source))
+    return _MODELS[source]
+
+
+def _speed_plant(key):
+    """The plant of a learning study (its key of :data:`scenarios.studies.learn.LEARN_PLANTS`), or None."""
+    if key is None:
+        return None
+    from scenarios.studies.learn import LEARN_PLANTS
+    from sim.plants.named import make_plant
+
+    lp = LEARN_PLANTS[key]
+    return make_plant(lp.plant, lp.vehicle, high_fidelity=lp.high_fidelity)
+
+
+def _speed_task(task) -> dict:
+    """One flight of the speed benchmark: ``(kind, name, case, path, source, plant)`` (and a copy number, unused);
+    :func:`run`'s result with its per-period times (``_load_ms``, ``_latency_ms``) for pooling."""
+    kind, name, case, path, source, plant = task[:6]
+    model = _bench_model(source)
+    ref, x0, secs = _speed_cases()[case]
+    return run(kind, model, ref, x0, secs, fidelity=getattr(model, "fidelity", None), path=path,
+               plant=_speed_plant(plant), raw=True)
+
+
+def _pooled(copies: list) -> dict:
+    """The results of copies of one flight flown at once, as one: every period's times pooled (the statistics of
+    all of them), the counts summed, the RMSE the copies' mean; iterations and time split the first copy's."""
+    first = dict(copies[0])
+    load = np.concatenate([c["_load_ms"] for c in copies])
+    lat = np.concatenate([c["_latency_ms"] for c in copies])
+    cold = np.concatenate([c["_cold"] for c in copies])
+    warm = load[~cold] if cold.any() else load
+    first["solve_ms"] = {**_percentiles(load), "max_without_cold_starts": float(warm.max()) if warm.size else None}
+    first["latency_ms"] = _percentiles(lat)
+    for key in ("deadline_misses", "solver_failures", "fallbacks", "steps"):
+        first[key] = int(sum(c[key] for c in copies))
+    first["rmse_position_m"] = float(np.mean([c["rmse_position_m"] for c in copies]))
+    first["copies"] = len(copies)
+    return {k: v for k, v in first.items() if not k.startswith("_")}
+
+
+def _fly_speed(tasks, sources: dict, load: int) -> dict:
+    """``{task: result}`` of the speed benchmark's flights (``(kind, name, case, path)``): in this process one after
+    the other, or with ``load`` > 1 each flown ``load`` times at once on as many worker processes (the sweeps'
+    pool, with their worker environment), its copies pooled (:func:`_pooled`)."""
+    full = [t + sources[t[1]] for t in tasks]
+    if load == 1:
+        return {t[:4]: _pooled([_speed_task(t)]) for t in full}
+    from tqdm import tqdm
+
+    from sim.workers import worker_init
+    from scenarios.sweeps.pool import run_pool
+
+    copies: dict = {t[:4]: [] for t in full}
+    with tqdm(total=len(full) * load, desc=f"{load} flights at once", unit="flight") as bar:
+        def done(item, value):
+            copies[item[:4]].append(value)
+            bar.update()
+
+        def failed(item, reason):
+            raise SystemExit(f"--load: a flight's worker died: {item[:4]}: {reason}")
+
+        run_pool(_speed_task, [t + (i,) for t in full for i in range(load)], load, done, failed,
+                 initializer=worker_init)
+    return {t: _pooled(c) for t, c in copies.items()}
 
 
 def _ms(v) -> dict:

@@ -395,6 +395,10 @@ def cmd_fly(args: argparse.Namespace) -> int:
         if k == "max_position_error_m" and result["settled_error_m"] is not None:
             print(f"{'settled_error_m':<22}{_fmt(result['settled_error_m'])}   (largest error over the last "
                   f"{SETTLE_WINDOW_S:g} s)")
+    if result.get("scheme"):
+        print(f"{'scheme':<22}{result['scheme']}   (the input waits for one QP; the derivatives follow it)")
+    if result.get("latency_ms") is not None:
+        print(f"{'latency_ms':<22}{_fmt(result['latency_ms'])}   (from the measurement to the input out)")
     if result.get("failure_causes"):
         print(f"{'failure_causes':<22}" + ", ".join(f"{c} {n}" for c, n in result["failure_causes"].items()))
     if result.get("estimator_ms") is not None:

@@ -7,7 +7,7 @@ from mpc import bench
 
 @pytest.mark.parametrize("compare", ["full", "full,full", "full,bad", "full,partial,dense", ""])
 def test_a_bad_pair_of_paths_is_refused_by_name(compare, capsys):
-    with pytest.raises(SystemExit, match="--compare: two different paths of full, partial, dense expected"):
+    with pytest.raises(SystemExit, match="--compare: two different paths of full, partial, dense, rti expected"):
         bench.main(["--answers", "--compare", compare])
 
 
@@ -21,3 +21,32 @@ def test_the_speed_benchmark_flies_the_dense_path_only_with_daqp(monkeypatch):
     assert list(bench.speed_paths()) == ["full", "partial"]
     with pytest.raises(SystemExit, match="the dense path needs DAQP"):
         bench.main(["--answers", "--compare", "full,dense"])
+    with pytest.raises(SystemExit, match="the dense and rti paths need DAQP"):
+        bench.main(["--answers", "--compare", "dense,rti"])
+
+
+@pytest.mark.parametrize("argv,match", [(["--paths", "full,nope"], "--paths: paths of full, partial"),
+                                        (["--paths", ","], "--paths: paths of"),
+                                        (["--load", "0"], "--load: an integer >= 1 expected; found 0")])
+def test_bad_speed_options_are_refused_by_name(argv, match, monkeypatch):
+    monkeypatch.setattr(bench, "daqp_installed", lambda: False)
+    with pytest.raises(SystemExit, match=match):
+        bench.main(["--controllers", "sqp", "--cases", "hover", *argv])
+
+
+def test_copies_of_a_flight_pool_their_periods():
+    """Two copies flown at once count as one flight of twice the periods: the pooled median, p99 and max are those
+    of all periods, the counts summed, the RMSE their mean."""
+    import numpy as np
+
+    def copy(load, lat, rmse, misses):
+        return {"_load_ms": np.asarray(load, float), "_latency_ms": np.asarray(lat, float),
+                "_cold": np.zeros(len(load), bool), "deadline_misses": misses, "solver_failures": 0, "fallbacks": 0,
+                "steps": len(load), "rmse_position_m": rmse, "iterations": {"mean": 1.0}}
+
+    r = bench._pooled([copy([1, 2, 3], [0.1, 0.2, 0.3], 0.01, 0), copy([4, 5, 11], [0.4, 0.5, 0.6], 0.03, 1)])
+    assert r["solve_ms"]["median"] == 3.5 and r["solve_ms"]["max"] == 11.0
+    assert r["latency_ms"]["median"] == pytest.approx(0.35) and r["latency_ms"]["max"] == 0.6
+    assert r["latency_ms"]["p99"] == pytest.approx(float(np.percentile([0.1, 0.2, 0.3, 0.4, 0.5, 0.6], 99)))
+    assert r["deadline_misses"] == 1 and r["steps"] == 6 and r["rmse_position_m"] == pytest.approx(0.02)
+    assert r["copies"] == 2 and not any(k.startswith("_") for k in r)

@@ -107,6 +107,22 @@ def test_a_qp_prepared_for_any_initial_state_solves_as_the_one_condensed_with_it
             assert np.sum(np.abs(fb.lam) > 1e-6) >= 5      # constraints bind: the bounds' shift by x0 matters
 
 
+def test_a_prepared_qp_takes_a_moved_offset_and_a_new_reference_at_its_feedback():
+    """The feedback of offset-free control: every c_k moved by delta, and another reference and feed-forward, as
+    the QP condensed with them."""
+    qp = random_qp(7)
+    rng = np.random.default_rng(8)
+    delta = 0.01 * rng.standard_normal(qp.x0.shape)
+    ref, u_ref = qp.ref + 0.1 * rng.standard_normal(qp.ref.shape), qp.u_ref + 0.1
+    whole = solve_ltv_qp(LTVQP(**{**qp.__dict__, "c": qp.c + delta, "ref": ref, "u_ref": u_ref}))
+    prep = prepare_ltv_qp(qp)
+    fb = solve_prepared(prep, qp.x0, delta=delta, ref=ref, u_ref=u_ref)
+    assert whole.solved and fb.solved
+    np.testing.assert_allclose(fb.u, whole.u, rtol=0, atol=TOL["prepared"])
+    np.testing.assert_allclose(prep.states(qp.x0, fb.u.ravel(), delta), whole.x, rtol=0, atol=TOL["prepared"])
+    assert np.max(np.abs(fb.u - solve_prepared(prep, qp.x0).u)) > 1e-3      # and they matter
+
+
 def test_condensed_states_follow_the_dynamics():
     qp = random_qp(3)
     H, f, C, lo, hi, G, w = condense(qp)

@@ -10,14 +10,14 @@ from scenarios.closed_loop.runner import RunSpec, fly
 from scenarios.errors import ScenarioError
 
 #: The keys of a saved run as the runner wrote them before the record type existed (hover with the LQR, the
-#: ideal timing, no estimator), in the order it wrote them, with the command level after the QP solver; and of a
-#: run that never flew.
+#: ideal timing, no estimator), in the order it wrote them, with the command level after the QP solver and the
+#: input latency after the solve time; and of a run that never flew.
 FLOWN_KEYS = ("run_id", "scenario", "controller", "model", "model_file", "model_sha256", "seed", "member",
               "horizon", "timing", "plant", "vehicle", "estimator", "qp", "level", "inputs_sha256",
               "gust_peak_error_m", "recovery_time_s",
               "settled_error_m", "rmse_yaw_rad", "rmse_position_m", "max_position_error_m", "crashed",
-              "crash_time_s", "crash_reason", "solve_ms", "deadline_misses", "solver_failures", "fallbacks",
-              "steps", "shifted_plan", "deadline_fallbacks", "failure_causes", "preflight", "preflight_ms", "error",
+              "crash_time_s", "crash_reason", "solve_ms", "latency_ms", "deadline_misses", "solver_failures",
+              "fallbacks", "steps", "shifted_plan", "deadline_fallbacks", "failure_causes", "preflight", "preflight_ms", "error",
               "wall_time_s", "scenario_spec", "plant_spec", "vehicle_spec")
 NOT_FLOWN_KEYS = ("run_id", "scenario", "controller", "model", "plant", "vehicle", "qp", "level", "rmse_position_m",
                   "max_position_error_m", "settled_error_m", "rmse_yaw_rad", "crashed", "crash_time_s",

@@ -203,38 +203,40 @@ class PreparedQP:
     """An :class:`LTVQP` condensed for every initial state at once: what the real-time iteration's preparation
     builds before the state is measured, so that its feedback only embeds the state and solves.
 
-    The states are ``x_k = G_k u + Phi_k x_0 + v_k``; the dense QP's linear cost is ``f0 + F x_0`` and its bounds
-    ``lo0 - E x_0 <= C u <= hi0 - E x_0``. ``qp`` is the QP it was made from (its ``x0`` unused).
+    The states are ``x_k = G_k u + Phi_k x_0 + v_k + Psi_k delta``, where ``delta`` (nx,) is added to every
+    ``c_k`` (a disturbance offset that changed since the preparation); the dense QP's linear cost and its bounds
+    follow from them and from the reference (:func:`solve_prepared`). ``qp`` is the QP it was made from (its ``x0``
+    unused).
 
     Attributes
     ----------
     H : ndarray, shape (n, n)
     C : ndarray, shape (r, n)
-    f0 : ndarray, shape (n,)
-    F : ndarray, shape (n, nx)
-    lo0, hi0 : ndarray, shape (r,)
-    E : ndarray, shape (r, nx)
     G : ndarray, shape (N + 1, nx, n)
-    Phi : ndarray, shape (N + 1, nx, nx)
+    WGt : ndarray, shape (n, (N + 1) nx)
+        ``(W_k G_k)'`` stacked: the linear cost is ``WGt (x_free - ref) - R u_ref``.
+    Phi, Psi : ndarray, shape (N + 1, nx, nx)
     v : ndarray, shape (N + 1, nx)
     """
 
     qp: LTVQP
     H: np.ndarray
     C: np.ndarray
-    f0: np.ndarray
-    F: np.ndarray
-    lo0: np.ndarray
-    hi0: np.ndarray
-    E: np.ndarray
     G: np.ndarray
+    WGt: np.ndarray
     Phi: np.ndarray
+    Psi: np.ndarray
     v: np.ndarray
 
-    def states(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """The states (N + 1, nx) of the inputs ``u`` (N nu,) from ``x0`` (nx,)."""
+    def free(self, x0: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
+        """The states (N + 1, nx) with no input: from ``x0`` (nx,), with every ``c_k`` moved by ``delta``."""
+        w = self.Phi @ x0 + self.v
+        return w if delta is None else w + self.Psi @ delta
+
+    def states(self, x0: np.ndarray, u: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
+        """The states (N + 1, nx) of the inputs ``u`` (N nu,) from ``x0`` (nx,) (and ``delta``, as :meth:`free`)."""
         N1, nx, n = self.G.shape
-        return (self.G.reshape(-1, n) @ u).reshape(N1, nx) + self.Phi @ x0 + self.v
+        return (self.G.reshape(-1, n) @ u).reshape(N1, nx) + self.free(x0, delta)
 
 
 def prepare_ltv_qp(qp: LTVQP, matrices: Condensed | None = None) -> PreparedQP:
@@ -245,25 +247,18 @@ def prepare_ltv_qp(qp: LTVQP, matrices: Condensed | None = None) -> PreparedQP:
     if matrices is None:
         matrices = condense_matrices(qp)
     N, nx, nu = qp.B.shape
-    n = N * nu
     Phi = np.empty((N + 1, nx, nx))
-    Phi[0] = np.eye(nx)
+    Psi = np.empty((N + 1, nx, nx))
+    Phi[0], Psi[0] = np.eye(nx), 0.0
     v = np.empty((N + 1, nx))
     v[0] = 0.0
     for k in range(N):
         np.matmul(qp.A[k], Phi[k], out=Phi[k + 1])
+        np.matmul(qp.A[k], Psi[k], out=Psi[k + 1])
+        Psi[k + 1] += np.eye(nx)
         v[k + 1] = qp.A[k] @ v[k] + qp.c[k]
-    WG = matrices.WG.reshape(-1, n).T                   # (n, (N + 1) nx)
-    f0 = WG @ (v - qp.ref).ravel() - (qp.u_ref @ qp.R).ravel()
-    F = WG @ Phi.reshape(-1, nx)
-    m, p = qp.L.shape[0], qp.S.shape[0]
-    Sv = (v[1:] @ qp.S.T).ravel()
-    E = np.zeros((N * (m + p), nx))
-    E[N * m:] = np.matmul(qp.S, Phi[1:]).reshape(N * p, nx)
-    lo0 = np.concatenate([np.tile(qp.lo_u, N), np.tile(qp.lo_s, N) - Sv])
-    hi0 = np.concatenate([np.tile(qp.hi_u, N), np.tile(qp.hi_s, N) - Sv])
-    return PreparedQP(qp=qp, H=matrices.H, C=matrices.C, f0=f0, F=F, lo0=lo0, hi0=hi0, E=E, G=matrices.G,
-                      Phi=Phi, v=v)
+    return PreparedQP(qp=qp, H=matrices.H, C=matrices.C, G=matrices.G,
+                      WGt=np.ascontiguousarray(matrices.WG.reshape(-1, N * nu).T), Phi=Phi, Psi=Psi, v=v)
 
 
 @dataclass(frozen=True)
@@ -283,28 +278,37 @@ class Feedback:
         return self.flag in SOLVED_FLAGS and bool(np.all(np.isfinite(self.u)))
 
 
-def solve_prepared(prep: PreparedQP, x0: np.ndarray, time_limit_s: float | None = None) -> Feedback:
+def solve_prepared(prep: PreparedQP, x0: np.ndarray, time_limit_s: float | None = None,
+                   delta: np.ndarray | None = None, ref: np.ndarray | None = None,
+                   u_ref: np.ndarray | None = None) -> Feedback:
     """The real-time iteration's feedback: the prepared QP with the initial state ``x0`` (nx,), solved by DAQP.
 
-    Its inputs equal :func:`solve_ltv_qp`'s for the same QP with that ``x0``. A failure of DAQP is data
-    (``flag``, ``solved``).
+    ``delta`` (nx,): added to every ``c_k`` (an offset that changed since the preparation; None: none); ``ref``
+    (N + 1, nx) and ``u_ref`` (N, nu): the reference and feed-forward now (None: the prepared QP's). Its inputs
+    equal :func:`solve_ltv_qp`'s for the QP with these. A failure of DAQP is data (``flag``, ``solved``).
     """
     from ctypes import c_int
 
     import daqp
 
     t0 = time.perf_counter()
+    qp = prep.qp
     x0 = np.asarray(x0, dtype=float)
-    f = prep.f0 + prep.F @ x0
-    ex = prep.E @ x0
+    ref = qp.ref if ref is None else ref
+    u_ref = qp.u_ref if u_ref is None else u_ref
+    w = prep.free(x0, delta)
+    N = len(qp.c)
+    f = prep.WGt @ (w - ref).ravel() - (u_ref @ qp.R).ravel()
+    Sw = (w[1:] @ qp.S.T).ravel()
+    lo = np.concatenate([np.tile(qp.lo_u, N), np.tile(qp.lo_s, N) - Sw])
+    hi = np.concatenate([np.tile(qp.hi_u, N), np.tile(qp.hi_s, N) - Sw])
     opts = {} if time_limit_s is None else {"time_limit": float(time_limit_s)}
     try:
-        u, _, flag, info = daqp.solve(prep.H, f, prep.C, prep.hi0 - ex, prep.lo0 - ex,
-                                      np.zeros(len(ex), dtype=c_int), **opts)
+        u, _, flag, info = daqp.solve(prep.H, f, prep.C, hi, lo, np.zeros(len(lo), dtype=c_int), **opts)
     except Exception as e:  # noqa: BLE001 - DAQP's own errors, wrapped with what was asked of it
         raise SolverError(f"DAQP failed on a QP of {prep.H.shape[0]} inputs and {prep.C.shape[0]} rows: {e}") from e
-    nu = prep.qp.B.shape[2]
-    lam = np.asarray(info.get("lam", np.full(len(ex), np.nan)), dtype=float)
+    nu = qp.B.shape[2]
+    lam = np.asarray(info.get("lam", np.full(len(lo), np.nan)), dtype=float)
     return Feedback(u=np.asarray(u, dtype=float).reshape(-1, nu), flag=int(flag),
                     iterations=int(info.get("iterations", 0)), lam=lam, solve_s=time.perf_counter() - t0)
 

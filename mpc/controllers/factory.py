@@ -26,6 +26,11 @@ DEFAULT_QP = "osqp"
 ESTIMATOR_RESERVE_S = 0.003
 
 
+#: The SQP's iteration scheme in real-time timing (:attr:`mpc.controllers.sqp.SQPSettings.scheme`) unless ``sqp``
+#: names one: the real-time iteration, whose input waits for one QP (in ideal timing the SQP iterates).
+REALTIME_SCHEME = "rti"
+
+
 def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing: str = "ideal", vehicle=None,
                     estimator: str = "none", sqp: dict | None = None, qp: str = DEFAULT_QP):
     """The controller ``kind`` (``nmpc``, ``sqp``, ``ltv``, ``lqr``) on prediction ``model`` following ``reference``.
@@ -36,10 +41,10 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
     when None), never from the plant. With ``ideal`` timing the SQP runs
     without its wall-clock budget and the NMPC without IPOPT's CPU-time limit (each at most its iteration
     limit), so that the run is reproducible bit for bit; with ``realtime`` timing the budget applies, less
-    :data:`ESTIMATOR_RESERVE_S` with a state ``estimator`` (its time counts against the same period).
+    :data:`ESTIMATOR_RESERVE_S` with a state ``estimator`` (its time counts against the same period), and the SQP
+    flies the real-time iteration (:data:`REALTIME_SCHEME`).
     ``sqp``: other :class:`mpc.controllers.sqp.SQPSettings` values for the SQP (for example ``{"jacobian_refresh":
-    "full"}``;
-    a ``"qp"`` there wins over ``qp``). ``qp``: the QP solver of the LTV-MPC and the SQP (``"osqp"`` or
+    "full"}``, or ``{"scheme": "sqp"}`` for the iterating SQP in real time; a ``"qp"`` there wins over ``qp``). ``qp``: the QP solver of the LTV-MPC and the SQP (``"osqp"`` or
     ``"daqp"``, :attr:`mpc.controllers.ltv.LTVSettings.qp`); the NMPC and the LQR have none.
     """
     from ..prediction.spec import VehicleSpec
@@ -57,6 +62,8 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
 
         from .sqp import SQPMPC, SQPSettings
         other = {"qp": qp, **(sqp or {})}
+        if timing != "ideal":
+            other = {"scheme": REALTIME_SCHEME, **other}     # in real time the input waits for one QP only
         if timing == "ideal":
             return SQPMPC(model, reference, SQPSettings(horizon=horizon, time_budget_s=None, cold_start_budget_s=None,
                                                         **other), spec=spec)

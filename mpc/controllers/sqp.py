@@ -53,9 +53,11 @@ one period, linearizes the model along it and builds the next QP for every
 initial state (condensed with DAQP, or loaded into OSQP); when the next
 state arrives, the *feedback* embeds it, solves that QP and sends its first
 input, full step. The measurement waits for one QP (about 0.1-0.3 ms
-condensed), not for the derivatives. The QP is prepared with the
-disturbance estimate and target of its own period: the feedback that uses
-it is one estimate later.
+condensed), not for the derivatives. With offset-free control the feedback
+also embeds the disturbance estimate of its own period: its offset's change
+since the preparation moves every step's constant term, and its target
+enters the cost (a disturbance one period late destabilizes a learned
+16-state model under the estimator, measured).
 
 The time budget is a wall-clock rule, so a run that uses it is not
 reproducible bit for bit; ``time_budget_s=None`` iterates to ``step_tol``
@@ -150,8 +152,9 @@ class SQPSettings(LTVSettings):
     # condensed for every initial state); when the next state arrives, the *feedback* embeds it, solves that one
     # QP and sends its first input, full step: the input waits for one QP, not for the derivatives. A preparation
     # that, at the longest recent one's time, would end past the next measurement is not started, and the next
-    # feedback solves the last QP prepared (counted in counts["preparations_reused"], and said in its record). A
-    # period without a plan (the first without a pre-flight plan, after an LQR fallback) is an SQP period.
+    # feedback solves the last QP prepared (counted in counts["preparations_reused"], and said in its record); the
+    # preparation after it is made whatever it takes. A period without a plan (the first without a pre-flight
+    # plan, after an LQR fallback) is an SQP period.
     scheme: str = "sqp"
     refresh_tol: float = 0.05               # acceptable deviations (max over the state and input)
     max_refresh_stages: int = 8             # stages refreshed per iteration at most
@@ -194,7 +197,9 @@ class Preparation:
     ``t``: the period it was prepared for, s; ``X`` (N + 1, nx), ``U`` (N, 4): the plan it linearizes about;
     ``dense``: the condensed QP (:class:`mpc.controllers.dense_qp.PreparedQP`) or None (OSQP holds the QP: ``lo``,
     ``hi``, its bounds, whose first ``nx`` rows the feedback sets to the state); ``seconds``: its time;
-    ``refreshed``: the stages whose Jacobians it evaluated; ``full``: it evaluated all of them.
+    ``refreshed``: the stages whose Jacobians it evaluated; ``full``: it evaluated all of them; ``split``: its time
+    by part (the derivatives, the QP's assembly or condensing), s; ``c`` (N, nx): the dynamics' constant terms,
+    and ``offset``: the prediction's disturbance offset they hold (None: none).
     """
 
     t: float
@@ -206,6 +211,9 @@ class Preparation:
     seconds: float
     refreshed: int
     full: bool
+    split: dict
+    c: np.ndarray
+    offset: np.ndarray | None
 
 
 def _same(a, b) -> bool:
@@ -262,6 +270,7 @@ class SQPMPC(LTVMPC):
         self.counts["preparations_reused"] = 0    # feedbacks that solved a QP prepared for an earlier period
         self._prepared: Preparation | None = None  # the QP the next feedback solves (scheme "rti")
         self._t_call: float | None = None         # the time of the last call, s
+        self._fed = None                          # the state the last feedback embedded and the input it sent
 
     _preflight = False          # planning before take-off (prepare): a cold start without a budget
     _plan_is_current = False    # the plan was made for the next call's time (a pre-flight plan): no shift
@@ -294,7 +303,7 @@ class SQPMPC(LTVMPC):
         self._plan_is_current = self._plan_x is not None
         if self.s.scheme == "rti" and self._plan_x is not None:
             # the first period's QP, along the pre-flight plan: the first input waits for its feedback only
-            self._prepare_qp(0.0, self.clock.begin(self.clock.now()), shift=False)
+            self._prepare_qp(0.0, self.clock.begin(self.clock.now()), shift=False, record=False)
 
     def _shifts_plan(self) -> bool:
         """This period's first iterate is the previous plan shifted by one period (not a cold start, and not a plan
@@ -348,19 +357,25 @@ class SQPMPC(LTVMPC):
         limit = None if deadline is None else max(deadline - clock.now(), MIN_TIME_LIMIT_S)
         X = U = None
         t0 = clock.now()
+        # The disturbance estimate and its target as they are now: the offset's change since the preparation moves
+        # every step's constant term, and the reference (which holds the target) enters the linear cost.
+        off = self.model.offset
+        delta = None if _same(off, prep.offset) else \
+            (np.zeros(self.nx) if off is None else off) - (0.0 if prep.offset is None else prep.offset)
         if prep.dense is not None:
             from .dense_qp import solve_prepared
 
-            fb = solve_prepared(prep.dense, x, limit)
+            fb = solve_prepared(prep.dense, x, limit, delta=delta, ref=ref, u_ref=u_ref)
             ok, optimal, iterations = fb.solved, fb.solved, fb.iterations
             status = "solved" if ok else f"DAQP exit flag {fb.flag}"
             if ok:
                 U = fb.u
-                X = prep.dense.states(x, U.ravel())
+                X = prep.dense.states(x, U.ravel(), delta)
         else:
             lo, hi = prep.lo, prep.hi
             lo[:self.nx] = hi[:self.nx] = x
-            self._solver.update(l=lo, u=hi)
+            lo[self.nx:self._n_eq] = hi[self.nx:self._n_eq] = -(prep.c if delta is None else prep.c + delta).ravel()
+            self._solver.update(q=self._linear_cost(ref, u_ref), l=lo, u=hi)
             self.update_settings(time_limit=NO_TIME_LIMIT if limit is None else limit)
             res = self._solver.solve(raise_error=False)
             ok, iterations, status = self._solved(res), int(res.info.iter), res.info.status
@@ -371,11 +386,13 @@ class SQPMPC(LTVMPC):
         if not ok and clock.missed():
             status = DEADLINE_STATUS
         u, fields = self._finish(ok, X, U, status, optimal, x, ref, u_ref)
+        self._fed = (np.array(x, dtype=float), np.array(u, dtype=float))
         fields["iterations"] = int(ok)
         fields["extra"].update(qp_iterations=iterations, converged=False, cold_start=False, line_search_failures=0,
                                late_full_steps=0, time_split_s=split, merit=[], step_lengths=[1.0] if ok else [],
                                refreshed_stages=prep.refreshed, full_refreshes=int(prep.full),
-                               rti={"preparation_s": prep.seconds, "age": age, "reused": age > 0})
+                               rti={"preparation_s": prep.seconds, "preparation_split_s": prep.split, "age": age,
+                                    "reused": age > 0})
         return u, fields
 
     def prepare_next(self, until: float | None = None) -> None:
@@ -383,26 +400,42 @@ class SQPMPC(LTVMPC):
 
         ``until``: the time (the controller's clock, s) of the next measurement, or None for no limit. A
         preparation that, at the longest recent preparation's time, would end past it is not started (counted in
-        ``counts["preparations_skipped"]``): the next feedback solves the last QP prepared. Its derivatives follow
-        :attr:`SQPSettings.jacobian_refresh` under the same limit (a full refresh that would not fit is cut to a
-        partial one).
+        ``counts["preparations_skipped"]``): the next feedback solves the last QP prepared. Never twice in a row:
+        when the QP in hand is already a period old the preparation is made whatever it takes (a QP two periods
+        old tracks a reference two periods late; a late preparation only keeps the controller busy). Its
+        derivatives follow :attr:`SQPSettings.jacobian_refresh` under the same limit (a full refresh that would not
+        fit is cut to a partial one).
         """
         if self.s.scheme != "rti" or self._plan_x is None or self._t_call is None:
             return
         clock = self.clock.begin(self.clock.now(), None, until)
-        if not clock.ends_in_time(clock.expect["preparation"]):
+        fresh = self._prepared is not None and self._prepared.t == self._t_call   # the QP in hand is this period's
+        if fresh and not clock.ends_in_time(clock.expect["preparation"]):
             self.counts["preparations_skipped"] += 1
             return
         self._prepare_qp(self._t_call + DT, clock, shift=True)
 
-    def _prepare_qp(self, t: float, clock, shift: bool) -> None:
+    def _next_state(self) -> np.ndarray:
+        """Where the next period starts, as the preparation's plan does: the model's step from the state the last
+        feedback embedded under the input it sent (the QP's own prediction is linearized about the point the QP was
+        prepared at, which the state may have left); the plan's next state when there is none or it is not finite."""
+        fed, self._fed = self._fed, None
+        if fed is not None:
+            with np.errstate(all="ignore"):
+                nxt = self.model.step(fed[0], fed[1])[0]
+            if np.all(np.isfinite(nxt)):
+                return nxt
+        return self._plan_x[1]
+
+    def _prepare_qp(self, t: float, clock, shift: bool, record: bool = True) -> None:
         """Build the QP of the period at ``t`` (s) along the plan (``shift``: moved on by one period, as a plan made
-        for the period before), for the next feedback (:class:`Preparation`)."""
+        for the period before), for the next feedback (:class:`Preparation`). ``record``: its time joins the recent
+        preparations' (not the one before take-off, which has no limit and pays the first calls' set-up)."""
         N = self.N
         t0 = clock.now()
         ref, u_ref = self._horizon_reference(t)
         if shift:
-            X, U = self._nominal(self._plan_x[1], u_ref)   # the plan moved on; its next state where it starts
+            X, U = self._nominal(self._next_state(), u_ref)    # the plan moved on, from the next state predicted
             if self.s.tail == "model":
                 U[-1] = self._tail_input(X[-2], ref[-2], u_ref[-1])
             self._shift_kept()
@@ -419,6 +452,7 @@ class SQPMPC(LTVMPC):
         if shift and self.s.tail == "model":
             X[-1] = fx[-1]
         self._keep_steps(X, U, fx)
+        t_qp = clock.now()
         c = fx - (A @ X[:N, :, None])[:, :, 0] - (B @ U[:, :, None])[:, :, 0]
         dense = lo = hi = None
         if self.s.qp == "daqp":
@@ -434,11 +468,15 @@ class SQPMPC(LTVMPC):
             lo[self.nx:self._n_eq] = hi[self.nx:self._n_eq] = -c.ravel()
             self._solver.update(q=self._linear_cost(ref, u_ref), l=lo, u=hi, Ax=self._constraint_values(A, B))
             self._solver.warm_start(x=np.concatenate([X.ravel(), U.ravel()]))
+        split["assembly"] += clock.now() - t_qp
         seconds = clock.now() - t0
-        clock.record("preparation", seconds)
+        if record:
+            clock.record("preparation", seconds)
         self.counts["preparations"] += 1
+        off = self.model.offset
         self._prepared = Preparation(t=t, X=X, U=U, dense=dense, lo=lo, hi=hi, seconds=seconds,
-                                     refreshed=self._refreshed, full=self._full_refreshes > 0)
+                                     refreshed=self._refreshed, full=self._full_refreshes > 0, split=split, c=c,
+                                     offset=None if off is None else np.array(off))
 
     def _iterate(self, x, ref, u_ref, tm, guess=None):
         """The SQP iterations of one period; ``(u, ControlInfo fields)`` (see :meth:`_period`)."""

@@ -36,9 +36,20 @@ RECOVERY_BAND_M = 0.005
 CRASH_TILT_RAD = np.deg2rad(80.0)
 
 #: Fields that measure this machine's wall time; everything else in a result is reproducible exactly.
-TIMING_FIELDS = ("solve_ms", "deadline_misses", "deadline_fallbacks", "wall_time_s", "preflight_ms")
+TIMING_FIELDS = ("solve_ms", "latency_ms", "deadline_misses", "deadline_fallbacks", "wall_time_s", "preflight_ms")
 #: Trace arrays that measure wall time.
 TRACE_TIMING_FIELDS = ("solve_s", "latency_s", "load_s")
+
+
+def latency_stats(latency_s: np.ndarray) -> dict | None:
+    """Median, p95, p99 and max (ms) of the input latencies ``latency_s`` (s; NaN where the controller was not
+    called, left out), or None without any."""
+    ms = 1e3 * np.asarray(latency_s, dtype=float)
+    ms = ms[np.isfinite(ms)]
+    if not ms.size:
+        return None
+    return {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)), "p99": float(np.percentile(ms, 99)),
+            "max": float(np.max(ms))}
 
 
 def crash_reason(x: np.ndarray, x_ref: np.ndarray) -> str | None:

@@ -55,13 +55,16 @@ class RunRecord(Mapping):
     Identity (what was flown): ``run_id``, ``scenario``, ``controller``, ``model`` (its name), ``model_file`` and
     ``model_sha256`` (an ONNX model's path and SHA-256; None for an equation model), ``seed``, ``member``,
     ``horizon`` (steps of 10 ms), ``timing``, ``plant``, ``vehicle``, ``estimator``, ``qp`` (the QP solver flown;
-    None for a controller without one) and ``inputs_sha256`` (SHA-256 of each file read, by role).
+    None for a controller without one), ``scheme`` (``"rti"`` for the SQP's real-time iteration; absent for the
+    iterating SQP and the other controllers) and ``inputs_sha256`` (SHA-256 of each file read, by role).
 
     Metrics (:func:`scenarios.closed_loop.metrics.closed_loop_metrics`): ``gust_peak_error_m`` and
     ``recovery_time_s`` (a gust impulse's scenario only), ``skipped_periods`` (real-time timing only),
     ``settled_error_m``, ``rmse_yaw_rad``, ``rmse_position_m``, ``max_position_error_m`` (m, rad), ``crashed``,
-    ``crash_time_s``, ``crash_reason``, ``solve_ms`` (median, p95, max), ``deadline_misses``, ``solver_failures``,
-    ``fallbacks`` (LQR fallbacks flown) and ``steps`` (control periods flown).
+    ``crash_time_s``, ``crash_reason``, ``solve_ms`` (median, p95, max: each period's load, the controller's
+    preparation of the next period included), ``deadline_misses``, ``solver_failures``, ``fallbacks`` (LQR fallbacks
+    flown) and ``steps`` (control periods flown); ``latency_ms`` (median, p95, p99, max: from the measurement to the
+    input out, a state estimator's time included).
 
     The flight: ``shifted_plan`` (failed solves that flew the shifted plan), ``deadline_fallbacks`` (real time:
     periods whose plan missed its deadline), ``failure_causes`` (solver status: count), ``preflight`` and
@@ -88,6 +91,7 @@ class RunRecord(Mapping):
     vehicle: Any = _absent()
     estimator: Any = _absent()
     qp: Any = _absent()
+    scheme: Any = _absent()
     level: Any = _absent()
     inputs_sha256: Any = _absent()
     gust_peak_error_m: Any = _absent()
@@ -101,6 +105,7 @@ class RunRecord(Mapping):
     crash_time_s: Any = _absent()
     crash_reason: Any = _absent()
     solve_ms: Any = _absent()
+    latency_ms: Any = _absent()
     deadline_misses: Any = _absent()
     solver_failures: Any = _absent()
     fallbacks: Any = _absent()

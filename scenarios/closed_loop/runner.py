@@ -39,7 +39,7 @@ from sim.plants.named import PLANTS
 
 from ..errors import ScenarioError
 from .library import get_scenario
-from .metrics import closed_loop_metrics
+from .metrics import closed_loop_metrics, latency_stats
 from .record import NOT_FLOWN, RunRecord, input_hashes, not_flown
 
 #: Longest MPC horizon a run accepts, steps (5 s): five times the 1 s over which the models' open-loop error is
@@ -336,6 +336,10 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
     else:
         metrics = dict(NOT_FLOWN)
     pre = None if ctrl is None else ctrl.preflight    # the SQP's plan before take-off: what it did, and how long
+    from mpc.controllers.sqp import SQPMPC
+
+    # the SQP's real-time iteration is named (the iterating SQP's records stay as they were)
+    scheme = {"scheme": ctrl.s.scheme} if isinstance(ctrl, SQPMPC) and ctrl.s.scheme != "sqp" else {}
     failed, lqr_fb = tr.solver_failed[:k_end], tr.lqr_fallback[:k_end]
     # Real time: periods whose plan could not be made before the deadline (the fallback's input went out).
     late = int(np.sum(failed & (tr.status[:k_end] == DEADLINE_STATUS))) if realtime and error is None else None
@@ -355,7 +359,8 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
         run_id=spec.run_id, scenario=sc.name, controller=spec.controller, model=spec.model_name,
         model_file=None if sha is None else str(spec.model), model_sha256=sha, seed=sc.seed, member=spec.member,
         horizon=spec.horizon, timing=spec.timing, plant=spec.plant, vehicle=vehicle.name, estimator=spec.estimator,
-        qp=flown_qp(spec, sqp), level=spec.level, inputs_sha256=inputs, **metrics,
+        qp=flown_qp(spec, sqp), **scheme, level=spec.level, inputs_sha256=inputs, **metrics,
+        latency_ms=latency_stats(tr.latency_s[:k_end]) if error is None else None,
         shifted_plan=int(np.sum(failed & ~lqr_fb)), deadline_fallbacks=late, failure_causes=causes,
         preflight=None if pre is None else {"iterations": int(pre.iterations), "status": pre.status},
         preflight_ms=None if pre is None else 1e3 * pre.solve_time_s, error=error, wall_time_s=wall,
