@@ -316,3 +316,28 @@ def test_in_real_time_the_sqp_flies_the_real_time_iteration_and_its_record_says_
     assert "scheme" not in r and r["latency_ms"] is not None
     r, _ = fly_run(RunSpec("hover", "sqp", "oracle"))           # ideal timing: the SQP iterates, as before
     assert "scheme" not in r
+
+
+def test_the_extra_states_propagated_ahead_are_the_ones_propagated_at_the_call(monkeypatch):
+    """The preparation steps the model's extra states (the high-fidelity equations' rotor speeds) under the input it
+    sent, out of the next input's path; the flight is the one that propagates them at the next call, bit for bit.
+    An input applied that is not the one sent is propagated as before."""
+    from mpc.prediction.extended import ExtraStateTracker
+    from sim.params import HIGH_FIDELITY
+
+    model = AnalyticModel(fidelity=HIGH_FIDELITY)
+    _, ahead, infos = fly(RTI, model=model, seconds=0.3)
+    calls = []
+    monkeypatch.setattr(ExtraStateTracker, "ahead", lambda self, u: calls.append(u))
+    _, late, again = fly(RTI, model=model, seconds=0.3)
+    assert calls and ahead == late
+    for a, b in zip(infos, again):
+        np.testing.assert_array_equal(a.predicted, b.predicted)
+    monkeypatch.undo()
+    t = ExtraStateTracker(model, lambda x, t: np.full(4, 0.5))
+    x = start()
+    z0 = t.full(x)
+    u = np.array([0.6, 0.0, 0.001, 0.0])
+    t.ahead(u)
+    t.applied(u + 1e-3)                                # not the input sent: propagated as before
+    np.testing.assert_array_equal(t.full(x)[12:], model.step(z0, u + 1e-3)[0][12:])

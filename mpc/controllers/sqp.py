@@ -408,6 +408,8 @@ class SQPMPC(LTVMPC):
         """
         if self.s.scheme != "rti" or self._plan_x is None or self._t_call is None:
             return
+        if self._fed is not None:
+            self.tracker.ahead(self._fed[1])    # the model's extra states for the next call, out of its input's path
         clock = self.clock.begin(self.clock.now(), None, until)
         fresh = self._prepared is not None and self._prepared.t == self._t_call   # the QP in hand is this period's
         if fresh and not clock.ends_in_time(clock.expect["preparation"]):

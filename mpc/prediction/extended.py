@@ -140,6 +140,7 @@ class ExtraStateTracker:
         self._start = start
         self._z: np.ndarray | None = None      # last full state the controller planned from
         self._pending: list[np.ndarray] = []
+        self._ahead: tuple | None = None       # (input, the next full state under it), made by ahead()
 
     @property
     def active(self) -> bool:
@@ -148,7 +149,18 @@ class ExtraStateTracker:
 
     def reset(self) -> None:
         """Forget the flight (the next call starts from the equilibrium again)."""
-        self._z, self._pending = None, []
+        self._z, self._pending, self._ahead = None, [], None
+
+    def ahead(self, u) -> None:
+        """Propagate the last full state now, under the input ``u`` (4,) just sent, before the period is flown: the
+        next :meth:`full` takes this step instead of making it, when the input it is told was applied is exactly
+        ``u`` (otherwise it propagates as usual). For a controller with time after its input is out (the real-time
+        iteration's preparation): the model's step leaves the next input's path."""
+        self._ahead = None
+        if not self.active or self._z is None or self._pending:
+            return
+        with np.errstate(all="ignore"):
+            self._ahead = (np.array(u, dtype=float), self.model.step(self._z, u)[0])
 
     def applied(self, u) -> None:
         """The input (4,) that was in effect during the period just flown."""
@@ -163,22 +175,24 @@ class ExtraStateTracker:
         if not self.active:
             return x
         if len(x) == self.model.nx:
-            self._pending = []
+            self._pending, self._ahead = [], None
             self._z = np.array(x, dtype=float)
             return self._z.copy()
         if self._z is None:
             e = np.asarray(self._start(x, t), dtype=float).reshape(-1)
         else:
-            z = self._z
+            z, pending = self._z, self._pending
+            if self._ahead is not None and len(pending) == 1 and np.array_equal(pending[0], self._ahead[0]):
+                z, pending = self._ahead[1], []          # propagated ahead under this very input
             with np.errstate(all="ignore"):
-                for u in self._pending:
+                for u in pending:
                     z = self.model.step(z, u)[0]
                     if not np.all(np.isfinite(z)):
                         break
             e = z[NX:]
             if not np.all(np.isfinite(e)):      # a model that diverged: restart from its equilibrium
                 e = np.asarray(self._start(x, t), dtype=float).reshape(-1)
-        self._pending = []
+        self._pending, self._ahead = [], None
         self._z = np.concatenate([x, e])
         return self._z.copy()
 
