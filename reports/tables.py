@@ -433,26 +433,31 @@ def realtime_table(runs: list[dict]) -> str:
         return "No run was flown with real-time timing."
     ideal = {(r["scenario"], r["controller"], r["model"]): r for r in runs if r.get("timing", "ideal") == "ideal"}
     header = ["scenario", "controller", "model", "RMSE ideal (m)", "RMSE real time (m)", "crash (real time)",
-              "solve median / p95 / max (ms)", "deadline misses", "deadline fallbacks", "skipped periods",
-              "solver failures", "fallbacks"]
+              "input latency median / p99 (ms)", "load median / p95 / max (ms)", "deadline misses",
+              "deadline fallbacks", "skipped periods", "solver failures", "fallbacks"]
     rows = []
     unflown = False     # a real-time run without its ideal-timing twin in this folder
     for r in sorted(rt, key=lambda r: (r["scenario"], controller_key(r["controller"]), model_key(r["model"]))):
         i = ideal.get((r["scenario"], r["controller"], r["model"]))
         unflown |= i is None
-        s = r.get("solve_ms") or {}
-        rows.append([r["scenario"], controller_label(r["controller"]), r["model"],
+        s, lat = r.get("solve_ms") or {}, r.get("latency_ms") or {}
+        label = controller_label(r["controller"]) + (" (real-time iteration)" if r.get("scheme") == "rti" else "")
+        rows.append([r["scenario"], label, r["model"],
                      "not flown" if i is None else (crash_text(i) if i.get("crashed") else fmt(i.get("rmse_position_m"))),
                      fmt(r.get("rmse_position_m")), crash_text(r) if r.get("crashed") else "no",
+                     " / ".join(fmt(lat.get(k), ".2f") for k in ("median", "p99")) if lat else "-",
                      " / ".join(fmt(s.get(k), ".1f") for k in ("median", "p95", "max")) if s else "-",
                      r.get("deadline_misses"), fmt(r.get("deadline_fallbacks"), "d"), r.get("skipped_periods"),
                      r.get("solver_failures"), r.get("fallbacks")])
     return ("With real-time timing the input computed from the measurement at a period takes effect after the "
             "call's measured wall time, rounded up to the simulator's 1 ms substep; a call that overruns the "
             f"{DT_S * 1e3:.0f} ms period keeps the previous input until it returns, and the periods it overran are "
-            "skipped (the controller is not called). Ideal timing applies every input at once. The SQP runs "
-            f"with its {budget_ms:g} ms budget in real time and without it (at most its iteration limit) in ideal "
-            "timing. In real time the MPCs on OSQP must send their input 1 ms before the period ends: a period "
+            "skipped (the controller is not called). Ideal timing applies every input at once. In real time the "
+            "SQP flies the real-time iteration: its input waits for one QP (the input latency, from the measurement "
+            "to the input out, a state estimator's time included), and the derivatives and the next QP are prepared "
+            "after the input is out (the load counts both); in ideal timing it iterates without its "
+            f"{budget_ms:g} ms budget (at most its iteration limit). In real time the MPCs on OSQP must send their "
+            "input 1 ms before the period ends: a period "
             "whose plan cannot be made by then sends the shifted plan at once (a deadline fallback, counted among "
             "the solver failures too). A sweep flies these runs after all the others, one at a time, so that no "
             "other run of it competes for the cores (and a second sweep cannot use the same folder); other "

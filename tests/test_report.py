@@ -544,3 +544,19 @@ def test_realtime_table_counts_deadline_fallbacks_where_a_run_has_them():
     rows = {line.split("|")[2].strip(): [c.strip() for c in line.strip("|").split("|")] for line in lines[-2:]}
     col = head.index("deadline fallbacks")
     assert rows["SQP"][col] == "4" and rows["NMPC"][col] == "–"
+
+
+def test_realtime_table_shows_the_input_latency_and_the_load_and_names_the_real_time_iteration():
+    from reports.tables import realtime_table
+
+    r = {"scenario": "figure8-fast", "model": "oracle", "timing": "realtime", "controller": "sqp", "scheme": "rti",
+         "rmse_position_m": 0.1, "crashed": False, "solve_ms": {"median": 1.2, "p95": 1.5, "max": 2.6},
+         "latency_ms": {"median": 0.25, "p95": 0.3, "p99": 0.41, "max": 0.5}, "deadline_misses": 0}
+    table = realtime_table([r, {**r, "controller": "ltv", "scheme": None, "latency_ms": None}])
+    lines = table.splitlines()
+    head = [c.strip() for c in lines[-4].strip("|").split("|")]
+    rows = {line.split("|")[2].strip(): [c.strip() for c in line.strip("|").split("|")] for line in lines[-2:]}
+    sqp = rows["SQP (real-time iteration)"]
+    assert sqp[head.index("input latency median / p99 (ms)")] == "0.25 / 0.41"
+    assert sqp[head.index("load median / p95 / max (ms)")] == "1.2 / 1.5 / 2.6"
+    assert rows["LTV-MPC"][head.index("input latency median / p99 (ms)")] == "-"
