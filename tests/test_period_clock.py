@@ -83,6 +83,7 @@ def test_slow_periods_age_out_and_the_work_they_held_back_runs_again(recent):
         out.update({k: c.fits(c.expect[k]) for k in ("full_derivatives", "cold_start")})
         out["derivatives"] = not c.no_time_to_start()
         out["preparation"] = c.ends_in_time(c.expect["preparation"])
+        out["correction"] = c.ends_in_time(c.expect["correction"])
         return out
 
     kinds = (*OPTIONAL, "derivatives")
@@ -135,7 +136,7 @@ def test_optional_work_is_expected_to_take_its_longest_recent_time_and_the_rest_
     for k in RECORDED:
         want = 7e-3 if k in OPTIONAL else 2e-3
         assert c.expect[k] == pytest.approx(want, abs=TOL["seconds"]), k
-    assert set(OPTIONAL) == {"line_search", "full_derivatives", "cold_start", "preparation"}
+    assert set(OPTIONAL) == {"line_search", "full_derivatives", "cold_start", "preparation", "correction"}
     # A full refresh is judged by its longest recent time: 7 ms of it, then the assembly and the solve.
     c.begin(fake(), deadline=fake() + 7e-3 + 2e-3 + 2e-3 + 1e-6)
     assert c.fits(c.expect["full_derivatives"])

@@ -341,3 +341,41 @@ def test_the_extra_states_propagated_ahead_are_the_ones_propagated_at_the_call(m
     t.ahead(u)
     t.applied(u + 1e-3)                                # not the input sent: propagated as before
     np.testing.assert_array_equal(t.full(x)[12:], model.step(z0, u + 1e-3)[0][12:])
+
+
+def test_a_correction_is_one_full_step_of_the_prepared_qp_at_the_predicted_state_when_time_allows():
+    """rti_corrections=1: the preparation solves its QP at the next state it predicts, and prepares again along
+    that plan; on a fake clock a correction whose longest recent time would overrun is not made."""
+    from mpc.controllers.dense_qp import solve_prepared
+
+    c = SQPMPC(AnalyticModel(), FIG8_FAST, SQPSettings(rti_corrections=1, **RTI))
+    fake = FakeClock()
+    c.clock = PeriodClock(fake)
+    x = start()
+    c.prepare(1.0, x0=x)
+    c(x, 0.0)
+    seen = []
+    real = c._prepare_qp
+
+    def spy(t, clock, shift, record=True, plan=None):
+        real(t, clock, shift, record, plan)
+        seen.append(c._prepared)
+
+    c._prepare_qp = spy
+    c.prepare_next(until=1.0)
+    first, second = seen
+    assert c.counts["rti_corrections"] == 1 and c._prepared is second and second.t == first.t == DT
+    fb = solve_prepared(first.dense, first.X[0])
+    np.testing.assert_allclose(second.U, fb.u, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(second.X, first.dense.states(first.X[0], fb.u.ravel()), rtol=0, atol=1e-12)
+    c(x, DT)
+    c.clock.record("correction", 0.02)            # a correction took 20 ms lately: with 9 ms left, none is made
+    seen.clear()
+    c.prepare_next(until=0.009)
+    assert len(seen) == 1 and c.counts["rti_corrections"] == 1
+
+
+@pytest.mark.parametrize("bad", [-1, 1.5, True])
+def test_a_bad_number_of_corrections_is_refused_by_name(bad):
+    with pytest.raises(ConfigurationError, match="rti_corrections must be an integer >= 0"):
+        SQPSettings(scheme="rti", rti_corrections=bad)

@@ -156,6 +156,10 @@ class SQPSettings(LTVSettings):
     # preparation after it is made whatever it takes. A period without a plan (the first without a pre-flight
     # plan, after an LQR fallback) is an SQP period.
     scheme: str = "sqp"
+    # With scheme="rti": SQP iterations the preparation may make on the next period's problem from the next state
+    # it predicts, each when the next measurement leaves it time (at the longest recent one's time): the prepared
+    # QP is solved there, its full step taken, and the QP prepared again along the new plan. 0: none (acados' RTI).
+    rti_corrections: int = 0
     refresh_tol: float = 0.05               # acceptable deviations (max over the state and input)
     max_refresh_stages: int = 8             # stages refreshed per iteration at most
     full_refresh_above: int = 15            # more stages than this moved (the plan changed): all are refreshed
@@ -184,6 +188,9 @@ class SQPSettings(LTVSettings):
                                      f"found {self.hessian!r}")
         if self.cold_start not in ("rollout", "hold"):
             raise ConfigurationError(f"cold_start must be 'rollout' or 'hold'; found {self.cold_start!r}")
+        if isinstance(self.rti_corrections, bool) or not isinstance(self.rti_corrections, (int, np.integer)) \
+                or self.rti_corrections < 0:
+            raise ConfigurationError(f"rti_corrections must be an integer >= 0; found {self.rti_corrections!r}")
         for name in ("step_tol", "defect_tol", "refresh_tol"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
@@ -268,6 +275,7 @@ class SQPMPC(LTVMPC):
         self.counts["preparations"] = 0           # the real-time iteration's QPs prepared
         self.counts["preparations_skipped"] = 0   # preparations not started: they would end past the measurement
         self.counts["preparations_reused"] = 0    # feedbacks that solved a QP prepared for an earlier period
+        self.counts["rti_corrections"] = 0        # SQP iterations made by preparations (rti_corrections)
         self._prepared: Preparation | None = None  # the QP the next feedback solves (scheme "rti")
         self._t_call: float | None = None         # the time of the last call, s
         self._fed = None                          # the state the last feedback embedded and the input it sent
@@ -416,6 +424,32 @@ class SQPMPC(LTVMPC):
             self.counts["preparations_skipped"] += 1
             return
         self._prepare_qp(self._t_call + DT, clock, shift=True)
+        for _ in range(self.s.rti_corrections):
+            prep = self._prepared
+            if prep is None or not clock.ends_in_time(clock.expect["correction"]):
+                break
+            t0 = clock.now()
+            plan = self._corrected(prep)
+            if plan is None:
+                break
+            self._prepare_qp(prep.t, clock, shift=False, record=False, plan=plan)
+            self.counts["rti_corrections"] += 1
+            clock.record("correction", clock.now() - t0)
+
+    def _corrected(self, prep: Preparation):
+        """One SQP iteration of the prepared period's problem at the state it predicts (``prep.X[0]``): the plan
+        ``(X, U)`` of the prepared QP's full step, or None when it is not solved."""
+        x = prep.X[0]
+        if prep.dense is not None:
+            from .dense_qp import solve_prepared
+
+            fb = solve_prepared(prep.dense, x)
+            return (prep.dense.states(x, fb.u.ravel()), fb.u) if fb.solved else None
+        self.update_settings(time_limit=NO_TIME_LIMIT)
+        res = self._solver.solve(raise_error=False)        # its bounds already hold x (the preparation's own)
+        if not self._solved(res):
+            return None
+        return tuple(a.copy() for a in self._unpack(res.x))
 
     def _next_state(self) -> np.ndarray:
         """Where the next period starts, as the preparation's plan does: the model's step from the state the last
@@ -429,10 +463,11 @@ class SQPMPC(LTVMPC):
                 return nxt
         return self._plan_x[1]
 
-    def _prepare_qp(self, t: float, clock, shift: bool, record: bool = True) -> None:
+    def _prepare_qp(self, t: float, clock, shift: bool, record: bool = True, plan=None) -> None:
         """Build the QP of the period at ``t`` (s) along the plan (``shift``: moved on by one period, as a plan made
         for the period before), for the next feedback (:class:`Preparation`). ``record``: its time joins the recent
-        preparations' (not the one before take-off, which has no limit and pays the first calls' set-up)."""
+        preparations' (not the one before take-off, which has no limit and pays the first calls' set-up).
+        ``plan``: ``(X, U)`` made for the period at ``t`` (a correction's), instead of the controller's plan."""
         N = self.N
         t0 = clock.now()
         ref, u_ref = self._horizon_reference(t)
@@ -442,7 +477,7 @@ class SQPMPC(LTVMPC):
                 U[-1] = self._tail_input(X[-2], ref[-2], u_ref[-1])
             self._shift_kept()
         else:
-            X, U = self._plan_x.copy(), self._plan_u.copy()
+            X, U = (self._plan_x.copy(), self._plan_u.copy()) if plan is None else (plan[0].copy(), plan[1].copy())
         self._refreshed = self._full_refreshes = 0
         self._cold_period = False
         split = dict.fromkeys(SPLIT, 0.0)

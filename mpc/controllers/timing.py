@@ -38,13 +38,15 @@ MIN_TIME_LIMIT_S = 1e-4
 #: search, a full refresh of the Jacobians), the longest of them.
 RECENT_PERIODS = 20
 #: Work a period may leave out (a cold start in flight: the LQR flies meanwhile; the real-time iteration's
-#: preparation: the last QP prepared is solved instead): its expected time is the longest recent one.
-OPTIONAL = ("line_search", "full_derivatives", "cold_start", "preparation")
+#: preparation: the last QP prepared is solved instead; a correction within it): its expected time is the longest
+#: recent one.
+OPTIONAL = ("line_search", "full_derivatives", "cold_start", "preparation", "correction")
 #: What the clock keeps recent times of: a period's first derivatives, QP assembly and QP solve, line searches, the
 #: derivatives of every stage (a full refresh of the SQP's partial path), and a cold start's time to its first plan
 #: (from the period's start: the rollout, the derivatives and the first QP), and the real-time iteration's
-#: preparations.
-RECORDED = ("derivatives", "assembly", "qp", "line_search", "full_derivatives", "cold_start", "preparation")
+#: preparations and the corrections they make.
+RECORDED = ("derivatives", "assembly", "qp", "line_search", "full_derivatives", "cold_start", "preparation",
+            "correction")
 
 
 def _median(values) -> float:
