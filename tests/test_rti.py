@@ -227,6 +227,23 @@ def test_with_the_estimator_a_learned_16_state_model_flies_as_the_iterating_sqp(
     assert abs(rti["rmse_position_m"] / sqp["rmse_position_m"] - 1.0) <= TOL["estimator_rmse_rel"]
 
 
+def test_the_skip_rule_holds_late_in_a_flight_where_period_times_do_not_add_up_bit_for_bit():
+    """At t = 0.07 s the QP prepared for it was made for 0.06 + 0.01 = 0.07000000000000001 s: still the period's own,
+    so a preparation that would overrun is skipped there too."""
+    assert 0.06 + DT != 7 * DT
+    c = SQPMPC(AnalyticModel(), FIG8_FAST, SQPSettings(**RTI))
+    x = start()
+    c.prepare(1.0, x0=x)
+    for k in range(7):
+        c(x, k * DT)
+        c.prepare_next()
+    c(x, 7 * DT)
+    assert c._prepared.t != 7 * DT
+    c.clock.record("preparation", 1e3)              # a preparation took 1000 s lately
+    c.prepare_next(until=c.clock.now() + 0.009)
+    assert c.counts["preparations_skipped"] == 1
+
+
 @pytest.mark.parametrize("field,value,match", [("scheme", "acados", "scheme must be one of sqp, rti"),
                                                ("hessian", "exact", "scheme 'rti' needs hessian 'gauss-newton'")])
 def test_bad_rti_settings_are_refused_by_name(field, value, match):

@@ -419,7 +419,9 @@ class SQPMPC(LTVMPC):
         if self._fed is not None:
             self.tracker.ahead(self._fed[1])    # the model's extra states for the next call, out of its input's path
         clock = self.clock.begin(self.clock.now(), None, until)
-        fresh = self._prepared is not None and self._prepared.t == self._t_call   # the QP in hand is this period's
+        # the QP in hand was prepared for the period just flown (times k dt: compared to half a period, not bit for
+        # bit, since (k - 1) dt + dt need not equal k dt)
+        fresh = self._prepared is not None and abs(self._prepared.t - self._t_call) < 0.5 * DT
         if fresh and not clock.ends_in_time(clock.expect["preparation"]):
             self.counts["preparations_skipped"] += 1
             return
