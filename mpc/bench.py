@@ -234,7 +234,8 @@ def derivative_paths(path, stages: int = HORIZON, repeats: int = 200) -> dict:
     """Median time (us) of A and B over ``stages`` states across the flight envelope, by each path, and the error
     of the central differences against the derivative graph (relative Frobenius norm of ``[A B]``, max over stages).
 
-    Paths: the derivative graph in float64 and its float32 copy (onnxruntime), central differences of the model
+    Paths: the derivative graph in float64 and its float32 copy (onnxruntime; the float32 one also stage by stage,
+    one call each, and batched on two intra-op threads instead of one), central differences of the model
     (one onnxruntime call, 33 evaluations per stage), and CasADi's import of the model with its AD Jacobian
     (mapped over the stages; None when CasADi cannot import the graph).
     """
@@ -253,8 +254,13 @@ def derivative_paths(path, stages: int = HORIZON, repeats: int = 200) -> dict:
         bare_path = Path(d) / Path(path).name
         shutil.copy(path, bare_path)
         bare = OnnxModel(bare_path)
+    two = OnnxModel(path, threads=2)
     out = {"graph_float64_us": _median_us(lambda: graph.linearize(x, u), repeats),
            "graph_float32_us": _median_us(lambda: graph.linearize_single(x, u), repeats),
+           # the same float32 graph stage by stage (one call per stage), and batched on two intra-op threads
+           "graph_float32_per_stage_us": _median_us(
+               lambda: [graph.linearize_single(x[i:i + 1], u[i:i + 1]) for i in range(stages)], max(10, repeats // 10)),
+           "graph_float32_two_threads_us": _median_us(lambda: two.linearize_single(x, u), repeats),
            "differences_us": _median_us(lambda: bare.linearize(x, u), repeats)}
     _, A0, B0 = graph.linearize(x, u)
     _, A, B = bare.linearize(x, u)
@@ -855,13 +861,15 @@ def _main_derivatives(args) -> int:
     out = {"python": platform.python_version(), "cpus": os.cpu_count(), "stages": HORIZON, "models": {}}
     print(f"A and B at {HORIZON} states across the flight envelope, median us per call "
           f"(one call = one period's linearization of the LTV-MPC, or one SQP iteration's)")
-    print(f"{'model':<22}{'graph f64':>10}{'graph f32':>10}{'differences':>12}{'CasADi AD':>11}{'diff. error':>13}")
+    print(f"{'model':<22}{'graph f64':>10}{'graph f32':>10}{'f32 /stage':>11}{'f32 2 thr':>10}{'differences':>12}"
+          f"{'CasADi AD':>11}{'diff. error':>13}")
     for f in files:
         r = derivative_paths(f)
         out["models"][f.stem] = r
         cas = "refused" if r["casadi_import_us"] is None else f"{r['casadi_import_us']:.0f}"
-        print(f"{f.stem:<22}{r['graph_float64_us']:>10.0f}{r['graph_float32_us']:>10.0f}{r['differences_us']:>12.0f}"
-              f"{cas:>11}{r['differences_rel_error']:>13.1e}", flush=True)
+        print(f"{f.stem:<22}{r['graph_float64_us']:>10.0f}{r['graph_float32_us']:>10.0f}"
+              f"{r['graph_float32_per_stage_us']:>11.0f}{r['graph_float32_two_threads_us']:>10.0f}"
+              f"{r['differences_us']:>12.0f}{cas:>11}{r['differences_rel_error']:>13.1e}", flush=True)
     return _write(args.json or Path("bench_derivatives.json"), out)
 
 
