@@ -247,18 +247,19 @@ def prepare_ltv_qp(qp: LTVQP, matrices: Condensed | None = None) -> PreparedQP:
     if matrices is None:
         matrices = condense_matrices(qp)
     N, nx, nu = qp.B.shape
-    Phi = np.empty((N + 1, nx, nx))
-    Psi = np.empty((N + 1, nx, nx))
-    Phi[0], Psi[0] = np.eye(nx), 0.0
-    v = np.empty((N + 1, nx))
-    v[0] = 0.0
+    # M_k = [Phi_k | Psi_k | v_k], one product per stage: M_{k+1} = A_k M_k + [0 | I | c_k]
+    M = np.empty((N + 1, nx, 2 * nx + 1))
+    M[0] = 0.0
+    M[0, :, :nx] = np.eye(nx)
+    step = np.zeros((N, nx, 2 * nx + 1))
+    step[:, :, nx:2 * nx] = np.eye(nx)
+    step[:, :, -1] = qp.c
     for k in range(N):
-        np.matmul(qp.A[k], Phi[k], out=Phi[k + 1])
-        np.matmul(qp.A[k], Psi[k], out=Psi[k + 1])
-        Psi[k + 1] += np.eye(nx)
-        v[k + 1] = qp.A[k] @ v[k] + qp.c[k]
+        np.matmul(qp.A[k], M[k], out=M[k + 1])
+        M[k + 1] += step[k]
     return PreparedQP(qp=qp, H=matrices.H, C=matrices.C, G=matrices.G,
-                      WGt=np.ascontiguousarray(matrices.WG.reshape(-1, N * nu).T), Phi=Phi, Psi=Psi, v=v)
+                      WGt=np.ascontiguousarray(matrices.WG.reshape(-1, N * nu).T), Phi=M[:, :, :nx],
+                      Psi=M[:, :, nx:2 * nx], v=M[:, :, -1])
 
 
 @dataclass(frozen=True)
