@@ -88,7 +88,9 @@ PATHS = {"full": {"jacobian_refresh": "full", "scheme": "sqp"},
 DENSE_PATH = {"dense": {"jacobian_refresh": "partial", "qp": "daqp", "scheme": "sqp"}}
 #: And the real-time iteration (:attr:`mpc.controllers.sqp.SQPSettings.scheme`) on the dense QP, when DAQP is
 #: installed: the input waits for the feedback's QP; the derivatives follow it (their partial refresh).
-RTI_PATH = {"rti": {"jacobian_refresh": "partial", "qp": "daqp", "scheme": "rti"}}
+RTI_PATH = {"rti": {"jacobian_refresh": "partial", "qp": "daqp", "scheme": "rti"},
+            # and with one correction iteration in each preparation, when the next measurement leaves it time
+            "rti1": {"jacobian_refresh": "partial", "qp": "daqp", "scheme": "rti", "rti_corrections": 1}}
 #: Every path a benchmark can fly by name.
 ALL_PATHS = {**PATHS, **DENSE_PATH, **RTI_PATH}
 #: The paths that need DAQP.

@@ -374,8 +374,8 @@ def test_a_correction_is_one_full_step_of_the_prepared_qp_at_the_predicted_state
     seen = []
     real = c._prepare_qp
 
-    def spy(t, clock, shift, record=True, plan=None):
-        real(t, clock, shift, record, plan)
+    def spy(t, clock, shift, record=True, plan=None, ahead=None):
+        real(t, clock, shift, record, plan, ahead)
         seen.append(c._prepared)
 
     c._prepare_qp = spy

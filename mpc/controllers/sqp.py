@@ -416,8 +416,9 @@ class SQPMPC(LTVMPC):
         """
         if self.s.scheme != "rti" or self._plan_x is None or self._t_call is None:
             return
-        if self._fed is not None:
-            self.tracker.ahead(self._fed[1])    # the model's extra states for the next call, out of its input's path
+        # the model's extra states for the next call, out of its input's path (and the model's step the plan starts
+        # from: the tracker's last full state is the one fed back)
+        ahead = None if self._fed is None else self.tracker.ahead(self._fed[1])
         clock = self.clock.begin(self.clock.now(), None, until)
         # the QP in hand was prepared for the period just flown (times k dt: compared to half a period, not bit for
         # bit, since (k - 1) dt + dt need not equal k dt)
@@ -425,7 +426,7 @@ class SQPMPC(LTVMPC):
         if fresh and not clock.ends_in_time(clock.expect["preparation"]):
             self.counts["preparations_skipped"] += 1
             return
-        self._prepare_qp(self._t_call + DT, clock, shift=True)
+        self._prepare_qp(self._t_call + DT, clock, shift=True, ahead=ahead)
         for _ in range(self.s.rti_corrections):
             prep = self._prepared
             if prep is None or not clock.ends_in_time(clock.expect["correction"]):
@@ -453,28 +454,33 @@ class SQPMPC(LTVMPC):
             return None
         return tuple(a.copy() for a in self._unpack(res.x))
 
-    def _next_state(self) -> np.ndarray:
+    def _next_state(self, ahead=None) -> np.ndarray:
         """Where the next period starts, as the preparation's plan does: the model's step from the state the last
         feedback embedded under the input it sent (the QP's own prediction is linearized about the point the QP was
-        prepared at, which the state may have left); the plan's next state when there is none or it is not finite."""
+        prepared at, which the state may have left); the plan's next state when there is none or it is not finite.
+        ``ahead``: that step already made by the extra-state tracker (without the disturbance offset), or None."""
         fed, self._fed = self._fed, None
         if fed is not None:
-            with np.errstate(all="ignore"):
-                nxt = self.model.step(fed[0], fed[1])[0]
+            if ahead is not None:
+                nxt = ahead if self.model.offset is None else ahead + self.model.offset
+            else:
+                with np.errstate(all="ignore"):
+                    nxt = self.model.step(fed[0], fed[1])[0]
             if np.all(np.isfinite(nxt)):
                 return nxt
         return self._plan_x[1]
 
-    def _prepare_qp(self, t: float, clock, shift: bool, record: bool = True, plan=None) -> None:
+    def _prepare_qp(self, t: float, clock, shift: bool, record: bool = True, plan=None, ahead=None) -> None:
         """Build the QP of the period at ``t`` (s) along the plan (``shift``: moved on by one period, as a plan made
         for the period before), for the next feedback (:class:`Preparation`). ``record``: its time joins the recent
         preparations' (not the one before take-off, which has no limit and pays the first calls' set-up).
-        ``plan``: ``(X, U)`` made for the period at ``t`` (a correction's), instead of the controller's plan."""
+        ``plan``: ``(X, U)`` made for the period at ``t`` (a correction's), instead of the controller's plan;
+        ``ahead``: the model's step from the state fed back, made by the extra-state tracker (:meth:`_next_state`)."""
         N = self.N
         t0 = clock.now()
         ref, u_ref = self._horizon_reference(t)
         if shift:
-            X, U = self._nominal(self._next_state(), u_ref)    # the plan moved on, from the next state predicted
+            X, U = self._nominal(self._next_state(ahead), u_ref)   # the plan moved on, from the next state predicted
             if self.s.tail == "model":
                 U[-1] = self._tail_input(X[-2], ref[-2], u_ref[-1])
             self._shift_kept()

@@ -151,16 +151,20 @@ class ExtraStateTracker:
         """Forget the flight (the next call starts from the equilibrium again)."""
         self._z, self._pending, self._ahead = None, [], None
 
-    def ahead(self, u) -> None:
+    def ahead(self, u) -> np.ndarray | None:
         """Propagate the last full state now, under the input ``u`` (4,) just sent, before the period is flown: the
         next :meth:`full` takes this step instead of making it, when the input it is told was applied is exactly
         ``u`` (otherwise it propagates as usual). For a controller with time after its input is out (the real-time
-        iteration's preparation): the model's step leaves the next input's path."""
+        iteration's preparation): the model's step leaves the next input's path.
+
+        Returns the model's next full state (nx,) from the last full state under ``u``, or None (no extra states,
+        or nothing to propagate from)."""
         self._ahead = None
         if not self.active or self._z is None or self._pending:
-            return
+            return None
         with np.errstate(all="ignore"):
             self._ahead = (np.array(u, dtype=float), self.model.step(self._z, u)[0])
+        return self._ahead[1].copy()
 
     def applied(self, u) -> None:
         """The input (4,) that was in effect during the period just flown."""
