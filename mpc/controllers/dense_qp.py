@@ -191,11 +191,37 @@ def condense(qp: LTVQP, matrices: Condensed | None = None):
     w[0] = qp.x0
     for k in range(N):
         w[k + 1] = qp.A[k] @ w[k] + qp.c[k]
-    f = matrices.WG.reshape(-1, N * nu).T @ (w - qp.ref).ravel() - (qp.u_ref @ qp.R).ravel()
+    f, lo, hi = _cost_and_bounds(qp, matrices.WG.reshape(-1, N * nu).T, w, qp.ref, qp.u_ref)
+    return matrices.H, f, matrices.C, lo, hi, matrices.G, w
+
+
+def _cost_and_bounds(qp: LTVQP, WGt: np.ndarray, w: np.ndarray, ref: np.ndarray, u_ref: np.ndarray):
+    """The dense QP's linear cost ``f`` (n,) and its rows' bounds ``lo``, ``hi`` (r,), for the states with no input
+    ``w`` (N + 1, nx), the stacked ``(W_k G_k)'`` ``WGt`` (n, (N + 1) nx), the reference ``ref`` and the
+    feed-forward ``u_ref``: ``f = WGt (w - ref) - R u_ref``; the input bounds at every stage, then the state bounds
+    less ``S w_k`` at stages 1..N."""
+    N = len(qp.c)
+    f = WGt @ (w - ref).ravel() - (u_ref @ qp.R).ravel()
     Sw = (w[1:] @ qp.S.T).ravel()
     lo = np.concatenate([np.tile(qp.lo_u, N), np.tile(qp.lo_s, N) - Sw])
     hi = np.concatenate([np.tile(qp.hi_u, N), np.tile(qp.hi_s, N) - Sw])
-    return matrices.H, f, matrices.C, lo, hi, matrices.G, w
+    return f, lo, hi
+
+
+def _daqp(H, f, C, lo, hi, time_limit_s: float | None):
+    """DAQP on the dense QP ``min u' H u / 2 + f' u, lo <= C u <= hi``: ``(u, flag, iterations, lam)``, its own
+    errors wrapped in a :class:`SolverError` that says what was asked of it."""
+    from ctypes import c_int
+
+    import daqp
+
+    opts = {} if time_limit_s is None else {"time_limit": float(time_limit_s)}
+    try:
+        u, _, flag, info = daqp.solve(H, f, C, hi, lo, np.zeros(len(lo), dtype=c_int), **opts)
+    except Exception as e:  # noqa: BLE001 - DAQP's own errors, wrapped with what was asked of it
+        raise SolverError(f"DAQP failed on a QP of {H.shape[0]} inputs and {C.shape[0]} rows: {e}") from e
+    lam = np.asarray(info.get("lam", np.full(len(lo), np.nan)), dtype=float)
+    return np.asarray(u, dtype=float), int(flag), int(info.get("iterations", 0)), lam
 
 
 @dataclass(frozen=True)
@@ -288,30 +314,13 @@ def solve_prepared(prep: PreparedQP, x0: np.ndarray, time_limit_s: float | None 
     (N + 1, nx) and ``u_ref`` (N, nu): the reference and feed-forward now (None: the prepared QP's). Its inputs
     equal :func:`solve_ltv_qp`'s for the QP with these. A failure of DAQP is data (``flag``, ``solved``).
     """
-    from ctypes import c_int
-
-    import daqp
-
     t0 = time.perf_counter()
     qp = prep.qp
-    x0 = np.asarray(x0, dtype=float)
-    ref = qp.ref if ref is None else ref
-    u_ref = qp.u_ref if u_ref is None else u_ref
-    w = prep.free(x0, delta)
-    N = len(qp.c)
-    f = prep.WGt @ (w - ref).ravel() - (u_ref @ qp.R).ravel()
-    Sw = (w[1:] @ qp.S.T).ravel()
-    lo = np.concatenate([np.tile(qp.lo_u, N), np.tile(qp.lo_s, N) - Sw])
-    hi = np.concatenate([np.tile(qp.hi_u, N), np.tile(qp.hi_s, N) - Sw])
-    opts = {} if time_limit_s is None else {"time_limit": float(time_limit_s)}
-    try:
-        u, _, flag, info = daqp.solve(prep.H, f, prep.C, hi, lo, np.zeros(len(lo), dtype=c_int), **opts)
-    except Exception as e:  # noqa: BLE001 - DAQP's own errors, wrapped with what was asked of it
-        raise SolverError(f"DAQP failed on a QP of {prep.H.shape[0]} inputs and {prep.C.shape[0]} rows: {e}") from e
-    nu = qp.B.shape[2]
-    lam = np.asarray(info.get("lam", np.full(len(lo), np.nan)), dtype=float)
-    return Feedback(u=np.asarray(u, dtype=float).reshape(-1, nu), flag=int(flag),
-                    iterations=int(info.get("iterations", 0)), lam=lam, solve_s=time.perf_counter() - t0)
+    w = prep.free(np.asarray(x0, dtype=float), delta)
+    f, lo, hi = _cost_and_bounds(qp, prep.WGt, w, qp.ref if ref is None else ref, qp.u_ref if u_ref is None else u_ref)
+    u, flag, iterations, lam = _daqp(prep.H, f, prep.C, lo, hi, time_limit_s)
+    return Feedback(u=u.reshape(-1, qp.B.shape[2]), flag=flag, iterations=iterations, lam=lam,
+                    solve_s=time.perf_counter() - t0)
 
 
 def daqp_installed() -> bool:
@@ -335,30 +344,20 @@ def solve_ltv_qp(qp: LTVQP, time_limit_s: float | None = None, matrices: Condens
     with the same matrices as ``qp`` (the solution's ``matrices`` of it), reused instead of condensed again.
     """
     require_daqp()
-    from ctypes import c_int
-
-    import daqp
-
     t0 = time.perf_counter()
     if matrices is None:
         matrices = condense_matrices(qp)
     H, f, C, lo, hi, G, w = condense(qp, matrices)
     t1 = time.perf_counter()
-    opts = {} if time_limit_s is None else {"time_limit": float(time_limit_s)}
-    try:
-        u, _, flag, info = daqp.solve(H, f, C, hi, lo, np.zeros(len(lo), dtype=c_int), **opts)
-    except Exception as e:  # noqa: BLE001 - DAQP's own errors, wrapped with what was asked of it
-        raise SolverError(f"DAQP failed on a QP of {H.shape[0]} inputs and {C.shape[0]} rows: {e}") from e
+    u, flag, iterations, lam = _daqp(H, f, C, lo, hi, time_limit_s)
     N, nx, nu = qp.B.shape
-    u = np.asarray(u, dtype=float)
-    lam = np.asarray(info.get("lam", np.full(len(lo), np.nan)), dtype=float)
     x = (G.reshape(-1, N * nu) @ u).reshape(N + 1, nx) + w
     U = u.reshape(N, nu)
     m, p = qp.L.shape[0], qp.S.shape[0]
     y_u, y_s = lam[:N * m].reshape(N, m), lam[N * m:].reshape(N, p)
     y_init, y_dyn = _dynamics_multipliers(qp, x, y_s)
-    return DenseSolution(x=x, u=U, y_init=y_init, y_dyn=y_dyn, y_u=y_u, y_s=y_s, flag=int(flag),
-                         iterations=int(info.get("iterations", 0)), solve_s=time.perf_counter() - t0,
+    return DenseSolution(x=x, u=U, y_init=y_init, y_dyn=y_dyn, y_u=y_u, y_s=y_s, flag=flag,
+                         iterations=iterations, solve_s=time.perf_counter() - t0,
                          condense_s=t1 - t0, matrices=matrices)
 
 
