@@ -44,8 +44,9 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
     :data:`ESTIMATOR_RESERVE_S` with a state ``estimator`` (its time counts against the same period), and the SQP
     flies the real-time iteration (:data:`REALTIME_SCHEME`).
     ``sqp``: other :class:`mpc.controllers.sqp.SQPSettings` values for the SQP (for example ``{"jacobian_refresh":
-    "full"}``, or ``{"scheme": "sqp"}`` for the iterating SQP in real time; a ``"qp"`` there wins over ``qp``). ``qp``: the QP solver of the LTV-MPC and the SQP (``"osqp"`` or
-    ``"daqp"``, :attr:`mpc.controllers.ltv.LTVSettings.qp`); the NMPC and the LQR have none.
+    "full"}``, or ``{"scheme": "sqp"}`` for the iterating SQP in real time; a ``"qp"`` there wins over ``qp``).
+    ``qp``: the QP solver of the LTV-MPC and the SQP (``"osqp"`` or ``"daqp"``,
+    :attr:`mpc.controllers.ltv.LTVSettings.qp`); the NMPC and the LQR have none.
     """
     from ..prediction.spec import VehicleSpec
     from .lqr import LQRController
@@ -62,12 +63,11 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
 
         from .sqp import SQPMPC, SQPSettings
         other = {"qp": qp, **(sqp or {})}
-        if timing != "ideal":
-            other = {"scheme": REALTIME_SCHEME, **other}     # in real time the input waits for one QP only
         if timing == "ideal":
             return SQPMPC(model, reference, SQPSettings(horizon=horizon, time_budget_s=None, cold_start_budget_s=None,
                                                         **other), spec=spec)
-        st = SQPSettings(horizon=horizon, **other)
+        # in real time the input waits for one QP only, unless ``sqp`` names the scheme
+        st = SQPSettings(horizon=horizon, **{"scheme": REALTIME_SCHEME, **other})
         if estimator != "none":
             st = dataclasses.replace(st, time_budget_s=st.time_budget_s - ESTIMATOR_RESERVE_S,
                                      cold_start_budget_s=st.cold_start_budget_s - ESTIMATOR_RESERVE_S)

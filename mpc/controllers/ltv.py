@@ -411,14 +411,12 @@ class LTVMPC(MPCBase):
         and OSQP reuses its factorization).
         """
         t0 = time.perf_counter()
-        c = fx - (A @ xb[:, :, None])[:, :, 0] - (B @ ub[:, :, None])[:, :, 0]
+        c = self._constant_terms(fx, A, B, xb, ub)
         if self.s.qp == "daqp" and hess is None:
             return self._solve_dense(x, ref, u_ref, c, A, B, split, t0, same_matrices)
         self._condensed = None      # the dense path's matrices may differ from OSQP's from here on
         mats = {} if same_matrices else {"Ax": self._constraint_values(A, B)}
-        lo, hi = self._l0.copy(), self._u0.copy()
-        lo[:self.nx] = hi[:self.nx] = x
-        lo[self.nx:self._n_eq] = hi[self.nx:self._n_eq] = -c.ravel()
+        lo, hi = self._bounds(x, c)
         q = self._linear_cost(ref, u_ref)
         if hess is not None:
             q = q + hess[1]
@@ -437,11 +435,9 @@ class LTVMPC(MPCBase):
     def _solve_dense(self, x, ref, u_ref, c, A, B, split, t0, same_matrices=False):
         """The QP condensed and solved by DAQP (:mod:`mpc.controllers.dense_qp`), as a result OSQP's callers read. With
         ``same_matrices`` the last dense QP's condensed matrices are reused (only its vectors are condensed)."""
-        from .dense_qp import LTVQP, solve_ltv_qp
+        from .dense_qp import solve_ltv_qp
 
-        L, lo_u, hi_u, S, lo_s, hi_s = self._dense_constraints
-        qp = LTVQP(A=A, B=B, c=c, x0=np.asarray(x, dtype=float), Q=self.Q, P=self.P, R=self.R, ref=ref,
-                   u_ref=u_ref, L=L, lo_u=lo_u, hi_u=hi_u, S=S, lo_s=lo_s, hi_s=hi_s)
+        qp = self._ltv_qp(x, ref, u_ref, c, A, B)
         reuse, self._condensed = self._condensed if same_matrices else None, None
         sol = solve_ltv_qp(qp, self._dense_limit, reuse)
         self._condensed = sol.matrices
@@ -450,6 +446,27 @@ class LTVMPC(MPCBase):
             split["assembly"] += sol.condense_s + (time.perf_counter() - t0 - sol.solve_s)
             split["osqp"] += sol.solve_s - sol.condense_s
         return res
+
+    @staticmethod
+    def _constant_terms(fx, A, B, xb, ub):
+        """The linearized dynamics' constant terms (N, nx): ``c_k = f(xb_k, ub_k) - A_k xb_k - B_k ub_k``."""
+        return fx - (A @ xb[:, :, None])[:, :, 0] - (B @ ub[:, :, None])[:, :, 0]
+
+    def _bounds(self, x, c):
+        """The sparse QP's bounds ``(lo, hi)`` for the initial state ``x`` (nx,) and the dynamics' constant terms
+        ``c`` (N, nx): equalities in their rows, the constraints' own bounds in the others (new arrays)."""
+        lo, hi = self._l0.copy(), self._u0.copy()
+        lo[:self.nx] = hi[:self.nx] = x
+        lo[self.nx:self._n_eq] = hi[self.nx:self._n_eq] = -c.ravel()
+        return lo, hi
+
+    def _ltv_qp(self, x, ref, u_ref, c, A, B):
+        """The QP as :mod:`mpc.controllers.dense_qp` takes it (an ``LTVQP``), with the dense path's constraints."""
+        from .dense_qp import LTVQP
+
+        L, lo_u, hi_u, S, lo_s, hi_s = self._dense_constraints
+        return LTVQP(A=A, B=B, c=c, x0=np.asarray(x, dtype=float), Q=self.Q, P=self.P, R=self.R, ref=ref,
+                     u_ref=u_ref, L=L, lo_u=lo_u, hi_u=hi_u, S=S, lo_s=lo_s, hi_s=hi_s)
 
     def _constraint_values(self, A, B):
         """Values of the QP's constraint matrix (CSC order of ``_A0``) with the dynamics ``A`` (N, nx, nx) and ``B``

@@ -202,8 +202,8 @@ class Preparation:
     """The real-time iteration's QP for one period, built before its state is measured (:attr:`SQPSettings.scheme`).
 
     ``t``: the period it was prepared for, s; ``X`` (N + 1, nx), ``U`` (N, 4): the plan it linearizes about;
-    ``dense``: the condensed QP (:class:`mpc.controllers.dense_qp.PreparedQP`) or None (OSQP holds the QP: ``lo``,
-    ``hi``, its bounds, whose first ``nx`` rows the feedback sets to the state); ``seconds``: its time;
+    ``dense``: the condensed QP (:class:`mpc.controllers.dense_qp.PreparedQP`) or None (OSQP holds the QP; the
+    feedback sets its bounds); ``seconds``: its time;
     ``refreshed``: the stages whose Jacobians it evaluated; ``full``: it evaluated all of them; ``split``: its time
     by part (the derivatives, the QP's assembly or condensing), s; ``c`` (N, nx): the dynamics' constant terms,
     and ``offset``: the prediction's disturbance offset they hold (None: none).
@@ -213,8 +213,6 @@ class Preparation:
     X: np.ndarray
     U: np.ndarray
     dense: object
-    lo: np.ndarray | None
-    hi: np.ndarray | None
     seconds: float
     refreshed: int
     full: bool
@@ -355,8 +353,7 @@ class SQPMPC(LTVMPC):
         """The real-time iteration's feedback: the prepared QP with the state ``x`` (nx,), solved; the plan it gives,
         full step. ``(u, ControlInfo fields)``."""
         prep = self._prepared      # kept: a feedback whose next preparation is not made solves it again
-        t = prep.t if self._t_call is None else self._t_call
-        age = int(round((t - prep.t) / DT))     # periods since the one it was prepared for (0: this one)
+        age = int(round((self._t_call - prep.t) / DT))     # periods since the one it was prepared for (0: this one)
         if age:
             self.counts["preparations_reused"] += 1
         deadline = self._take_deadline()
@@ -380,9 +377,7 @@ class SQPMPC(LTVMPC):
                 U = fb.u
                 X = prep.dense.states(x, U.ravel(), delta)
         else:
-            lo, hi = prep.lo, prep.hi
-            lo[:self.nx] = hi[:self.nx] = x
-            lo[self.nx:self._n_eq] = hi[self.nx:self._n_eq] = -(prep.c if delta is None else prep.c + delta).ravel()
+            lo, hi = self._bounds(x, prep.c if delta is None else prep.c + delta)
             self._solver.update(q=self._linear_cost(ref, u_ref), l=lo, u=hi)
             self.update_settings(time_limit=NO_TIME_LIMIT if limit is None else limit)
             res = self._solver.solve(raise_error=False)
@@ -498,19 +493,15 @@ class SQPMPC(LTVMPC):
             X[-1] = fx[-1]
         self._keep_steps(X, U, fx)
         t_qp = clock.now()
-        c = fx - (A @ X[:N, :, None])[:, :, 0] - (B @ U[:, :, None])[:, :, 0]
-        dense = lo = hi = None
+        c = self._constant_terms(fx, A, B, X[:N], U)
+        dense = None
         if self.s.qp == "daqp":
-            from .dense_qp import LTVQP, prepare_ltv_qp
+            from .dense_qp import prepare_ltv_qp
 
-            L, lo_u, hi_u, S, lo_s, hi_s = self._dense_constraints
-            dense = prepare_ltv_qp(LTVQP(A=A, B=B, c=c, x0=X[0], Q=self.Q, P=self.P, R=self.R, ref=ref,
-                                         u_ref=u_ref, L=L, lo_u=lo_u, hi_u=hi_u, S=S, lo_s=lo_s, hi_s=hi_s))
+            dense = prepare_ltv_qp(self._ltv_qp(X[0], ref, u_ref, c, A, B))
         else:
             self._condensed = None
-            lo, hi = self._l0.copy(), self._u0.copy()
-            lo[:self.nx] = hi[:self.nx] = X[0]
-            lo[self.nx:self._n_eq] = hi[self.nx:self._n_eq] = -c.ravel()
+            lo, hi = self._bounds(X[0], c)
             self._solver.update(q=self._linear_cost(ref, u_ref), l=lo, u=hi, Ax=self._constraint_values(A, B))
             self._solver.warm_start(x=np.concatenate([X.ravel(), U.ravel()]))
         split["assembly"] += clock.now() - t_qp
@@ -519,7 +510,7 @@ class SQPMPC(LTVMPC):
             clock.record("preparation", seconds)
         self.counts["preparations"] += 1
         off = self.model.offset
-        self._prepared = Preparation(t=t, X=X, U=U, dense=dense, lo=lo, hi=hi, seconds=seconds,
+        self._prepared = Preparation(t=t, X=X, U=U, dense=dense, seconds=seconds,
                                      refreshed=self._refreshed, full=self._full_refreshes > 0, split=split, c=c,
                                      offset=None if off is None else np.array(off))
 
