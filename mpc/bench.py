@@ -52,6 +52,7 @@ import argparse
 import os
 import platform
 import statistics
+import sys
 import time
 from collections import deque
 from pathlib import Path
@@ -70,6 +71,7 @@ from .controllers.ltv import LTVMPC, LTVSettings
 from .prediction.models import AnalyticModel, OnnxModel, PredictionModel
 from .controllers.nmpc import NMPC, NMPCSettings
 from .controllers.sqp import SQPMPC, SQPSettings
+from .controllers.timing import period_stats
 from .references.trajectory import Figure8
 
 HORIZON = 30
@@ -115,13 +117,6 @@ def _controller(kind: str, model, reference, path: str = "full"):
     return LQRController(reference, model)
 
 
-def _percentiles(ms) -> dict:
-    """Median, p95, p99 and max of per-period times ``ms`` (ms)."""
-    ms = np.asarray(ms, dtype=float)
-    return {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)),
-            "p99": float(np.percentile(ms, 99)), "max": float(ms.max())}
-
-
 def run(kind: str, model, reference, x0: np.ndarray, seconds: float, fidelity=None, path: str = "full",
         plant=None, raw: bool = False) -> dict:
     """Fly one case; solve-time statistics, counts, position RMSE and (SQP) iterations and time split.
@@ -133,7 +128,7 @@ def run(kind: str, model, reference, x0: np.ndarray, seconds: float, fidelity=No
     Each period's input latency (the call: from the state handed over to the input returned) and its load (the
     call and the preparation of the next period after it, the real-time iteration's) are timed: ``latency_ms``
     and ``solve_ms`` (the load, as the other paths' solve time) with median, p95, p99 and max. ``raw``: also the
-    per-period times (``_load_ms``, ``_latency_ms``, ms) and cold starts (``_cold``), for pooling.
+    per-period times (``_load_s``, ``_latency_s``, s) and cold starts (``_cold``), for pooling.
     """
     from sim.params import NOMINAL
 
@@ -183,8 +178,8 @@ def run(kind: str, model, reference, x0: np.ndarray, seconds: float, fidelity=No
             break
     ms = 1e3 * np.array(times)
     warm = ms[~np.array(cold, dtype=bool)] if cold else ms
-    out = {"solve_ms": {**_percentiles(ms), "max_without_cold_starts": float(warm.max()) if warm.size else None},
-           "latency_ms": _percentiles(1e3 * np.array(latency)),
+    out = {"solve_ms": {**period_stats(times), "max_without_cold_starts": float(warm.max()) if warm.size else None},
+           "latency_ms": period_stats(latency),
            "deadline_misses": int(np.sum(ms > 1e3 * DT)), "solver_failures": int(failures),
            "fallbacks": int(fallbacks), "rmse_position_m": float(np.sqrt(np.mean(np.square(err)))),
            "steps": len(times)}
@@ -196,7 +191,7 @@ def run(kind: str, model, reference, x0: np.ndarray, seconds: float, fidelity=No
         out.update(iterations={"mean": float(it.mean()), "counts": np.bincount(it).tolist()},
                    cold_starts=int(np.sum(cold)), time_split_ms=parts, full_refresh_share=float(np.mean(full)))
     if raw:
-        out.update(_load_ms=ms, _latency_ms=1e3 * np.array(latency),
+        out.update(_load_s=np.array(times), _latency_s=np.array(latency),
                    _cold=np.array(cold, dtype=bool) if cold else np.zeros(len(ms), dtype=bool))
     return out
 
@@ -317,6 +312,14 @@ def main(argv=None) -> int:
                     help="only the SQP on figure8-fast in real time with every model call FACTOR times as long (a "
                          "machine that much slower); with --estimator, the state estimator flies too")
     args = ap.parse_args(argv)
+    if args.json is not None:       # before any flight: a run's figures are not lost to an unwritable output
+        from sim.errors import SimInputError
+        from sim.files import check_writable
+
+        try:
+            check_writable(args.json, "--json")
+        except SimInputError as e:
+            _refuse(str(e))
     args.compare = tuple(p for p in args.compare.split(",") if p)
     if len(args.compare) != 2 or len(set(args.compare)) != 2 or not set(args.compare) <= set(ALL_PATHS):
         raise SystemExit(f"--compare: two different paths of {', '.join(ALL_PATHS)} expected; found "
@@ -351,11 +354,10 @@ def main(argv=None) -> int:
     if not args.models.is_dir():
         raise SystemExit(f"--models: {str(args.models)!r} is not a folder")
     paths = speed_paths() if args.paths is None else [p for p in args.paths.split(",") if p]
-    bad = set(paths) - set(speed_paths())
-    if bad or not paths:
-        raise SystemExit(f"--paths: paths of {', '.join(speed_paths())} expected; found {args.paths!r}")
-    if isinstance(args.load, bool) or args.load < 1:
-        raise SystemExit(f"--load: an integer >= 1 expected; found {args.load}")
+    if set(paths) - set(speed_paths()) or not paths or len(set(paths)) != len(paths):
+        _refuse(f"--paths: different paths of {', '.join(speed_paths())} expected; found {args.paths!r}")
+    if args.load < 1:
+        _refuse(f"--load: an integer >= 1 expected; found {args.load}")
     sources = speed_models(args.models)
     out = {"python": platform.python_version(), "cpus": os.cpu_count(), "horizon": HORIZON, "load": args.load,
            "cases": []}
@@ -411,15 +413,22 @@ def main(argv=None) -> int:
     return 0
 
 
-#: The speed benchmark's cases: reference, start state, seconds.
+def _refuse(message: str):
+    """Stop on bad input: one line on stderr, exit status 2."""
+    print(f"python -m mpc.bench: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
 def _speed_cases() -> dict:
+    """The speed benchmark's cases: ``{name: (reference, start state (12,), seconds)}``."""
     fig8 = Figure8(0.75, 3.0, 1.0)
     x_hover = np.zeros(NX)
     x_hover[0:3] = [0.3, 0.0, -1.0]
     return {"hover": (hover_reference(), x_hover, 5.0), "figure8-fast": (fig8, fig8(np.array([0.0]))[0], 6.0)}
 
 
-SPEED_CASES = ("hover", "figure8-fast")
+#: The names of the speed benchmark's cases (:func:`_speed_cases`).
+SPEED_CASES = tuple(_speed_cases())
 
 
 def speed_models(models_dir) -> dict:
@@ -467,7 +476,7 @@ def _speed_plant(key):
 
 def _speed_task(task) -> dict:
     """One flight of the speed benchmark: ``(kind, name, case, path, source, plant)`` (and a copy number, unused);
-    :func:`run`'s result with its per-period times (``_load_ms``, ``_latency_ms``) for pooling."""
+    :func:`run`'s result with its per-period times (``_load_s``, ``_latency_s``) for pooling."""
     kind, name, case, path, source, plant = task[:6]
     model = _bench_model(source)
     ref, x0, secs = _speed_cases()[case]
@@ -479,12 +488,12 @@ def _pooled(copies: list) -> dict:
     """The results of copies of one flight flown at once, as one: every period's times pooled (the statistics of
     all of them), the counts summed, the RMSE the copies' mean; iterations and time split the first copy's."""
     first = dict(copies[0])
-    load = np.concatenate([c["_load_ms"] for c in copies])
-    lat = np.concatenate([c["_latency_ms"] for c in copies])
+    load = np.concatenate([c["_load_s"] for c in copies])
     cold = np.concatenate([c["_cold"] for c in copies])
     warm = load[~cold] if cold.any() else load
-    first["solve_ms"] = {**_percentiles(load), "max_without_cold_starts": float(warm.max()) if warm.size else None}
-    first["latency_ms"] = _percentiles(lat)
+    first["solve_ms"] = {**period_stats(load),
+                         "max_without_cold_starts": 1e3 * float(warm.max()) if warm.size else None}
+    first["latency_ms"] = period_stats(np.concatenate([c["_latency_s"] for c in copies]))
     for key in ("deadline_misses", "solver_failures", "fallbacks", "steps"):
         first[key] = int(sum(c[key] for c in copies))
     first["rmse_position_m"] = float(np.mean([c["rmse_position_m"] for c in copies]))

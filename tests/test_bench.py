@@ -25,13 +25,17 @@ def test_the_speed_benchmark_flies_the_dense_path_only_with_daqp(monkeypatch):
         bench.main(["--answers", "--compare", "dense,rti"])
 
 
-@pytest.mark.parametrize("argv,match", [(["--paths", "full,nope"], "--paths: paths of full, partial"),
-                                        (["--paths", ","], "--paths: paths of"),
-                                        (["--load", "0"], "--load: an integer >= 1 expected; found 0")])
-def test_bad_speed_options_are_refused_by_name(argv, match, monkeypatch):
+@pytest.mark.parametrize("argv,match", [(["--paths", "full,nope"], "--paths: different paths of full, partial"),
+                                        (["--paths", ","], "--paths: different paths of"),
+                                        (["--paths", "full,full"], "--paths: different paths of"),
+                                        (["--load", "0"], "--load: an integer >= 1 expected; found 0"),
+                                        (["--load", "-3"], "--load: an integer >= 1 expected; found -3")])
+def test_bad_speed_options_are_refused_by_name(argv, match, monkeypatch, capsys):
     monkeypatch.setattr(bench, "daqp_installed", lambda: False)
-    with pytest.raises(SystemExit, match=match):
+    with pytest.raises(SystemExit) as stop:
         bench.main(["--controllers", "sqp", "--cases", "hover", *argv])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and match in err and len(err.strip().splitlines()) == 1
 
 
 def test_copies_of_a_flight_pool_their_periods():
@@ -39,14 +43,25 @@ def test_copies_of_a_flight_pool_their_periods():
     of all periods, the counts summed, the RMSE their mean."""
     import numpy as np
 
-    def copy(load, lat, rmse, misses):
-        return {"_load_ms": np.asarray(load, float), "_latency_ms": np.asarray(lat, float),
+    def copy(load, lat, rmse, misses):      # per-period times in ms, handed over in s as run() records them
+        return {"_load_s": 1e-3 * np.asarray(load, float), "_latency_s": 1e-3 * np.asarray(lat, float),
                 "_cold": np.zeros(len(load), bool), "deadline_misses": misses, "solver_failures": 0, "fallbacks": 0,
                 "steps": len(load), "rmse_position_m": rmse, "iterations": {"mean": 1.0}}
 
     r = bench._pooled([copy([1, 2, 3], [0.1, 0.2, 0.3], 0.01, 0), copy([4, 5, 11], [0.4, 0.5, 0.6], 0.03, 1)])
-    assert r["solve_ms"]["median"] == 3.5 and r["solve_ms"]["max"] == 11.0
-    assert r["latency_ms"]["median"] == pytest.approx(0.35) and r["latency_ms"]["max"] == 0.6
+    exact = dict(rel=1e-12)     # ms back from s: rounding only
+    assert r["solve_ms"]["median"] == pytest.approx(3.5, **exact)
+    assert r["solve_ms"]["max"] == pytest.approx(11.0, **exact)
+    assert r["solve_ms"]["max_without_cold_starts"] == pytest.approx(11.0, **exact)
+    assert r["latency_ms"]["median"] == pytest.approx(0.35) and r["latency_ms"]["max"] == pytest.approx(0.6, **exact)
     assert r["latency_ms"]["p99"] == pytest.approx(float(np.percentile([0.1, 0.2, 0.3, 0.4, 0.5, 0.6], 99)))
     assert r["deadline_misses"] == 1 and r["steps"] == 6 and r["rmse_position_m"] == pytest.approx(0.02)
     assert r["copies"] == 2 and not any(k.startswith("_") for k in r)
+
+
+def test_an_unwritable_output_is_refused_before_any_flight(tmp_path, capsys):
+    (tmp_path / "file").write_text("")
+    with pytest.raises(SystemExit) as stop:
+        bench.main(["--controllers", "sqp", "--cases", "hover", "--json", str(tmp_path / "file" / "out.json")])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "--json" in err and len(err.strip().splitlines()) == 1

@@ -49,6 +49,17 @@ RECORDED = ("derivatives", "assembly", "qp", "line_search", "full_derivatives", 
             "correction")
 
 
+def period_stats(seconds) -> dict | None:
+    """Median, p95, p99 and max, ms, of per-period times ``seconds`` (s; NaN, a period without a call, left out), or
+    None without any."""
+    ms = 1e3 * np.asarray(seconds, dtype=float)
+    ms = ms[np.isfinite(ms)]
+    if not ms.size:
+        return None
+    return {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)), "p99": float(np.percentile(ms, 99)),
+            "max": float(np.max(ms))}
+
+
 def _median(values) -> float:
     """The median of a few floats, as ``numpy.median`` gives it (0 for none); in plain Python, since numpy's costs
     tens of microseconds on a list of 20, four times a period."""

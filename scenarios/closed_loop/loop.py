@@ -11,8 +11,9 @@ Each part is a small object with one job, and each can be replaced::
 Per control period ``k`` (``t = k dt``): if the controller is idle, the
 sensor reads the plant, the controller is called and timed, it may then
 prepare the next period (``prepare_next``, timed too), and the clock is
-told when its input takes effect and how long the controller was busy; then the clock flies the plant through
-the period with whatever input is in effect, and the controller is told
+told when its input takes effect and how long the controller was busy;
+then the clock flies the plant through the period with whatever input is
+in effect, and the controller is told
 the command that entered the actuators during the period (its time average,
 when it changed mid-way; before any input delay, which is the plant's): a
 controller whose model has actuator or history states carries them with

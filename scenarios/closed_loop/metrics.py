@@ -41,16 +41,6 @@ TIMING_FIELDS = ("solve_ms", "latency_ms", "deadline_misses", "deadline_fallback
 TRACE_TIMING_FIELDS = ("solve_s", "latency_s", "load_s")
 
 
-def latency_stats(latency_s: np.ndarray) -> dict | None:
-    """Median, p95, p99 and max (ms) of the input latencies ``latency_s`` (s; NaN where the controller was not
-    called, left out), or None without any."""
-    ms = 1e3 * np.asarray(latency_s, dtype=float)
-    ms = ms[np.isfinite(ms)]
-    if not ms.size:
-        return None
-    return {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)), "p99": float(np.percentile(ms, 99)),
-            "max": float(np.max(ms))}
-
 
 def crash_reason(x: np.ndarray, x_ref: np.ndarray) -> str | None:
     """Why the state ``x`` (12,) counts as a crash against ``x_ref`` (12,), or None."""

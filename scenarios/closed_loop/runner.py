@@ -39,7 +39,7 @@ from sim.plants.named import PLANTS
 
 from ..errors import ScenarioError
 from .library import get_scenario
-from .metrics import closed_loop_metrics, latency_stats
+from .metrics import closed_loop_metrics
 from .record import NOT_FLOWN, RunRecord, input_hashes, not_flown
 
 #: Longest MPC horizon a run accepts, steps (5 s): five times the 1 s over which the models' open-loop error is
@@ -267,6 +267,8 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
     and the SQP (or the ``"qp"`` of ``sqp``), None for the NMPC and the LQR.
     """
     from mpc.controllers.ltv import DEADLINE_STATUS
+    from mpc.controllers.sqp import SQPMPC
+    from mpc.controllers.timing import period_stats
 
     from .loop import IdealClock, RealtimeClock, StateSensor, Trace, fly_loop, make_estimator
 
@@ -336,8 +338,6 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
     else:
         metrics = dict(NOT_FLOWN)
     pre = None if ctrl is None else ctrl.preflight    # the SQP's plan before take-off: what it did, and how long
-    from mpc.controllers.sqp import SQPMPC
-
     # the SQP's real-time iteration is named (the iterating SQP's records stay as they were)
     scheme = {"scheme": ctrl.s.scheme} if isinstance(ctrl, SQPMPC) and ctrl.s.scheme != "sqp" else {}
     failed, lqr_fb = tr.solver_failed[:k_end], tr.lqr_fallback[:k_end]
@@ -360,7 +360,7 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
         model_file=None if sha is None else str(spec.model), model_sha256=sha, seed=sc.seed, member=spec.member,
         horizon=spec.horizon, timing=spec.timing, plant=spec.plant, vehicle=vehicle.name, estimator=spec.estimator,
         qp=flown_qp(spec, sqp), **scheme, level=spec.level, inputs_sha256=inputs, **metrics,
-        latency_ms=latency_stats(tr.latency_s[:k_end]) if error is None else None,
+        latency_ms=period_stats(tr.latency_s[:k_end]) if error is None else None,
         shifted_plan=int(np.sum(failed & ~lqr_fb)), deadline_fallbacks=late, failure_causes=causes,
         preflight=None if pre is None else {"iterations": int(pre.iterations), "status": pre.status},
         preflight_ms=None if pre is None else 1e3 * pre.solve_time_s, error=error, wall_time_s=wall,
