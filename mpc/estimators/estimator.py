@@ -6,7 +6,9 @@ filter estimates, once per control period, from motion capture and the IMU
 
     z = (x, d, b)      x: the model's state (12 rigid-body states and any extra states it declares)
                        d: a disturbance (6,): an acceleration (3, m/s^2, world NED) and an angular
-                          acceleration (3, rad/s^2, body FRD), constant over a period
+                          acceleration (3, rad/s^2, body FRD), constant over a period; the angular
+                          part only at the wrench level (zero at ctbr and ctatt, where the onboard
+                          loop rejects torques)
                        b: the gyroscope's bias (3, rad/s) and the accelerometer's (3, m/s^2)
 
 **Prediction** is the model itself, with the input that was in effect
@@ -153,13 +155,19 @@ class DisturbanceEKF:
             raise ConfigurationError("the estimator needs motion capture (position and attitude); mocap is None")
         nx = self.model.nx
         self.nx, self.nz = nx, nx + ND + 2 * NB
+        #: Whether the angular part of the disturbance is estimated: only at the wrench level. At ``ctbr`` and
+        #: ``ctatt`` the onboard loop closes the body rates with integral action, so a torque held on the airframe
+        #: leaves no lasting rate error for the model to carry; what the rates' channel would absorb instead is the
+        #: inner loop's transient lag, which changes with every command and, fed back as an offset, drives the
+        #: loop (a model whose rates follow the command at once crashed the logged melon flight through it).
+        self.angular = self.model.level == "wrench"
         c = self.config
         q = np.zeros(self.nz)
         q[0:3], q[3:6], q[6:9], q[9:12] = c.position, c.attitude, c.rate, c.velocity
         if self.model.n_extra:
             q[NX:nx] = c.extra_rel * self._extra_scale()
         q[nx:nx + 3] = c.force_walk * np.sqrt(DT)
-        q[nx + 3:nx + 6] = c.torque_walk * np.sqrt(DT)
+        q[nx + 3:nx + 6] = c.torque_walk * np.sqrt(DT) if self.angular else 0.0
         q[nx + GB:nx + GB + NB] = 0.0 if self.imu is None else self.imu.gyro_bias_walk * np.sqrt(DT)
         q[nx + AB:] = 0.0 if self.imu is None else self.imu.accel_bias_walk * np.sqrt(DT)
         self.Q = np.diag(q ** 2)
@@ -210,7 +218,7 @@ class DisturbanceEKF:
         p[9:12] = c.init_velocity
         if self.model.n_extra:
             p[NX:nx] = self._extra_scale()
-        p[nx:nx + 3], p[nx + 3:nx + 6] = c.init_force, c.init_torque
+        p[nx:nx + 3], p[nx + 3:nx + 6] = c.init_force, (c.init_torque if self.angular else 0.0)
         p[nx + GB:nx + GB + NB] = 0.0 if self.imu is None else max(self.imu.gyro_bias_std, 1e-6)
         p[nx + AB:] = 0.0 if self.imu is None else max(self.imu.accel_bias_std, 1e-6)
         self.z, self.P = z, np.diag(p ** 2)
