@@ -482,7 +482,12 @@ def test_runs_on_other_plants_have_their_own_section_and_stay_out_of_the_others(
     assert "our simulator with the rolling-spider (2 runs)" in text and "RotorPy, motor lag and aerodynamics with " \
         "the rolling-spider (2 runs)" in text and "with the crazyflie (1 run)" in text
     assert "| RotorPy, motor lag and aerodynamics | rolling-spider | figure8-fast | SQP | alpha | 40 | 4.00 | 12.00 | " \
-        "2 / 200 |" in text
+        "2 / 200 | – |" in text
+    # A run flown with the real-time iteration says so, with its input latency beside its load.
+    rti = {**run("alpha", 0.040, "rotorpy"), "scheme": "rti",
+           "latency_ms": {"median": 0.934, "p95": 1.0, "p99": 1.172, "max": 1.8}}
+    assert "| SQP (real-time iteration) | alpha | 40 | 4.00 | 12.00 | 2 / 200 | 0.93 / 1.17 |" in \
+        plants_section(mine, [rti])
     alone = plants_section(mine, [])
     assert alone.startswith("All 2 runs here flew on our simulator with the rolling-spider.") and NO_RUNS in alone
     # A folder flown on another plant: its own runs are those, ours the others.

@@ -396,3 +396,58 @@ def test_a_correction_is_one_full_step_of_the_prepared_qp_at_the_predicted_state
 def test_a_bad_number_of_corrections_is_refused_by_name(bad):
     with pytest.raises(ConfigurationError, match="rti_corrections must be an integer >= 0"):
         SQPSettings(scheme="rti", rti_corrections=bad)
+
+
+def test_a_run_names_its_scheme_where_it_is_not_its_timings_own():
+    """``RunSpec.scheme``: the same flight as the settings given to :func:`fly`, bit for bit, in its record and its
+    id; the timing's own scheme leaves the id and the cache key as they were; a bad scheme, or one given to another
+    controller, is refused naming it."""
+    from scenarios.closed_loop.record import cache_key
+    from scenarios.closed_loop.runner import RunSpec, fly as fly_run
+    from scenarios.errors import ScenarioError
+
+    spec = RunSpec("hover", "sqp", "oracle", scheme="rti")
+    assert spec.run_id == "hover__sqp__oracle__rti"
+    r, tr = fly_run(spec)
+    r2, tr2 = fly_run(RunSpec("hover", "sqp", "oracle"), sqp={"scheme": "rti"})
+    assert r["scheme"] == r2["scheme"] == "rti"
+    assert np.array_equal(tr["x"], tr2["x"]) and np.array_equal(tr["u"], tr2["u"])
+    plain = RunSpec("hover", "sqp", "oracle")
+    assert RunSpec("hover", "sqp", "oracle", scheme="sqp").run_id == plain.run_id
+    assert cache_key(RunSpec("hover", "sqp", "oracle", scheme="sqp")) == cache_key(plain)
+    assert cache_key(spec) != cache_key(plain)
+    assert RunSpec("hover", "sqp", "oracle", timing="realtime", scheme="rti").run_id == "hover__sqp__oracle__realtime"
+    assert RunSpec("hover", "sqp", "oracle", timing="realtime", scheme="sqp").run_id.endswith("__sqp__realtime")
+    with pytest.raises(ScenarioError, match="scheme must be one of sqp, rti"):
+        RunSpec("hover", "sqp", "oracle", scheme="fast")
+    with pytest.raises(ScenarioError, match="scheme is the SQP's; controller 'ltv'"):
+        RunSpec("hover", "ltv", "oracle", scheme="rti")
+
+
+def test_the_first_periods_extra_states_are_the_preflight_plans_without_a_second_newton_solve(monkeypatch):
+    """The plan made before take-off and the first period's tracker start the extra states at the same state and
+    time: the second asks the kept answer (no Newton iteration, the same numbers); another state, or a new flight,
+    solves again."""
+    import mpc.prediction.extended as extended
+    from mpc.controllers.lqr import LQRController
+
+    model = OnnxModel(ROOT / "models" / "learn" / "highfi" / "learn_highfi_it3.onnx")
+    ctrl = LQRController(FIG8_FAST, model)
+    ctrl.prepare(1.0)
+    calls = []
+    real = extended.extra_equilibrium
+    monkeypatch.setattr(extended, "extra_equilibrium", lambda *a, **k: calls.append(1) or real(*a, **k))
+    x = FIG8_FAST(np.array([0.0]))[0]
+    e1 = ctrl.start_extra(x, 0.0)
+    e2 = ctrl.start_extra(x.copy(), 0.0)
+    assert len(calls) == 1 and np.array_equal(e1, e2)
+    e2[:] = 0.0                                              # the answer kept is not the caller's array
+    assert np.array_equal(ctrl.start_extra(x, 0.0), e1) and len(calls) == 1
+    y = x.copy()
+    y[0] += 1e-3
+    ctrl.start_extra(y, 0.0)
+    assert len(calls) == 2
+    ctrl.prepare(1.0)
+    assert np.array_equal(ctrl.start_extra(y, 0.0), real(model, y[None], ctrl.ff.inputs(np.array([0.0])),
+                                                         ctrl.ff.trim_extra[None])[0])
+    assert len(calls) == 3

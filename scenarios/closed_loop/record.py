@@ -281,6 +281,8 @@ def cache_key(spec, inputs: dict | None = None) -> str:
         ident["qp"] = spec.qp_solver
     if spec.level != "wrench":
         ident["level"] = spec.level       # likewise: a wrench run keeps its identity
+    if spec.own_scheme is not None:
+        ident["scheme"] = spec.own_scheme   # likewise: a run in its timing's own scheme keeps its identity
     return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
 
 

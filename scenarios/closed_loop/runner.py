@@ -105,6 +105,9 @@ class RunSpec:
     estimator: str = "none"       # "none" (the state, plus the scenario's noise) or "ekf" (sensors and a filter)
     qp: str = DEFAULT_QP          # QP solver of the LTV-MPC and the SQP: "osqp" or "daqp"
     level: str = DEFAULT_LEVEL    # command level: "wrench", "ctbr" or "ctatt"
+    # The SQP's scheme: "sqp" (it iterates) or "rti" (the real-time iteration: one prepared QP a period); None: the
+    # timing's own (rti in real time, sqp in ideal timing).
+    scheme: str | None = None
 
     def __post_init__(self):
         from sim.vehicles.vehicle import load_vehicle
@@ -130,6 +133,14 @@ class RunSpec:
 
         if self.qp not in QP_SOLVERS:
             raise ScenarioError(f"qp must be one of {', '.join(QP_SOLVERS)}; found {self.qp!r}")
+        if self.scheme is not None:
+            from mpc.controllers.sqp import SCHEMES
+
+            if self.scheme not in SCHEMES:
+                raise ScenarioError(f"scheme must be one of {', '.join(SCHEMES)} or None; found {self.scheme!r}")
+            if self.controller != "sqp":
+                raise ScenarioError(f"scheme is the SQP's; controller {self.controller!r} has none (found "
+                                    f"scheme {self.scheme!r})")
         check_level(self.level)
         if self.level != DEFAULT_LEVEL:
             self._vehicle.inner_loop_at(self.level)       # raises naming the missing table
@@ -168,6 +179,14 @@ class RunSpec:
         return self.qp if self.controller in QP_CONTROLLERS else None
 
     @property
+    def own_scheme(self) -> str | None:
+        """:attr:`scheme` where it is not the timing's own (None there, and for the other controllers)."""
+        from mpc.controllers.factory import REALTIME_SCHEME
+
+        default = REALTIME_SCHEME if self.timing == "realtime" else "sqp"
+        return None if self.scheme in (None, default) else self.scheme
+
+    @property
     def vehicle_data(self):
         """The :class:`sim.vehicles.vehicle.Vehicle` flown."""
         return self._vehicle
@@ -203,6 +222,8 @@ class RunSpec:
             base += f"__{self.qp_solver}"
         if self.level != DEFAULT_LEVEL:
             base += f"__{self.level}"
+        if self.own_scheme is not None:
+            base += f"__{self.own_scheme}"
         return base if self.timing == "ideal" else f"{base}__{self.timing}"
 
 
@@ -293,6 +314,8 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
     t0 = time.perf_counter()
     realtime = spec.timing == "realtime"
     try:
+        if spec.scheme is not None:
+            sqp = {"scheme": spec.scheme, **(sqp or {})}      # the settings given win
         ctrl = make_controller(spec.controller, model, sc.reference(), spec.horizon, spec.timing, vehicle,
                                spec.estimator, sqp=sqp, qp=spec.qp)
         # The reference is known before take-off: its feed-forward is fitted now (or taken from this process's

@@ -175,6 +175,10 @@ def main_scenarios(full: bool = False) -> list[str]:
     return [n for n in names if "+" not in n or (n.startswith("figure8-fast+") and not n.endswith("+highfi"))]
 
 
+#: The SQP's scheme for the learning studies' final models on RotorPy in :func:`plant_plan`.
+LEARNED_PLANT_SCHEME = "rti"
+
+
 def plant_plan(models_dir="models", full: bool = False) -> list[RunSpec]:
     """The main job's runs on other plants and vehicles (see :data:`PLANT_SCENARIO`); none without RotorPy."""
     if not rotorpy_available():
@@ -186,11 +190,12 @@ def plant_plan(models_dir="models", full: bool = False) -> list[RunSpec]:
     specs = [RunSpec(sc, c, m, plant="rotorpy-ideal") for m in ["oracle", *models]]
     specs += [RunSpec(sc, c, m, plant="rotorpy") for m in ["nominal", *models]]
     specs += [RunSpec(sc, c, "nominal", plant=pl, vehicle=v) for v in PLANT_VEHICLES for pl in ("sim", "rotorpy")]
-    # the final model of each shipped learning study on RotorPy, flying that study's vehicle
+    # the final model of each shipped learning study on RotorPy, flying that study's vehicle, with the real-time
+    # iteration: these 16-state models are the slowest to linearize, and the iterating SQP's periods run past 10 ms
     from .learn import LEARN_PLANTS
 
-    specs += [RunSpec(sc, c, m, plant=lp.plant, vehicle=lp.vehicle) for key, lp in LEARN_PLANTS.items()
-              if lp.plant == "rotorpy" for m in learned_models(models_dir, key)]
+    specs += [RunSpec(sc, c, m, plant=lp.plant, vehicle=lp.vehicle, scheme=LEARNED_PLANT_SCHEME)
+              for key, lp in LEARN_PLANTS.items() if lp.plant == "rotorpy" for m in learned_models(models_dir, key)]
     return specs
 
 
