@@ -1,6 +1,7 @@
 """Sweep engines (process pool, Ray) and the resumable results cache."""
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -117,3 +118,27 @@ def test_the_cache_key_follows_seed_model_content_and_code(tmp_path, monkeypatch
 def test_bad_engine_arguments_are_clear_errors(tmp_path, kwargs, match):
     with pytest.raises(ScenarioError, match=match):
         sweep(SPECS[:1], tmp_path, progress=False, **kwargs)
+
+
+def start_environment(_item) -> dict:
+    """In a pool worker: the environment it started with (Linux: ``/proc/<pid>/environ``, which a later change of
+    ``os.environ`` does not touch)."""
+    raw = Path(f"/proc/{os.getpid()}/environ").read_bytes().decode(errors="replace")
+    return dict(kv.split("=", 1) for kv in raw.split("\0") if "=" in kv)
+
+
+@pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="reads a process's first environment in /proc")
+def test_pool_workers_start_with_one_blas_thread_whatever_the_callers_environment(monkeypatch):
+    """Set in the worker by an initializer, the thread counts came too late: numpy, loaded with the worker's
+    function, had started its BLAS threads already (two workers ran four threads on two cores)."""
+    from scenarios.sweeps.pool import run_pool
+    from sim.workers import WORKER_ENV
+
+    for k in WORKER_ENV:
+        monkeypatch.delenv(k, raising=False)
+    got = {}
+    run_pool(start_environment, [0, 1], 2, got.__setitem__, lambda item, reason: pytest.fail(reason))
+    assert len(got) == 2
+    for env in got.values():
+        assert {k: env.get(k) for k in WORKER_ENV} == WORKER_ENV
+    assert not any(k in os.environ for k in WORKER_ENV)         # the caller's own environment as it was

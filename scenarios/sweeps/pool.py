@@ -13,6 +13,12 @@ processes and hands each value back to the calling process as it returns.
   and exits within :data:`WATCH_PERIOD_S` once it is gone.
 * An exception raised by ``fn`` is raised again in the caller (the pool is
   stopped first: workers are killed, nothing more is handed back).
+* Workers start with :data:`sim.workers.WORKER_ENV` (one BLAS thread each: the
+  workers fill the cores) in their environment from their first instruction.
+  An ``initializer`` is too late for that: a spawned worker unpickles ``fn``
+  first, and its module loads numpy, which starts its BLAS threads then (two
+  workers on two cores ran four threads, and the bench's periods under
+  ``--load 2`` lost whole scheduler slices, 5 to 11 ms).
 
 :class:`concurrent.futures.ProcessPoolExecutor`, which the sweeps used
 before, does none of the first two: one dead worker breaks the whole pool
@@ -27,6 +33,7 @@ import signal
 import sys
 import threading
 from collections import deque
+from contextlib import contextmanager
 
 #: How often a worker checks that its parent is still alive, seconds.
 WATCH_PERIOD_S = 0.5
@@ -89,11 +96,29 @@ def _death(exitcode) -> str:
     return f"exit code {exitcode}"
 
 
+@contextmanager
+def _environment(env: dict):
+    """This process's environment with ``env`` set (a process started inside inherits it), as it was after."""
+    old = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
 class _Worker:
     def __init__(self, ctx, fn, initializer):
+        from sim.workers import worker_env
+
         self.conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=_worker, args=(child, os.getpid(), fn, initializer), daemon=True)
-        self.proc.start()
+        with _environment(worker_env()):
+            self.proc.start()
         child.close()
         self.index = None           # the item it holds
 
