@@ -92,7 +92,9 @@ DENSE_PATH = {"dense": {"jacobian_refresh": "partial", "qp": "daqp", "scheme": "
 #: installed: the input waits for the feedback's QP; the derivatives follow it (their partial refresh).
 RTI_PATH = {"rti": {"jacobian_refresh": "partial", "qp": "daqp", "scheme": "rti"},
             # and with one correction iteration in each preparation, when the next measurement leaves it time
-            "rti1": {"jacobian_refresh": "partial", "qp": "daqp", "scheme": "rti", "rti_corrections": 1}}
+            "rti1": {"jacobian_refresh": "partial", "qp": "daqp", "scheme": "rti", "rti_corrections": 1},
+            # and with every stage's derivatives made again in each preparation
+            "rti_full": {"jacobian_refresh": "full", "qp": "daqp", "scheme": "rti"}}
 #: Every path a benchmark can fly by name.
 ALL_PATHS = {**PATHS, **DENSE_PATH, **RTI_PATH}
 #: The paths that need DAQP.

@@ -7,7 +7,7 @@ from mpc import bench
 
 @pytest.mark.parametrize("compare", ["full", "full,full", "full,bad", "full,partial,dense", ""])
 def test_a_bad_pair_of_paths_is_refused_by_name(compare, capsys):
-    with pytest.raises(SystemExit, match="--compare: two different paths of full, partial, dense, rti, rti1 expected"):
+    with pytest.raises(SystemExit, match="--compare: two different paths of full, partial, dense, rti, rti1, rti_full expected"):
         bench.main(["--answers", "--compare", compare])
 
 
