@@ -235,8 +235,11 @@ def derivative_paths(path, stages: int = HORIZON, repeats: int = 200) -> dict:
 
     Paths: the derivative graph in float64 and its float32 copy (onnxruntime; the float32 one also stage by stage,
     one call each, and batched on two intra-op threads instead of one), central differences of the model
-    (one onnxruntime call, 33 evaluations per stage), and CasADi's import of the model with its AD Jacobian
-    (mapped over the stages; None when CasADi cannot import the graph).
+    (one onnxruntime call, 33 evaluations per stage), the derivative in numpy from the exported weights
+    (:class:`mpc.prediction.weights.WeightDerivative`, with its largest difference from the float64 graph relative to
+    the largest entry; None with the reason where the graph has an operation it does not differentiate), and
+    CasADi's import of the model with its AD Jacobian (mapped over the stages; None when CasADi cannot import the
+    graph).
     """
     import shutil
     import tempfile
@@ -265,6 +268,18 @@ def derivative_paths(path, stages: int = HORIZON, repeats: int = 200) -> dict:
     _, A, B = bare.linearize(x, u)
     J0, J = np.concatenate([A0, B0], axis=2), np.concatenate([A, B], axis=2)
     out["differences_rel_error"] = float(np.max(np.linalg.norm(J - J0, axis=(1, 2)) / np.linalg.norm(J0, axis=(1, 2))))
+    from .prediction.weights import UnsupportedGraph, WeightDerivative
+
+    try:         # the derivative in numpy from the exported weights, against the float64 derivative graph
+        weights = WeightDerivative(path)
+        out["numpy_weights_us"] = _median_us(lambda: weights.linearize(x, u), max(10, repeats // 4))
+        xw, Aw, Bw = weights.linearize(x, u)
+        Jw = np.concatenate([Aw, Bw], axis=2)
+        out["numpy_weights_rel_error"] = float(np.max(np.abs(Jw - J0)) / np.max(np.abs(J0)))
+        out["numpy_weights_refused"] = None
+    except UnsupportedGraph as e:
+        out["numpy_weights_us"] = out["numpy_weights_rel_error"] = None
+        out["numpy_weights_refused"] = str(e)
     try:
         F = casadi_step(path)
         xs, us = ca.MX.sym("x", NX), ca.MX.sym("u", 4)
@@ -875,14 +890,16 @@ def _main_derivatives(args) -> int:
     print(f"A and B at {HORIZON} states across the flight envelope, median us per call "
           f"(one call = one period's linearization of the LTV-MPC, or one SQP iteration's)")
     print(f"{'model':<22}{'graph f64':>10}{'graph f32':>10}{'f32 /stage':>11}{'f32 2 thr':>10}{'differences':>12}"
-          f"{'CasADi AD':>11}{'diff. error':>13}")
+          f"{'CasADi AD':>11}{'diff. error':>13}{'numpy':>9}{'numpy error':>13}")
     for f in files:
         r = derivative_paths(f)
         out["models"][f.stem] = r
         cas = "refused" if r["casadi_import_us"] is None else f"{r['casadi_import_us']:.0f}"
         print(f"{f.stem:<22}{r['graph_float64_us']:>10.0f}{r['graph_float32_us']:>10.0f}"
               f"{r['graph_float32_per_stage_us']:>11.0f}{r['graph_float32_two_threads_us']:>10.0f}"
-              f"{r['differences_us']:>12.0f}{cas:>11}{r['differences_rel_error']:>13.1e}", flush=True)
+              f"{r['differences_us']:>12.0f}{cas:>11}{r['differences_rel_error']:>13.1e}"
+              + (f"{'refused':>9}{'':>13}" if r["numpy_weights_us"] is None else
+                 f"{r['numpy_weights_us']:>9.0f}{r['numpy_weights_rel_error']:>13.1e}"), flush=True)
     return _write(args.json or Path("bench_derivatives.json"), out)
 
 
