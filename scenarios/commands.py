@@ -119,6 +119,10 @@ def register(sub) -> None:
                         "model, with a disturbance estimate (docs/estimation.md)")
     _qp_option(p, "the ltv and sqp controllers (the others solve no QP)")
     _level_option(p)
+    p.add_argument("--scheme", choices=("sqp", "rti"), default=None,
+                   help="the sqp controller's scheme: sqp (it iterates) or rti (the real-time iteration: one "
+                        "prepared QP a period, the next one prepared after the input is out; docs/realtime.md); "
+                        "default: rti with --timing realtime, sqp in ideal timing")
     p.add_argument("--json", metavar="FILE", type=Path, default=None, help="write the result as JSON")
     p.add_argument("--trace", metavar="FILE.npz", type=Path, default=None, help="write the trace arrays")
     p.add_argument("--plot", metavar="FILE.png", type=Path, default=None, help="plot path, height, error, inputs")
@@ -373,6 +377,9 @@ def cmd_fly(args: argparse.Namespace) -> int:
     if args.qp != DEFAULT_QP and args.controller not in QP_CONTROLLERS:
         raise ValueError(f"--qp applies to the controllers that solve a QP ({', '.join(QP_CONTROLLERS)}); found "
                          f"--qp {args.qp} with --controller {args.controller}")
+    if args.scheme is not None and args.controller != "sqp":
+        raise ValueError(f"--scheme applies to the sqp controller; found --scheme {args.scheme} with --controller "
+                         f"{args.controller}")
 
     if args.plot is not None and args.plot.suffix.lower() != ".png":
         raise ValueError(f"--plot must name a .png file; found {str(args.plot)!r}")
@@ -384,7 +391,8 @@ def cmd_fly(args: argparse.Namespace) -> int:
     from .closed_loop.runner import load_run_model
 
     spec = RunSpec(args.scenario, args.controller, args.model, args.seed, args.horizon, args.timing,
-                   plant=args.plant, vehicle=args.vehicle, estimator=args.estimator, qp=args.qp, level=args.level)
+                   plant=args.plant, vehicle=args.vehicle, estimator=args.estimator, qp=args.qp, level=args.level,
+                   scheme=args.scheme)
     model = load_run_model(spec)
     ready = require(model, spec.controller)     # the same verdict as pinnmpc check-model prints
     if ready.warning:

@@ -451,3 +451,25 @@ def test_the_first_periods_extra_states_are_the_preflight_plans_without_a_second
     assert np.array_equal(ctrl.start_extra(y, 0.0), real(model, y[None], ctrl.ff.inputs(np.array([0.0])),
                                                          ctrl.ff.trim_extra[None])[0])
     assert len(calls) == 3
+
+
+def test_fly_takes_the_scheme_and_refuses_it_for_another_controller(tmp_path, capsys):
+    """``pinnmpc fly --scheme rti`` in ideal timing is ``RunSpec(scheme="rti")``, bit for bit; with another controller
+    it is one line, exit 2, nothing written."""
+    import json
+
+    from scenarios.cli import main
+    from scenarios.closed_loop.runner import RunSpec, fly as fly_run
+
+    out = tmp_path / "r.json"
+    assert main(["fly", "--model", "oracle", "--controller", "sqp", "--scenario", "hover", "--scheme", "rti",
+                 "--json", str(out)]) == 0
+    record = json.loads(out.read_text())
+    expected, _ = fly_run(RunSpec("hover", "sqp", "oracle", scheme="rti"))
+    assert record["scheme"] == "rti" and record["rmse_position_m"] == expected["rmse_position_m"]
+    capsys.readouterr()
+    bad = tmp_path / "bad.json"
+    assert main(["fly", "--model", "oracle", "--controller", "ltv", "--scenario", "hover", "--scheme", "rti",
+                 "--json", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--scheme applies to the sqp controller" in err[0] and not bad.exists()
