@@ -273,7 +273,7 @@ def derivative_paths(path, stages: int = HORIZON, repeats: int = 200) -> dict:
     try:         # the derivative in numpy from the exported weights, against the float64 derivative graph
         weights = WeightDerivative(path)
         out["numpy_weights_us"] = _median_us(lambda: weights.linearize(x, u), max(10, repeats // 4))
-        xw, Aw, Bw = weights.linearize(x, u)
+        _, Aw, Bw = weights.linearize(x, u)
         Jw = np.concatenate([Aw, Bw], axis=2)
         out["numpy_weights_rel_error"] = float(np.max(np.abs(Jw - J0)) / np.max(np.abs(J0)))
         out["numpy_weights_refused"] = None
@@ -527,7 +527,6 @@ def _fly_speed(tasks, sources: dict, load: int) -> dict:
         return {t[:4]: _pooled([_speed_task(t)]) for t in full}
     from tqdm import tqdm
 
-    from sim.workers import worker_init
     from scenarios.sweeps.pool import run_pool
 
     copies: dict = {t[:4]: [] for t in full}
@@ -539,8 +538,7 @@ def _fly_speed(tasks, sources: dict, load: int) -> dict:
         def failed(item, reason):
             raise SystemExit(f"--load: a flight's worker died: {item[:4]}: {reason}")
 
-        run_pool(_speed_task, [t + (i,) for t in full for i in range(load)], load, done, failed,
-                 initializer=worker_init)
+        run_pool(_speed_task, [t + (i,) for t in full for i in range(load)], load, done, failed)
     return {t: _pooled(c) for t, c in copies.items()}
 
 
@@ -802,7 +800,6 @@ def _fly_all(tasks, jobs: int, what: str) -> dict:
     died twice is ``(None, None)``: not flown."""
     from tqdm import tqdm
 
-    from sim.workers import worker_init
     from scenarios.sweeps.pool import run_pool
 
     flown = {}
@@ -815,7 +812,7 @@ def _fly_all(tasks, jobs: int, what: str) -> dict:
             print(f"not flown: {task}: {reason}", flush=True)
             done(task, (None, None))
 
-        run_pool(_fly_path, tasks, jobs, done, failed, initializer=worker_init)
+        run_pool(_fly_path, tasks, jobs, done, failed)
     return flown
 
 

@@ -1,6 +1,8 @@
 """The environment of a pool worker: one BLAS thread (the workers already fill the cores) and, on x86-64, the
-BLAS kernel the project pins (see :mod:`sim`), set before the worker loads numpy. Every process pool of the
-project (the closed-loop sweep, the open-loop evaluation, the studies) starts its workers with :func:`worker_init`.
+BLAS kernel the project pins (see :mod:`sim`), set before the worker loads numpy. The project's own pool
+(:func:`scenarios.sweeps.pool.run_pool`: the sweeps, the studies, the benchmark) starts its workers in
+:func:`worker_env`; a :class:`concurrent.futures.ProcessPoolExecutor` gets it by :func:`worker_init` in the
+parent before its workers are spawned (they inherit it), and again as their initializer.
 """
 
 from __future__ import annotations

@@ -497,11 +497,9 @@ def _fly_all(jobs_list: list[FlightJob], workers: int, progress, what: str) -> l
         for item in items:
             done(item, _fly_item(item))
     else:
-        from sim.workers import worker_init
         from ..sweeps.pool import run_pool
 
-        worker_init()
-        run_pool(_fly_item, items, workers, done, failed, initializer=worker_init)
+        run_pool(_fly_item, items, workers, done, failed)
     return [out[i] for i in range(len(jobs_list))]
 
 

@@ -29,7 +29,7 @@ import logging
 import os
 import sys
 
-from sim.workers import worker_env, worker_init
+from sim.workers import worker_env
 
 from ..errors import ScenarioError
 from .pool import RETRIES, run_pool
@@ -71,10 +71,9 @@ def _process(batches, done, jobs: int, failed) -> None:
             for spec in batch:
                 done(spec, *fly_for_sweep(spec))
         return
-    worker_init()
     for workers, batch in batches:
         run_pool(fly_for_sweep, batch, workers, lambda spec, value: done(spec, *value), failed,
-                 initializer=worker_init, on_death=_said_death)
+                 on_death=_said_death)
 
 
 def _fly_in(spec, cwd: str):
