@@ -31,6 +31,14 @@ ESTIMATOR_RESERVE_S = 0.003
 REALTIME_SCHEME = "rti"
 
 
+def timing_scheme(timing: str) -> str:
+    """The SQP's scheme :func:`make_controller` gives it in ``timing`` when ``sqp`` names none: :data:`REALTIME_SCHEME`
+    in real time, :class:`mpc.controllers.sqp.SQPSettings`' own (the iterating SQP) in ideal timing."""
+    from .sqp import SQPSettings
+
+    return REALTIME_SCHEME if timing == "realtime" else SQPSettings.scheme
+
+
 def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing: str = "ideal", vehicle=None,
                     estimator: str = "none", sqp: dict | None = None, qp: str = DEFAULT_QP):
     """The controller ``kind`` (``nmpc``, ``sqp``, ``ltv``, ``lqr``) on prediction ``model`` following ``reference``.
@@ -67,7 +75,7 @@ def make_controller(kind: str, model, reference, horizon: int = HORIZON, timing:
             return SQPMPC(model, reference, SQPSettings(horizon=horizon, time_budget_s=None, cold_start_budget_s=None,
                                                         **other), spec=spec)
         # in real time the input waits for one QP only, unless ``sqp`` names the scheme
-        st = SQPSettings(horizon=horizon, **{"scheme": REALTIME_SCHEME, **other})
+        st = SQPSettings(horizon=horizon, **{"scheme": timing_scheme(timing), **other})
         if estimator != "none":
             st = dataclasses.replace(st, time_budget_s=st.time_budget_s - ESTIMATOR_RESERVE_S,
                                      cold_start_budget_s=st.cold_start_budget_s - ESTIMATOR_RESERVE_S)

@@ -24,11 +24,6 @@ import numpy as np
 
 from ..errors import ModelContractError
 
-#: The operations the numpy route differentiates.
-SUPPORTED_OPS = frozenset({"Gemm", "MatMul", "Tanh", "Sin", "Cos", "Add", "Sub", "Mul", "Div", "Slice", "Concat",
-                           "Reshape", "Transpose", "Unsqueeze", "GatherND", "Constant", "Identity"})
-
-
 class UnsupportedGraph(ModelContractError):
     """The model's graph has an operation (or a form of one) the numpy route does not differentiate."""
 
@@ -61,8 +56,7 @@ class WeightDerivative:
         if self.inputs[:2] != ["x", "u"] or [o.name for o in graph.output][:1] != ["x_next"]:
             raise UnsupportedGraph(f"{self.path}: inputs x, u and output x_next expected; found {self.inputs} and "
                                    f"{[o.name for o in graph.output]}")
-        self.consts = {t.name: numpy_helper.to_array(t).astype(np.float64) if numpy_helper.to_array(t).dtype.kind
-                       == "f" else numpy_helper.to_array(t) for t in graph.initializer}
+        self.consts = {t.name: _constant(numpy_helper.to_array(t)) for t in graph.initializer}
         self.nodes = []
         for n in graph.node:
             if n.op_type not in SUPPORTED_OPS:
@@ -70,7 +64,7 @@ class WeightDerivative:
                                        f"{n.name or n.output[0]!r}); the model keeps its derivative graph")
             attrs = {a.name: onnx.helper.get_attribute_value(a) for a in n.attribute}
             if n.op_type == "Constant":
-                self.consts[n.output[0]] = numpy_helper.to_array(attrs["value"])
+                self.consts[n.output[0]] = _constant(numpy_helper.to_array(attrs["value"]))
                 continue
             if n.op_type == "Gemm" and (attrs.get("transA", 0) or len(n.input) < 2):
                 raise UnsupportedGraph(f"{self.path}: a Gemm with transA is not differentiated here")
@@ -95,6 +89,12 @@ class WeightDerivative:
                 tan[outs[0]] = ty
         y, ty = val["x_next"], tan["x_next"]
         return y, ty[:, :, :nx], ty[:, :, nx:]
+
+
+def _constant(a: np.ndarray) -> np.ndarray:
+    """A graph constant as the route computes with it: floating point in float64, integers (indices, shapes) as
+    they are."""
+    return a.astype(np.float64) if a.dtype.kind == "f" else a
 
 
 # -- one rule per operation: (values, tangents (None for a constant), attributes) -> (value, tangent or None)
@@ -227,5 +227,7 @@ _RULES = {
     "Reshape": _reshape, "Transpose": _transpose, "Unsqueeze": _unsqueeze, "GatherND": _gather_nd,
     "Identity": _identity,
 }
+#: The operations the numpy route differentiates (``Constant`` nodes are read as constants).
+SUPPORTED_OPS = frozenset(_RULES) | {"Constant"}
 
 __all__ = ["SUPPORTED_OPS", "UnsupportedGraph", "WeightDerivative"]

@@ -181,10 +181,9 @@ class RunSpec:
     @property
     def own_scheme(self) -> str | None:
         """:attr:`scheme` where it is not the timing's own (None there, and for the other controllers)."""
-        from mpc.controllers.factory import REALTIME_SCHEME
+        from mpc.controllers.factory import timing_scheme
 
-        default = REALTIME_SCHEME if self.timing == "realtime" else "sqp"
-        return None if self.scheme in (None, default) else self.scheme
+        return None if self.scheme in (None, timing_scheme(self.timing)) else self.scheme
 
     @property
     def vehicle_data(self):
