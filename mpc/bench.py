@@ -339,21 +339,21 @@ def main(argv=None) -> int:
             _refuse(str(e))
     args.compare = tuple(p for p in args.compare.split(",") if p)
     if len(args.compare) != 2 or len(set(args.compare)) != 2 or not set(args.compare) <= set(ALL_PATHS):
-        raise SystemExit(f"--compare: two different paths of {', '.join(ALL_PATHS)} expected; found "
+        _refuse(f"--compare: two different paths of {', '.join(ALL_PATHS)} expected; found "
                          f"{','.join(args.compare) or 'none'}")
     needs = [p for p in args.compare if p in DAQP_PATHS]
     if needs and (args.answers or args.slowdown is not None) and not daqp_installed():
         what = " and ".join(needs) + (" paths need" if len(needs) > 1 else " path needs")
-        raise SystemExit(f'--compare: the {what} DAQP: python -m pip install -e ".[dense]"')
+        _refuse(f'--compare: the {what} DAQP: python -m pip install -e ".[dense]"')
     if args.slowdown is not None:
         if not args.slowdown >= 1.0:
-            raise SystemExit(f"--slowdown: a factor >= 1 expected; found {args.slowdown:g}")
+            _refuse(f"--slowdown: a factor >= 1 expected; found {args.slowdown:g}")
         return _main_slowdown(args)
     if args.units:
         return _main_units(args)
     if args.answers:
         if args.members < 1 or args.jobs < 1:
-            raise SystemExit(f"--members and --jobs: integers >= 1 expected; found {args.members}, {args.jobs}")
+            _refuse(f"--members and --jobs: integers >= 1 expected; found {args.members}, {args.jobs}")
         return _main_answers(args)
     if args.derivatives:
         return _main_derivatives(args)
@@ -363,13 +363,13 @@ def main(argv=None) -> int:
     kinds = [k for k in args.controllers.split(",") if k]
     bad = set(kinds) - set(CONTROLLERS)
     if bad:
-        raise SystemExit(f"--controllers: unknown {sorted(bad)}; choose from {', '.join(CONTROLLERS)}")
+        _refuse(f"--controllers: unknown {sorted(bad)}; choose from {', '.join(CONTROLLERS)}")
     cases = [c for c in args.cases.split(",") if c]
     bad = set(cases) - set(SPEED_CASES)
     if bad:
-        raise SystemExit(f"--cases: unknown {sorted(bad)}; choose from {', '.join(SPEED_CASES)}")
+        _refuse(f"--cases: unknown {sorted(bad)}; choose from {', '.join(SPEED_CASES)}")
     if not args.models.is_dir():
-        raise SystemExit(f"--models: {str(args.models)!r} is not a folder")
+        _refuse(f"--models: {str(args.models)!r} is not a folder")
     paths = speed_paths() if args.paths is None else [p for p in args.paths.split(",") if p]
     if set(paths) - set(speed_paths()) or not paths or len(set(paths)) != len(paths):
         _refuse(f"--paths: different paths of {', '.join(speed_paths())} expected; found {args.paths!r}")
@@ -666,7 +666,7 @@ def slow_machine(model: str, factor: float = 2.0, scenario: str = "figure8-fast"
 
 def _main_slowdown(args) -> int:
     if not args.models.is_dir():
-        raise SystemExit(f"--models: {str(args.models)!r} is not a folder")
+        _refuse(f"--models: {str(args.models)!r} is not a folder")
     models = ["oracle"] + [str(f) for f in model_files(args.models)]
     est = "ekf" if args.estimator else "none"
     out = {"python": platform.python_version(), "cpus": os.cpu_count(), "scenario": "figure8-fast",
@@ -697,7 +697,7 @@ def _main_slowdown(args) -> int:
 
 def _main_estimator(args) -> int:
     if not args.models.is_dir():
-        raise SystemExit(f"--models: {str(args.models)!r} is not a folder")
+        _refuse(f"--models: {str(args.models)!r} is not a folder")
     models = ["oracle"] + [str(f) for f in model_files(args.models)]
     out = {"python": platform.python_version(), "cpus": os.cpu_count(), "scenario": "figure8-fast",
            "controller": "sqp", "timing": "realtime", "models": {}}
@@ -852,7 +852,7 @@ def zoo_crashes(models_dir, jobs: int = 2, paths=("full", "partial")) -> dict:
 
 def _main_answers(args) -> int:
     if not args.models.is_dir():
-        raise SystemExit(f"--models: {str(args.models)!r} is not a folder")
+        _refuse(f"--models: {str(args.models)!r} is not a folder")
     models = {"oracle": "oracle", **{f.stem: str(f) for f in model_files(args.models)}}
     base, new = args.compare
     out = {"python": platform.python_version(), "cpus": os.cpu_count(), "members": args.members,
@@ -881,7 +881,7 @@ def _main_answers(args) -> int:
 
 def _main_derivatives(args) -> int:
     if not args.models.is_dir():
-        raise SystemExit(f"--models: {str(args.models)!r} is not a folder")
+        _refuse(f"--models: {str(args.models)!r} is not a folder")
     files = model_files(args.models)
     out = {"python": platform.python_version(), "cpus": os.cpu_count(), "stages": HORIZON, "models": {}}
     print(f"A and B at {HORIZON} states across the flight envelope, median us per call "

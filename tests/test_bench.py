@@ -5,13 +5,22 @@ import pytest
 from mpc import bench
 
 
+def refused(argv, capsys) -> str:
+    """The one line on stderr with which the benchmark refuses ``argv`` (exit status 2)."""
+    with pytest.raises(SystemExit) as stop:
+        bench.main(argv)
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and len(err.strip().splitlines()) == 1, (stop.value.code, err)
+    return err
+
+
 @pytest.mark.parametrize("compare", ["full", "full,full", "full,bad", "full,partial,dense", ""])
 def test_a_bad_pair_of_paths_is_refused_by_name(compare, capsys):
-    with pytest.raises(SystemExit, match="--compare: two different paths of full, partial, dense, rti, rti1, rti_full expected"):
-        bench.main(["--answers", "--compare", compare])
+    assert "--compare: two different paths of full, partial, dense, rti, rti1, rti_full expected" in \
+        refused(["--answers", "--compare", compare], capsys)
 
 
-def test_the_speed_benchmark_flies_the_dense_path_only_with_daqp(monkeypatch):
+def test_the_speed_benchmark_flies_the_dense_path_only_with_daqp(monkeypatch, capsys):
     import importlib.util
 
     have = importlib.util.find_spec("daqp") is not None
@@ -19,10 +28,8 @@ def test_the_speed_benchmark_flies_the_dense_path_only_with_daqp(monkeypatch):
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "daqp" else real(name, *a))
     assert list(bench.speed_paths()) == ["full", "partial"]
-    with pytest.raises(SystemExit, match="the dense path needs DAQP"):
-        bench.main(["--answers", "--compare", "full,dense"])
-    with pytest.raises(SystemExit, match="the dense and rti paths need DAQP"):
-        bench.main(["--answers", "--compare", "dense,rti"])
+    assert "the dense path needs DAQP" in refused(["--answers", "--compare", "full,dense"], capsys)
+    assert "the dense and rti paths need DAQP" in refused(["--answers", "--compare", "dense,rti"], capsys)
 
 
 @pytest.mark.parametrize("argv,match", [(["--paths", "full,nope"], "--paths: different paths of full, partial"),
@@ -32,10 +39,17 @@ def test_the_speed_benchmark_flies_the_dense_path_only_with_daqp(monkeypatch):
                                         (["--load", "-3"], "--load: an integer >= 1 expected; found -3")])
 def test_bad_speed_options_are_refused_by_name(argv, match, monkeypatch, capsys):
     monkeypatch.setattr(bench, "daqp_installed", lambda: False)
-    with pytest.raises(SystemExit) as stop:
-        bench.main(["--controllers", "sqp", "--cases", "hover", *argv])
-    err = capsys.readouterr().err
-    assert stop.value.code == 2 and match in err and len(err.strip().splitlines()) == 1
+    assert match in refused(["--controllers", "sqp", "--cases", "hover", *argv], capsys)
+
+
+@pytest.mark.parametrize("argv,match", [(["--cases", "nope"], "--cases: unknown ['nope']"),
+                                        (["--controllers", "pid"], "--controllers: unknown ['pid']"),
+                                        (["--models", "no-such-folder"], "--models: 'no-such-folder' is not a folder"),
+                                        (["--derivatives", "--models", "no-such-folder"], "is not a folder"),
+                                        (["--slowdown", "0.5"], "--slowdown: a factor >= 1 expected; found 0.5"),
+                                        (["--answers", "--members", "0"], "--members and --jobs: integers >= 1")])
+def test_every_bad_option_is_one_line_and_exit_status_2(argv, match, capsys):
+    assert match in refused(argv, capsys)
 
 
 def test_copies_of_a_flight_pool_their_periods():
