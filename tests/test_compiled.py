@@ -93,5 +93,66 @@ def test_a_batch_function_compiles_unoptimized_to_the_same_numbers_bit_for_bit(c
 
 
 def test_an_unknown_use_is_refused_by_name(cache):
-    with pytest.raises(ValueError, match="use must be one of period, batch; found 'fast'"):
+    with pytest.raises(ValueError, match="use must be one of period, batch, kernel; found 'fast'"):
         sc.compiled(_function("t_use"), "fast")
+
+
+def _sparse_function(name):
+    """A function with a sparse output (the Jacobian of a map whose first entry ignores x[1]) and a shared
+    parameter input."""
+    x, u, p = ca.SX.sym("x", 3), ca.SX.sym("u", 2), ca.SX.sym("p", 2)
+    y = ca.vertcat(p[0] * ca.sin(x[0]) * u[0], x[1] * x[2] + u[1] ** 2 * p[1], ca.exp(-x[2]) * u[0])
+    return ca.Function(name, [x, u, p], [y, ca.jacobian(y, x)])
+
+
+def test_the_point_loop_gives_casadis_numbers_bit_for_bit_dense_and_sparse(cache):
+    """Many points in one C call (Pointwise) against CasADi's own call of the same compiled library, point by point:
+    equal to the last bit (the same compiled function), structural zeros written as zeros, a shared input broadcast,
+    and one point as a batch of one."""
+    rng = np.random.default_rng(0)
+    x, u, p = rng.standard_normal((7, 3)), rng.standard_normal((7, 2)), np.array([0.7, -1.3])
+    for f in (_sparse_function("t_points"), _function("t_points_dense")):
+        g, lib = sc.compiled_library(f)
+        assert lib is not None and lib.is_file()
+        pw = sc.Pointwise(g, lib)
+        args = (x, u, p)[:f.n_in()]
+        outs = pw(*args)
+        for i in range(len(x)):
+            ref = g(*[a[i] if a.ndim == 2 else a for a in args])
+            ref = ref if isinstance(ref, (list, tuple)) else [ref]
+            for j, r in enumerate(ref):
+                r = np.asarray(ca.DM(r).full())
+                assert np.array_equal(outs[j][i], r.ravel(order="F")), (f.name(), i, j)
+        one = pw(*[a[:1] if a.ndim == 2 else a for a in args])
+        assert all(np.array_equal(o1[0], o[0]) for o1, o in zip(one, outs))
+
+
+def test_the_point_loop_names_a_wrong_input():
+    f = _sparse_function("t_points_bad")
+    g, lib = sc.compiled_library(f)
+    pw = sc.Pointwise(g, lib)
+    x = np.zeros((4, 3))
+    with pytest.raises(ValueError, match=r"input 1 must be \(2,\) or \(n, 2\); found \(4, 3\)"):
+        pw(x, np.zeros((4, 3)), np.zeros(2))
+    with pytest.raises(ValueError, match="input 1 has 5 points, an earlier one 4"):
+        pw(x, np.zeros((5, 2)), np.zeros(2))
+    with pytest.raises(ValueError, match="takes 3 inputs; found 2"):
+        pw(x, np.zeros((4, 2)))
+
+
+def test_a_c_source_is_compiled_once_per_processor_and_refused_with_a_warning_without_a_compiler(cache, monkeypatch):
+    code = "double t_twice(double x) { return 2.0 * x; }\n"
+    lib = sc.c_library("t_twice", code)
+    assert lib is not None and lib.parent == cache
+    import ctypes
+    fn = ctypes.CDLL(str(lib)).t_twice
+    fn.restype, fn.argtypes = ctypes.c_double, [ctypes.c_double]
+    assert fn(1.25) == 2.5
+    monkeypatch.setattr(sc, "_loaded", {})
+    monkeypatch.setattr(sc, "_cpu_signature", lambda: "another processor")
+    other = sc.c_library("t_twice", code)
+    assert other != lib and len(list(cache.glob("t_twice-*.so"))) == 2    # never another machine's instructions
+    monkeypatch.setattr(sc, "_loaded", {})
+    monkeypatch.setenv("CC", "no-such-compiler-pinnmpc")
+    with pytest.warns(RuntimeWarning, match="numpy path"):
+        assert sc.c_library("t_thrice", code.replace("2.0", "3.0")) is None

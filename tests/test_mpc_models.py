@@ -29,6 +29,8 @@ TOL = {
     "casadi_step_abs": 1e-12,         # ONNX graph rebuilt in CasADi vs onnxruntime (measured 5e-16)
     "casadi_jacobian_rel": 1e-10,     # its AD Jacobian vs the derivative graph (relative to the largest entry)
     "casadi_hessian_rel": 1e-6,       # its AD Hessian vs central differences of the derivative graph (measured 2e-9)
+    "rk4_order": (14.0, 18.0),        # one period's error ratio from 1 to 2 RK4 steps: 2^4 = 16 for a 4th-order method
+    "points_vs_map": 0.0,             # the point loop against CasADi's map of the same compiled functions: bit for bit
 }
 
 
@@ -66,6 +68,54 @@ def test_analytic_model_is_the_simulator_step():
     got = AnalyticModel().step(x, u)
     ref = Simulator(P).step(x, u)
     assert np.max(np.abs(got - ref) / np.std(ref - x, axis=0)) < TOL["analytic_vs_simulator"]
+
+
+def test_fewer_substeps_converge_with_rk4s_fourth_order():
+    """The nominal equations with 1 and 2 RK4 steps per period (the model), and 4 (CasADi's own evaluation of the
+    same equations), against 64: each halving of the step divides the period's error by about 16 (RK4's local error
+    h^5, over n steps n (h / n)^5). The default is 10, the simulator's own."""
+    from sim.equations.dynamics_casadi import step_function
+
+    x, u = feasible_samples(20, seed=3)
+    x[:, 9:12] *= 3.0                       # body rates up to 6 rad/s: an error well above rounding
+
+    def equations(n):
+        return np.asarray(step_function(P, substeps=n).map(len(x))(x.T, u.T)).T
+    ref = equations(64)
+    steps = [AnalyticModel(substeps=1).step(x, u), AnalyticModel(substeps=2).step(x, u), equations(4)]
+    np.testing.assert_allclose(steps[1], equations(2), rtol=0, atol=TOL["analytic_vs_simulator"])
+    err = [np.max(np.abs(s - ref)) for s in steps]
+    lo, hi = TOL["rk4_order"]
+    assert lo <= err[0] / err[1] <= hi and lo <= err[1] / err[2] <= hi, err
+    assert AnalyticModel().substeps == 10
+
+
+@pytest.mark.parametrize("bad,match", [(0, "positive integer; found 0"), (1.5, "positive integer; found 1.5"),
+                                       (True, "positive integer; found True")])
+def test_a_bad_substep_count_is_refused_by_name(bad, match):
+    with pytest.raises(ModelContractError, match=f"substeps must be a {match}"):
+        AnalyticModel(substeps=bad)
+
+
+def test_another_substep_count_is_for_the_nominal_equations_only():
+    from sim.params import HIGH_FIDELITY
+
+    with pytest.raises(ModelContractError, match="nominal equations at the wrench level; found substeps=2 with "
+                                                 "high-fidelity effects"):
+        AnalyticModel(fidelity=HIGH_FIDELITY, substeps=2)
+
+
+def test_the_point_loop_is_casadis_map_bit_for_bit():
+    """The compiled step and Jacobian called at every point in one C call (the default where they compile) against
+    CasADi's map of the same compiled functions (the path without it)."""
+    x, u = feasible_samples(25, seed=4)
+    m = AnalyticModel()
+    assert all(p is not None for p in m._points)
+    fast = (m.step(x, u), *m.linearize(x, u))
+    m._points = (None, None)
+    slow = (m.step(x, u), *m.linearize(x, u))
+    for a, b in zip(fast, slow):
+        assert np.max(np.abs(a - b)) <= TOL["points_vs_map"]
 
 
 def test_analytic_jacobians_match_finite_differences():

@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from sim._validate import as_batch, broadcast_batch
-from sim.params import NU, NX, THETA_NAMES, QuadParams
+from sim.params import NU, NX, SUBSTEPS, THETA_NAMES, QuadParams
 
 from ..errors import ModelContractError
 
@@ -110,12 +110,22 @@ class AnalyticModel(PredictionModel):
         equations. With a motor lag the model has four extra states, the
         rotor speeds ``n1 .. n4`` (RU), and its input is still the wrench
         command, turned into rotor commands as the plant does.
+    substeps : int
+        RK4 steps per control period (default 10, the simulator's 1 ms). Only the nominal rigid-body equations at
+        the wrench level take another number: 1 is one RK4 step of a whole period, the discretization of acados'
+        default integrator, which the benchmark's comparison with it flies.
+
+    Notes
+    -----
+    Where the equations compile to C (:mod:`sim.equations.compiled`), :meth:`step` and :meth:`linearize` call the
+    compiled function at every point in one C call; elsewhere CasADi evaluates them. The numbers are the same.
     """
 
     def __init__(self, params: QuadParams | None = None, name: str = "oracle", fidelity=None, *,
-                 level: str = "wrench", inner_loop=None, exact_loop: bool = False):
+                 level: str = "wrench", inner_loop=None, exact_loop: bool = False, substeps: int = SUBSTEPS):
         import casadi as ca
 
+        from sim.equations.compiled import Pointwise
         from sim.equations.dynamics_casadi import actuated_step_function, step_function
         from sim.levels import DEFAULT_LEVEL, check_level
         from sim.params import Fidelity
@@ -129,6 +139,13 @@ class AnalyticModel(PredictionModel):
         self.name = name
         self.theta = self.params.theta
         self.level = check_level(level)
+        if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
+            raise ModelContractError(f"substeps must be a positive integer; found {substeps!r}")
+        self.substeps = int(substeps)
+        if self.substeps != SUBSTEPS and (self.fidelity is not None or self.level != DEFAULT_LEVEL):
+            found = "high-fidelity effects" if self.fidelity is not None else f"level {level!r}"
+            raise ModelContractError(f"substeps other than {SUBSTEPS} are for the nominal equations at the wrench "
+                                     f"level; found substeps={substeps} with {found}")
         #: The onboard controller a ``ctbr`` or ``ctatt`` model stands for (None at the wrench level), and whether the
         #: model is that loop exactly (the oracle) or its nominal response.
         self.inner_loop, self.exact_loop = inner_loop, bool(exact_loop)
@@ -139,10 +156,13 @@ class AnalyticModel(PredictionModel):
                 self.extra_names = ROTOR_STATE_NAMES
                 self.extra_scale = np.full(4, 0.1 * self.params.n_hover)
             #: CasADi function ``F(x, u) -> x_next`` (column vectors), for symbolic use (NMPC).
-            self.casadi_step = step_function(self.params) if self.fidelity is None else \
+            self.casadi_step = step_function(self.params, substeps=self.substeps) if self.fidelity is None else \
                 actuated_step_function(self.params, self.fidelity)
         self._theta = ca.DM(self.params.theta)
-        self._step, self._lin = _numeric_functions(self.params, self.fidelity, self._level_key())
+        self._theta_values = np.array(self.params.theta, dtype=float)
+        self._step, self._lin, libs = _numeric_functions(self.params, self.fidelity, self._level_key(), self.substeps)
+        #: The compiled step and Jacobian called at every point at once (None where they did not compile).
+        self._points = tuple(None if f is None else Pointwise(g, f) for g, f in zip((self._step, self._lin), libs))
         self._maps: dict = {}
 
     def _level_model(self) -> None:
@@ -214,6 +234,8 @@ class AnalyticModel(PredictionModel):
     def step(self, x, u) -> np.ndarray:
         """Next states (N, nx)."""
         x, u = _batch(x, u, self.nx)
+        if self._points[0] is not None:
+            return self._points[0](x, u, self._theta_values)[0]
         n = len(x)
         return np.asarray(self._mapped("step", n)(x.T, u.T, self._theta)).T   # theta broadcast over the map
 
@@ -222,6 +244,11 @@ class AnalyticModel(PredictionModel):
         nx = self.nx
         x, u = _batch(x, u, nx)
         n = len(x)
+        if self._points[1] is not None:
+            xn, A, B = self._points[1](x, u, self._theta_values)     # each matrix flattened column by column
+            # row-major copies: the products downstream then round as they did on CasADi's own (row-major) result
+            return (xn, np.ascontiguousarray(A.reshape(n, nx, nx).transpose(0, 2, 1)),
+                    np.ascontiguousarray(B.reshape(n, NU, nx).transpose(0, 2, 1)))
         xn, A, B = self._mapped("lin", n)(x.T, u.T, self._theta)
         A = np.asarray(A).reshape(nx, n, nx).transpose(1, 0, 2)
         B = np.asarray(B).reshape(nx, n, NU).transpose(1, 0, 2)
@@ -235,8 +262,9 @@ ROTOR_STATE_NAMES = ("n1", "n2", "n3", "n4")
 _NUMERIC: dict = {}
 
 
-def _numeric_functions(params: QuadParams, fidelity=None, level=None):
-    """Compiled ``step(x, u, theta)`` and ``lin(x, u, theta) -> (x_next, A, B)`` of the equations.
+def _numeric_functions(params: QuadParams, fidelity=None, level=None, substeps: int = SUBSTEPS):
+    """Compiled ``step(x, u, theta)`` and ``lin(x, u, theta) -> (x_next, A, B)`` of the equations, and their
+    libraries (None where they did not compile).
 
     ``theta`` is an input, so one compiled library serves every parameter
     set that differs only in ``(m, Jxx, Jyy, Jzz, kt, kq)``; ``fidelity`` (a
@@ -244,21 +272,23 @@ def _numeric_functions(params: QuadParams, fidelity=None, level=None):
     level, else ``(level, response or inner-loop config, exact)`` (:meth:`AnalyticModel._level_key`), the equations
     at a command level.
     """
-    from sim.equations.compiled import compiled
+    from sim.equations.compiled import compiled_library
 
-    key = tuple(getattr(params, n) for n in ("g", "c_d", "d"))
+    key = tuple(getattr(params, n) for n in ("g", "c_d", "d")) + (substeps,)
     if fidelity is not None:
         key += (params.n_max_sq, fidelity.motor_tau, fidelity.rotor_drag, fidelity.rotor_gyro)
     if level is not None:
         key += (params.n_max_sq, level)
     if key not in _NUMERIC:
-        step, lin = numeric_sources(params, fidelity, level)
-        _NUMERIC[key] = (compiled(step), compiled(lin))
+        (step, step_lib), (lin, lin_lib) = (compiled_library(f) for f in numeric_sources(params, fidelity, level,
+                                                                                          substeps))
+        _NUMERIC[key] = (step, lin, (step_lib, lin_lib))
     return _NUMERIC[key]
 
 
-def numeric_sources(params: QuadParams, fidelity=None, level=None):
-    """The CasADi ``step`` and ``lin`` of :func:`_numeric_functions` before compilation (to precompile them)."""
+def numeric_sources(params: QuadParams, fidelity=None, level=None, substeps: int = SUBSTEPS):
+    """The CasADi ``step`` and ``lin`` of :func:`_numeric_functions` before compilation (to precompile them);
+    ``substeps``: RK4 steps per period of the nominal equations (:class:`AnalyticModel`)."""
     import casadi as ca
 
     from sim.equations.dynamics_casadi import actuated_step_function, step_function
@@ -275,7 +305,8 @@ def numeric_sources(params: QuadParams, fidelity=None, level=None):
         else:
             F, name = level_step_function(params, lv, how, symbolic_theta=True), f"pinnmpc_{lv}"
     elif fidelity is None or fidelity.is_nominal:
-        F, name = step_function(params, symbolic_theta=True), "pinnmpc"
+        F = step_function(params, symbolic_theta=True, substeps=substeps)
+        name = "pinnmpc" if substeps == SUBSTEPS else f"pinnmpc_rk{substeps}"
     else:
         # Composed of substep calls: the expanded form's Jacobian is 3 MB of C and takes about 50 s to compile; this
         # one 0.7 MB and 4 s, and a 30-stage linearization takes 3.8 ms instead of 2.9 (one run, this machine).
@@ -285,7 +316,9 @@ def numeric_sources(params: QuadParams, fidelity=None, level=None):
     xs, us, th = sym.sym("x", nx), sym.sym("u", NU), sym.sym("theta", len(THETA_NAMES))
     xn = F(xs, us, th)
     step = ca.Function(f"{name}_step", [xs, us, th], [xn])
-    lin = ca.Function(f"{name}_lin", [xs, us, th], [xn, ca.jacobian(xn, xs), ca.jacobian(xn, us)])
+    # dense Jacobians: the point loop then writes every entry, structural zeros included
+    lin = ca.Function(f"{name}_lin", [xs, us, th],
+                      [xn, ca.densify(ca.jacobian(xn, xs)), ca.densify(ca.jacobian(xn, us))])
     return step, lin
 
 
