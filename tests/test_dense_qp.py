@@ -9,6 +9,7 @@ pytest.importorskip("daqp")
 
 from mpc.controllers.dense_qp import (LTVQP, condense, condense_matrices, kkt_residuals, prepare_ltv_qp,  # noqa: E402
                                      solve_ltv_qp, solve_prepared)
+import mpc.controllers.dense_qp as dq  # noqa: E402
 from mpc.errors import ConfigurationError  # noqa: E402
 
 #: Tolerances: KKT residuals of the dense solution (it is exact up to rounding); agreement with OSQP solved to
@@ -22,7 +23,10 @@ TOL = {"kkt": 1e-8, "primal": 1e-6, "dual": 1e-5, "controller_inputs": 1e-5,
        "bound": 1e-9, "active": 1e-7, "plan_inputs": 1e-6, "plan_states": 1e-6,
        # the QP prepared for every initial state, then given one, against the QP condensed with it (rounding: the
        # initial state enters through Phi instead of the forward recursion)
-       "prepared": 1e-10}
+       "prepared": 1e-10,
+       # the compiled condensing against numpy's, relative to each array's largest entry (the same sums in another
+       # order)
+       "backends_rel": 1e-12}
 
 
 def random_qp(seed: int, N: int = 30, nx: int = 12, nu: int = 4, tight: bool = True) -> LTVQP:
@@ -360,3 +364,59 @@ def test_the_controllers_dense_constraints_hold_where_they_bind_and_match_osqp(k
     assert info.status == "optimal" and polished and polished[-1] == 1, polished     # OSQP's answer is polished
     np.testing.assert_allclose(U, sparse._plan_u, rtol=0.0, atol=TOL["plan_inputs"])
     np.testing.assert_allclose(X, sparse._plan_x, rtol=0.0, atol=TOL["plan_states"])
+
+
+def _close(a, b, what):
+    scale = max(float(np.max(np.abs(b))), 1e-300)
+    assert np.max(np.abs(a - b)) <= TOL["backends_rel"] * scale, what
+
+
+@pytest.mark.parametrize("N,nx,nu,weights,state_rows", [(30, 12, 4, "diagonal", 2), (30, 16, 4, "full", 0),
+                                                        (1, 12, 4, "diagonal", 0), (7, 3, 2, "full", 1)])
+def test_the_compiled_condensing_is_numpys_to_rounding(N, nx, nu, weights, state_rows):
+    """Both backends of the condensing on the same QP: G, W G, H, the constraint rows and the free response
+    (Phi, v, and Psi made at once or when a feedback first needs it), for the SQP's size, the 16-state models', one
+    stage and a small odd one, diagonal and full weights."""
+    rng = np.random.default_rng(N * 100 + nx)
+    Q = np.diag(rng.uniform(0.5, 2.0, nx))
+    if weights == "full":
+        M = rng.standard_normal((nx, nx))
+        Q = Q + 0.1 * M @ M.T
+    S = np.zeros((state_rows, nx))
+    S[np.arange(state_rows), np.arange(state_rows)] = 1.0
+    qp = LTVQP(A=np.eye(nx) + 0.05 * rng.standard_normal((N, nx, nx)), B=0.1 * rng.standard_normal((N, nx, nu)),
+               c=0.01 * rng.standard_normal((N, nx)), x0=np.zeros(nx), Q=Q, P=3.0 * Q,
+               R=np.diag(rng.uniform(0.1, 1.0, nu)), ref=np.zeros((N + 1, nx)), u_ref=np.zeros((N, nu)),
+               L=np.eye(nu), lo_u=-np.ones(nu), hi_u=np.ones(nu), S=S, lo_s=-np.ones(state_rows),
+               hi_s=np.ones(state_rows))
+    a, b = condense_matrices(qp, backend="c"), condense_matrices(qp, backend="numpy")
+    for name in ("G", "WG", "H", "C"):
+        _close(getattr(a, name), getattr(b, name), name)
+    assert np.array_equal(a.H, a.H.T)
+    for offsets in (True, False):
+        pa, pb = prepare_ltv_qp(qp, offsets=offsets, backend="c"), prepare_ltv_qp(qp, offsets=offsets, backend="numpy")
+        assert (pa.Psi is None) == (pb.Psi is None) == (not offsets)
+        for name in ("G", "WG", "H", "C", "Phi", "v"):
+            _close(getattr(pa, name), getattr(pb, name), name)
+        x0, delta = rng.standard_normal(nx), 0.01 * rng.standard_normal(nx)
+        _close(pa.free(x0, delta), pb.free(x0, delta), "free response with an offset")   # Psi made here if not yet
+        _close(pa.Psi, pb.Psi, "Psi")
+    # Psi made on demand is the one made at once
+    eager, lazy = prepare_ltv_qp(qp, offsets=True, backend="numpy"), prepare_ltv_qp(qp, offsets=False, backend="numpy")
+    lazy.free(np.zeros(nx), np.ones(nx))
+    _close(lazy.Psi, eager.Psi, "Psi on demand")
+    _close(eager.Psi[N], np.sum([np.linalg.multi_dot([np.eye(nx), *qp.A[k + 1:][::-1]]) if k + 1 < N else np.eye(nx)
+                                 for k in range(N)], axis=0), "Psi_N = sum of the transition products")
+
+
+def test_the_compiled_condensing_is_the_default_where_a_compiler_works():
+    import shutil
+
+    if shutil.which("cc") is None and shutil.which("gcc") is None:
+        pytest.skip("no C compiler here")
+    assert dq._kernel(None) is not None
+
+
+def test_an_unknown_condensing_backend_is_refused_by_name():
+    with pytest.raises(ConfigurationError, match="backend must be one of c, numpy or None; found 'fortran'"):
+        condense_matrices(random_qp(1), backend="fortran")

@@ -19,12 +19,22 @@ the multipliers of every constraint in OSQP's convention (``H z + q + A' y =
 0``), the dynamics' ones recovered by a backward recursion, so that a caller
 that reads OSQP's duals reads the same thing. DAQP is an optional dependency
 (``python -m pip install -e ".[dense]"``).
+
+The condensing has two backends with the same recursions: numpy, and the C of
+``condense.c`` beside this file, compiled into the cache of
+:mod:`sim.equations.compiled` on first use. Each numpy call on these small
+blocks costs a microsecond or two whatever its size, and the recursions make
+about 150 of them per QP (0.3 ms for the SQP's 30 stages); the C loop does the
+same arithmetic in about a third of that. Where no C compiler works, numpy.
+They agree to rounding (``tests/test_dense_qp.py``).
 """
 
 from __future__ import annotations
 
+import ctypes
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -37,6 +47,9 @@ from ..errors import ConfigurationError, SolverError
 QP_SOLVERS = ("osqp", "daqp")
 #: DAQP's exit flags that mean a solution: optimal, and optimal with soft constraints relaxed.
 SOLVED_FLAGS = (1, 2)
+#: The condensing's backends (:func:`condense_matrices`, :func:`prepare_ltv_qp`): the compiled C loop, or numpy.
+CONDENSE_BACKENDS = ("c", "numpy")
+_KERNEL: list = []      # the compiled condensing (a ctypes function), or None where it could not be compiled
 
 
 @dataclass(frozen=True)
@@ -141,26 +154,112 @@ class DenseSolution:
         return self.solved and max(kkt_residuals(qp, self).values()) <= eps
 
 
-def condense_matrices(qp: LTVQP) -> Condensed:
+def condense_matrices(qp: LTVQP, backend: str | None = None) -> Condensed:
     """The matrix part of :func:`condense`.
 
     ``G`` by a forward recursion through the dynamics; ``H = G' W G + R`` by a
     backward one, which never multiplies the zero blocks of ``G`` (``x_k``
     depends only on the inputs before stage ``k``): with ``Z_N = W_N G_N`` and
     ``Z_k = W_k G_k + A_k' Z_{k+1}``, the rows of input ``j`` are
-    ``B_j' Z_{j+1}``.
+    ``B_j' Z_{j+1}``. ``backend``: one of :data:`CONDENSE_BACKENDS`, or None for
+    the C loop where it compiles and numpy elsewhere.
     """
+    kernel = _kernel(backend)
+    if kernel is not None:
+        return _condense_c(kernel, qp, 0)[0]
+    return _condensed(qp, _forward(qp, free=False))
+
+
+def _kernel(backend: str | None):
+    """The compiled condensing for ``backend`` (None: where it compiles), or None for numpy."""
+    if backend not in (None, *CONDENSE_BACKENDS):
+        raise ConfigurationError(f"backend must be one of {', '.join(CONDENSE_BACKENDS)} or None; found {backend!r}")
+    if backend == "numpy":
+        return None
+    if not _KERNEL:
+        from sim.equations.compiled import c_library
+
+        lib = c_library("pinnmpc_condense", Path(__file__).with_name("condense.c").read_text())
+        fn = None
+        if lib is not None:
+            fn = ctypes.CDLL(str(lib)).pinnmpc_condense
+            fn.restype = ctypes.c_int
+            fn.argtypes = [ctypes.c_int] * 3 + [ctypes.c_void_p] * 6 + [ctypes.c_int] * 2 + [ctypes.c_void_p] * 5
+        _KERNEL.append(fn)
+    if _KERNEL[0] is None and backend == "c":
+        raise ConfigurationError("backend 'c' asked for, but the condensing could not be compiled (no working C "
+                                 "compiler; see the warning); use backend='numpy' or None")
+    return _KERNEL[0]
+
+
+def _condense_c(kernel, qp: LTVQP, f: int):
+    """``(Condensed, M)`` by the compiled loop: ``M`` (N + 1, nx, f), the free response ``[Phi | v | Psi]`` of
+    :func:`_forward` (``f`` = 0: none, None; nx + 1: without ``Psi``; 2 nx + 1: with it)."""
     N, nx, nu = qp.B.shape
     n = N * nu
-    G = np.zeros((N + 1, nx, n))
+    a = [np.ascontiguousarray(v, dtype=np.float64) for v in (qp.A, qp.B, qp.c, qp.Q, qp.P, qp.R)]
+    diagonal = all(np.array_equal(w, np.diag(np.diag(w))) for w in a[3:5])
+    G, WG = np.empty((N + 1, nx, n)), np.empty((N + 1, nx, n))
+    H, Z = np.empty((n, n)), np.empty((2, nx, n))
+    M = np.empty((N + 1, nx, max(f, 1)))
+    ptr = [v.ctypes.data for v in (*a, G, WG, H, M, Z)]
+    if kernel(N, nx, nu, *ptr[:6], int(diagonal), f, *ptr[6:]):
+        raise SolverError(f"the compiled condensing refused N={N}, nx={nx}, nu={nu}, f={f}")
+    return Condensed(G=G, WG=WG, H=H, C=_constraint_rows(qp, G)), (M if f else None)
+
+
+def _forward(qp: LTVQP, free: bool, offsets: bool = True, inputs: bool = True) -> np.ndarray:
+    """The forward recursion through the dynamics: ``T`` (N + 1, r, g + f) whose first nx rows hold ``G`` of
+    :class:`Condensed` in their first ``g = N nu`` columns (``g = 0`` without ``inputs``) and, with ``free``, the
+    free response ``[Phi | v | Psi]`` of :class:`PreparedQP` in the other ``f`` (``Psi`` only with ``offsets``;
+    ``f = 0`` without ``free``).
+
+    One product per stage. Without ``free``, ``T_{k+1} = A_k T_k`` in the columns of the inputs before stage
+    ``k`` (the others are zero), then ``B_k`` in input ``k``'s. With it, the constant terms ride along as rows:
+    ``T_k`` is ``[G_k | Phi_k | v_k | Psi_k]`` over the constant rows ``[0 | 0 | 1 | 0]`` and ``[0 | 0 | 0 | I]``
+    (``r = 2 nx + 1``), so that ``[A_k | c_k | I] T_k`` is the next stage's first nx rows."""
+    N, nx, nu = qp.B.shape
+    n = N * nu
+    if not free:
+        T = np.zeros((N + 1, nx, n))
+        for k in range(N):
+            m = k * nu
+            np.matmul(qp.A[k], T[k, :, :m], out=T[k + 1, :, :m])     # only the inputs before stage k move x_k
+            T[k + 1, :, m:m + nu] = qp.B[k]
+        return T
+    e = nx if offsets else 0
+    g = n if inputs else 0
+    rows = nx + 1 + e
+    T = np.zeros((N + 1, rows, g + rows))
+    T[0, :nx, g:g + nx] = np.eye(nx)                        # Phi_0 = I, v_0 = 0, Psi_0 = 0
+    T[:, nx, g + nx] = 1.0                                  # the constant rows
+    T[:, nx + 1:, g + nx + 1:] = np.eye(e)
+    step = np.zeros((N, nx, rows))                          # [A_k | c_k | I]
+    step[:, :, :nx] = qp.A
+    step[:, :, nx] = qp.c
+    step[:, :, nx + 1:] = np.eye(nx)[:, :e]
     for k in range(N):
         m = k * nu
-        np.matmul(qp.A[k], G[k, :, :m], out=G[k + 1, :, :m])     # only the inputs before stage k move x_k
-        G[k + 1, :, m:m + nu] = qp.B[k]
-    W = np.empty((N + 1, nx, nx))
-    W[:N] = qp.Q
-    W[N] = qp.P
-    WG = np.matmul(W, G)
+        if inputs:
+            np.matmul(qp.A[k], T[k, :nx, :m], out=T[k + 1, :nx, :m])    # only the inputs before stage k move x_k
+            T[k + 1, :nx, m:m + nu] = qp.B[k]
+        np.matmul(step[k], T[k, :, g:], out=T[k + 1, :nx, g:])
+    return T
+
+
+def _condensed(qp: LTVQP, T: np.ndarray) -> Condensed:
+    """:class:`Condensed` of ``qp`` from its forward recursion ``T`` (:func:`_forward`)."""
+    N, nx, nu = qp.B.shape
+    n = N * nu
+    G = T[:, :nx, :n]
+    q, p = np.diag(qp.Q), np.diag(qp.P)
+    WG = np.empty((N + 1, nx, n))
+    if np.array_equal(qp.Q, np.diag(q)) and np.array_equal(qp.P, np.diag(p)):
+        np.multiply(G[:N], q[:, None], out=WG[:N])    # diagonal weights (the usual case): each row scaled
+        np.multiply(G[N], p[:, None], out=WG[N])
+    else:
+        np.matmul(qp.Q, G[:N], out=WG[:N])
+        np.matmul(qp.P, G[N], out=WG[N])
     Z = np.empty((N + 1, nx, n))
     Z[N] = WG[N]
     At = qp.A.transpose(0, 2, 1)
@@ -170,11 +269,23 @@ def condense_matrices(qp: LTVQP) -> Condensed:
     H = np.matmul(qp.B.transpose(0, 2, 1), Z[1:]).reshape(n, n)
     d = np.arange(N)
     H.reshape(N, nu, N, nu)[d, :, d, :] += qp.R          # the input weight on the diagonal blocks
-    m, p = qp.L.shape[0], qp.S.shape[0]
-    C = np.zeros((N * (m + p), n))
+    H += H.T
+    H *= 0.5
+    return Condensed(G=G, WG=WG, H=H, C=_constraint_rows(qp, G))
+
+
+def _constraint_rows(qp: LTVQP, G: np.ndarray) -> np.ndarray:
+    """The dense QP's constraint rows ``C`` (r, n): the input constraints of every stage, then the state
+    constraints of stages 1..N through the state maps ``G`` (N + 1, nx, n)."""
+    N, nx, nu = qp.B.shape
+    n = N * nu
+    d = np.arange(N)
+    m, ps = qp.L.shape[0], qp.S.shape[0]
+    C = np.zeros((N * (m + ps), n))
     C[:N * m].reshape(N, m, N, nu)[d, :, d, :] = qp.L   # the input constraints, stage by stage
-    C[N * m:] = np.matmul(qp.S, G[1:]).reshape(N * p, n)
-    return Condensed(G=G, WG=WG, H=0.5 * (H + H.T), C=C)
+    if ps:
+        C[N * m:] = np.matmul(qp.S, G[1:]).reshape(N * ps, n)
+    return C
 
 
 def condense(qp: LTVQP, matrices: Condensed | None = None):
@@ -191,17 +302,17 @@ def condense(qp: LTVQP, matrices: Condensed | None = None):
     w[0] = qp.x0
     for k in range(N):
         w[k + 1] = qp.A[k] @ w[k] + qp.c[k]
-    f, lo, hi = _cost_and_bounds(qp, matrices.WG.reshape(-1, N * nu).T, w, qp.ref, qp.u_ref)
+    f, lo, hi = _cost_and_bounds(qp, matrices.WG, w, qp.ref, qp.u_ref)
     return matrices.H, f, matrices.C, lo, hi, matrices.G, w
 
 
-def _cost_and_bounds(qp: LTVQP, WGt: np.ndarray, w: np.ndarray, ref: np.ndarray, u_ref: np.ndarray):
+def _cost_and_bounds(qp: LTVQP, WG: np.ndarray, w: np.ndarray, ref: np.ndarray, u_ref: np.ndarray):
     """The dense QP's linear cost ``f`` (n,) and its rows' bounds ``lo``, ``hi`` (r,), for the states with no input
-    ``w`` (N + 1, nx), the stacked ``(W_k G_k)'`` ``WGt`` (n, (N + 1) nx), the reference ``ref`` and the
-    feed-forward ``u_ref``: ``f = WGt (w - ref) - R u_ref``; the input bounds at every stage, then the state bounds
-    less ``S w_k`` at stages 1..N."""
+    ``w`` (N + 1, nx), the weighted state maps ``WG`` (N + 1, nx, n) (:class:`Condensed`), the reference ``ref`` and
+    the feed-forward ``u_ref``: ``f = sum_k (W_k G_k)' (w_k - ref_k) - R u_ref``; the input bounds at every stage,
+    then the state bounds less ``S w_k`` at stages 1..N."""
     N = len(qp.c)
-    f = WGt @ (w - ref).ravel() - (u_ref @ qp.R).ravel()
+    f = (w - ref).ravel() @ WG.reshape(-1, WG.shape[2]) - (u_ref @ qp.R).ravel()
     Sw = (w[1:] @ qp.S.T).ravel()
     lo = np.concatenate([np.tile(qp.lo_u, N), np.tile(qp.lo_s, N) - Sw])
     hi = np.concatenate([np.tile(qp.hi_u, N), np.tile(qp.hi_s, N) - Sw])
@@ -239,9 +350,10 @@ class PreparedQP:
     H : ndarray, shape (n, n)
     C : ndarray, shape (r, n)
     G : ndarray, shape (N + 1, nx, n)
-    WGt : ndarray, shape (n, (N + 1) nx)
-        ``(W_k G_k)'`` stacked: the linear cost is ``WGt (x_free - ref) - R u_ref``.
+    WG : ndarray, shape (N + 1, nx, n)
+        ``W_k G_k``: the linear cost is ``sum_k (W_k G_k)' (x_free_k - ref_k) - R u_ref``.
     Phi, Psi : ndarray, shape (N + 1, nx, nx)
+        ``Psi`` None until a feedback first needs it (:func:`prepare_ltv_qp`'s ``offsets``).
     v : ndarray, shape (N + 1, nx)
     """
 
@@ -249,43 +361,47 @@ class PreparedQP:
     H: np.ndarray
     C: np.ndarray
     G: np.ndarray
-    WGt: np.ndarray
+    WG: np.ndarray
     Phi: np.ndarray
-    Psi: np.ndarray
+    Psi: np.ndarray | None
     v: np.ndarray
 
     def free(self, x0: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
         """The states (N + 1, nx) with no input: from ``x0`` (nx,), with every ``c_k`` moved by ``delta``."""
         w = self.Phi @ x0 + self.v
-        return w if delta is None else w + self.Psi @ delta
+        if delta is None:
+            return w
+        if self.Psi is None:            # made once, on the first feedback that needs it
+            T = _forward(self.qp, free=True, offsets=True, inputs=False)
+            object.__setattr__(self, "Psi", T[:, :self.qp.A.shape[1], -self.qp.A.shape[1]:])
+        return w + self.Psi @ delta
 
     def states(self, x0: np.ndarray, u: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
         """The states (N + 1, nx) of the inputs ``u`` (N nu,) from ``x0`` (nx,) (and ``delta``, as :meth:`free`)."""
-        N1, nx, n = self.G.shape
-        return (self.G.reshape(-1, n) @ u).reshape(N1, nx) + self.free(x0, delta)
+        return np.matmul(self.G, u) + self.free(x0, delta)
 
 
-def prepare_ltv_qp(qp: LTVQP, matrices: Condensed | None = None) -> PreparedQP:
+def prepare_ltv_qp(qp: LTVQP, matrices: Condensed | None = None, offsets: bool = True,
+                   backend: str | None = None) -> PreparedQP:
     """Condense ``qp`` for any initial state (its ``x0`` is not used): a :class:`PreparedQP`.
 
-    ``matrices``: the :class:`Condensed` part of a QP with the same matrices, reused as it is.
+    ``matrices``: the :class:`Condensed` part of a QP with the same matrices, reused as it is. ``offsets``: also
+    make the response to a change of the constant terms (``Psi``) now; without, it is made when a feedback first
+    asks for it (a model with no disturbance offset never does). ``backend``: as :func:`condense_matrices`.
     """
-    if matrices is None:
-        matrices = condense_matrices(qp)
     N, nx, nu = qp.B.shape
-    # M_k = [Phi_k | Psi_k | v_k], one product per stage: M_{k+1} = A_k M_k + [0 | I | c_k]
-    M = np.empty((N + 1, nx, 2 * nx + 1))
-    M[0] = 0.0
-    M[0, :, :nx] = np.eye(nx)
-    step = np.zeros((N, nx, 2 * nx + 1))
-    step[:, :, nx:2 * nx] = np.eye(nx)
-    step[:, :, -1] = qp.c
-    for k in range(N):
-        np.matmul(qp.A[k], M[k], out=M[k + 1])
-        M[k + 1] += step[k]
-    return PreparedQP(qp=qp, H=matrices.H, C=matrices.C, G=matrices.G,
-                      WGt=np.ascontiguousarray(matrices.WG.reshape(-1, N * nu).T), Phi=M[:, :, :nx],
-                      Psi=M[:, :, nx:2 * nx], v=M[:, :, -1])
+    kernel = _kernel(backend)
+    if matrices is None and kernel is not None:
+        matrices, M = _condense_c(kernel, qp, 2 * nx + 1 if offsets else nx + 1)
+        return PreparedQP(qp=qp, H=matrices.H, C=matrices.C, G=matrices.G, WG=matrices.WG, Phi=M[:, :, :nx],
+                          Psi=M[:, :, nx + 1:] if offsets else None, v=M[:, :, nx])
+    g = N * nu if matrices is None else 0
+    T = _forward(qp, free=True, offsets=offsets, inputs=matrices is None)   # G and the free response at once
+    if matrices is None:
+        matrices = _condensed(qp, T)
+    M = T[:, :nx, g:]
+    return PreparedQP(qp=qp, H=matrices.H, C=matrices.C, G=matrices.G, WG=matrices.WG, Phi=M[:, :, :nx],
+                      Psi=M[:, :, nx + 1:] if offsets else None, v=M[:, :, nx])
 
 
 @dataclass(frozen=True)
@@ -317,7 +433,7 @@ def solve_prepared(prep: PreparedQP, x0: np.ndarray, time_limit_s: float | None 
     t0 = time.perf_counter()
     qp = prep.qp
     w = prep.free(np.asarray(x0, dtype=float), delta)
-    f, lo, hi = _cost_and_bounds(qp, prep.WGt, w, qp.ref if ref is None else ref, qp.u_ref if u_ref is None else u_ref)
+    f, lo, hi = _cost_and_bounds(qp, prep.WG, w, qp.ref if ref is None else ref, qp.u_ref if u_ref is None else u_ref)
     u, flag, iterations, lam = _daqp(prep.H, f, prep.C, lo, hi, time_limit_s)
     return Feedback(u=u.reshape(-1, qp.B.shape[2]), flag=flag, iterations=iterations, lam=lam,
                     solve_s=time.perf_counter() - t0)

@@ -498,7 +498,7 @@ class SQPMPC(LTVMPC):
         if self.s.qp == "daqp":
             from .dense_qp import prepare_ltv_qp
 
-            dense = prepare_ltv_qp(self._ltv_qp(X[0], ref, u_ref, c, A, B))
+            dense = prepare_ltv_qp(self._ltv_qp(X[0], ref, u_ref, c, A, B), offsets=self.model.offset is not None)
         else:
             self._condensed = None
             lo, hi = self._bounds(X[0], c)
