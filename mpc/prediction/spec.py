@@ -15,6 +15,7 @@ default vehicle (the Parrot Rolling Spider) when none is given.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 
@@ -44,9 +45,25 @@ SPEC_FIELDS = ("m", "Jxx", "Jyy", "Jzz", "kt", "kq", "d", "n_max", "g", "c_d")
 def datasheet(vehicle=None) -> dict:
     """The datasheet values of ``vehicle`` (a :class:`sim.vehicles.vehicle.Vehicle`, name or file; default vehicle if
     None), with its largest rate and tilt commands where it has an inner loop."""
+    import sim.vehicles.vehicle as vehicles
+
+    if vehicle is None:
+        return dict(_default_datasheet(vehicles.DEFAULT_VEHICLE))
+    return _sheet(vehicles.load_vehicle(vehicle))
+
+
+@functools.lru_cache(maxsize=4)
+def _default_datasheet(name: str) -> dict:
+    """The datasheet of the default vehicle ``name``, read once per process: it is a file shipped with the package,
+    and every ``VehicleSpec()`` (a reference's flatness map without a spec, at each call) would parse it again
+    (0.5 ms)."""
     from sim.vehicles.vehicle import load_vehicle
 
-    v = load_vehicle(vehicle)
+    return _sheet(load_vehicle(name))
+
+
+def _sheet(v) -> dict:
+    """:func:`datasheet` of a loaded vehicle."""
     p = v.params
     loop = v.inner_loop
     return {"m": p.m, "Jxx": p.Jxx, "Jyy": p.Jyy, "Jzz": p.Jzz, "kt": p.kt, "kq": p.kq, "d": p.d,

@@ -179,6 +179,9 @@ class FeedForward:
         # Input Jacobians at the feed-forward (from prepare): (times (ns, ascending), B (K, 12, 4)) or None.
         self._nominal_B: tuple | None = None
         self._prepared_to: float | None = None    # the t_end of the last prepare (or of a Prepared adopted)
+        # The last two undisturbed horizons, (times, states, inputs): the real-time iteration asks for each one twice,
+        # once to prepare the period and again in its feedback.
+        self._recent: list[tuple] = []
         self.trim_extra = np.zeros(0)
         #: The model gives its own reference states (full width) along flat trajectories.
         self.model_reference = self.is_flat and model.reference_states(reference, np.zeros(1)) is not None
@@ -351,7 +354,13 @@ class FeedForward:
         """
         t = np.asarray(times, dtype=float).ravel()
         if self._disturbance is None:
-            return self.full_states(t), self.inputs(t[:-1])
+            keys = self._keys(t)        # the times as the caches see them (ns): (k - 1) dt + dt may not be k dt
+            for seen, x, u in self._recent:
+                if seen.shape == keys.shape and np.array_equal(seen, keys):
+                    return x.copy(), u.copy()
+            x, u = self.full_states(t), self.inputs(t[:-1])
+            self._recent = [(keys, x, u), *self._recent[:1]]
+            return x.copy(), u.copy()
         d, off = self._disturbance
         nominal_x, nominal_u = self.full_states(t), self.inputs(t[:-1])
         if self.is_flat and _stationary(self.trajectory.flat(t)):
