@@ -101,6 +101,12 @@ ALL_PATHS = {**PATHS, **DENSE_PATH, **RTI_PATH}
 DAQP_PATHS = (*DENSE_PATH, *RTI_PATH)
 #: The cases of the same-answers comparison.
 ANSWER_CASES = ("figure8-fast", "figure8-slow", "hover")
+#: acados' real-time iteration on the problem of ``oracle_rk1`` (the nominal equations, 12 states, 4 inputs, N = 30,
+#: dt = 0.01 s, one RK4 step per interval, least-squares tracking of the 1.5 m/s figure-8, HPIPM), whole step
+#: (preparation and feedback), median per period over runs on a 2-core machine of this project's kind, ms; measured
+#: outside this project (acados is not one of its dependencies). The speed benchmark prints the oracles' RTI step
+#: against it.
+ACADOS_RTI_MS = (0.35, 0.46)
 
 
 def speed_paths() -> dict:
@@ -383,7 +389,7 @@ def main(argv=None) -> int:
         model = _bench_model(source)
         floors[name] = (floor_us(model), floor_us(model, single=True))
         for kind in kinds:
-            if kind == "lqr" and name not in ("oracle", "oracle_highfi"):
+            if kind == "lqr" and name not in ("oracle", "oracle_rk1", "oracle_highfi"):
                 continue  # LQR uses the analytic hover linearization whatever the model
             if kind == "nmpc" and model.n_extra:
                 continue  # about 0.4 s per IPOPT solve with the 16-state high-fidelity equations
@@ -425,9 +431,32 @@ def main(argv=None) -> int:
                      "p95": r["solve_ms"]["p95"] / f["p95"]}
             out["ratios"].append(ratio)
             print(f"{n:<22}{c:<14}{p:<9}{ratio['median']:>8.2f}{ratio['p95']:>8.2f}")
+        out["acados"] = _against_acados(by)
     write_json(args.json, out)
     print(f"wrote {args.json}")
     return 0
+
+
+def _against_acados(by: dict) -> list:
+    """The nominal equations' real-time iteration against acados' (:data:`ACADOS_RTI_MS`): for each oracle flown on
+    ``figure8-fast`` by the ``rti`` path, its whole step's median (the period load, ms) and that over acados'
+    lowest and highest median; printed, and returned for the JSON."""
+    rows = []
+    for name in ("oracle_rk1", "oracle"):
+        r = by.get((name, "figure8-fast", "rti"))
+        if r is None:
+            continue
+        ms = r["solve_ms"]["median"]
+        rows.append({"model": name, "rti_step_median_ms": ms, "acados_ms": list(ACADOS_RTI_MS),
+                     "ratio": [ms / ACADOS_RTI_MS[1], ms / ACADOS_RTI_MS[0]]})
+    if rows:
+        print(f"\nThe real-time iteration's whole step (preparation and feedback, median) against acados' "
+              f"{ACADOS_RTI_MS[0]:.2f}-{ACADOS_RTI_MS[1]:.2f} ms on figure8-fast (oracle_rk1 is acados' problem; "
+              f"oracle integrates 1 ms RK4 steps, as the plant):")
+        for row in rows:
+            lo, hi = row["ratio"]
+            print(f"{row['model']:<22}{row['rti_step_median_ms']:>8.3f} ms = {lo:.2f}-{hi:.2f} x acados'")
+    return rows
 
 
 def _refuse(message: str):
@@ -450,15 +479,17 @@ SPEED_CASES = tuple(_speed_cases())
 
 def speed_models(models_dir) -> dict:
     """The models the speed benchmark flies: ``{name: (source, plant)}``. ``source`` is ``"oracle"``,
-    ``"oracle_highfi"`` or an ONNX file; ``plant`` is None (the simulator, at the model's own fidelity) or the
-    learning study's plant the model was learned on (its key of :data:`scenarios.studies.learn.LEARN_PLANTS`): the
-    oracle, the high-fidelity equations, every shipped model, and the final models of the learning studies on our
+    ``"oracle_rk1"`` (the nominal equations with one RK4 step per period, acados' default discretization: the
+    problem of :data:`ACADOS_RTI_MS`), ``"oracle_highfi"`` or an ONNX file; ``plant`` is None (the simulator, at
+    the model's own fidelity) or the learning study's plant the model was learned on (its key of
+    :data:`scenarios.studies.learn.LEARN_PLANTS`): the oracles, the high-fidelity equations, every shipped model,
+    and the final models of the learning studies on our
     high-fidelity plant and on RotorPy (16 states: the rotor speeds carried), each on its own plant (RotorPy's only
     when RotorPy is installed)."""
     from scenarios.studies.campaign import learned_models
     from sim.plants.named import rotorpy_available
 
-    out = {"oracle": ("oracle", None), "oracle_highfi": ("oracle_highfi", None)}
+    out = {"oracle": ("oracle", None), "oracle_rk1": ("oracle_rk1", None), "oracle_highfi": ("oracle_highfi", None)}
     out.update({f.stem: (str(f), None) for f in model_files(models_dir)})
     for key in ("highfi", "rotorpy"):
         if key == "rotorpy" and not rotorpy_available():
@@ -476,6 +507,7 @@ def _bench_model(source: str):
 
     if source not in _MODELS:
         _MODELS[source] = (AnalyticModel() if source == "oracle" else
+                           AnalyticModel(name="oracle_rk1", substeps=1) if source == "oracle_rk1" else
                            AnalyticModel(fidelity=HIGH_FIDELITY) if source == "oracle_highfi" else OnnxModel(source))
     return _MODELS[source]
 
