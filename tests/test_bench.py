@@ -79,3 +79,20 @@ def test_an_unwritable_output_is_refused_before_any_flight(tmp_path, capsys):
         bench.main(["--controllers", "sqp", "--cases", "hover", "--json", str(tmp_path / "file" / "out.json")])
     err = capsys.readouterr().err
     assert stop.value.code == 2 and "--json" in err and len(err.strip().splitlines()) == 1
+
+
+def test_the_real_time_iterations_step_is_set_against_acados_as_a_ratio_of_its_medians(capsys):
+    """Each oracle's RTI period on figure8-fast over acados' highest and lowest median (0.46 and 0.35 ms); the
+    other rows and models are not compared; oracle_rk1, acados' own problem, first."""
+    by = {("oracle", "figure8-fast", "rti"): {"solve_ms": {"median": 0.70}},
+          ("oracle_rk1", "figure8-fast", "rti"): {"solve_ms": {"median": 0.46}},
+          ("oracle", "figure8-fast", "dense"): {"solve_ms": {"median": 9.0}},
+          ("baseline", "figure8-fast", "rti"): {"solve_ms": {"median": 9.0}},
+          ("oracle", "hover", "rti"): {"solve_ms": {"median": 9.0}}}
+    rows = bench._against_acados(by)
+    assert [r["model"] for r in rows] == ["oracle_rk1", "oracle"]
+    assert rows[0]["ratio"] == pytest.approx([1.0, 0.46 / 0.35])
+    assert rows[1]["ratio"] == pytest.approx([0.7 / 0.46, 2.0])
+    out = capsys.readouterr().out.split()
+    assert out[out.index("oracle_rk1") + 1:out.index("oracle_rk1") + 6] == ["0.460", "ms", "=", "1.00-1.31", "x"]
+    assert bench._against_acados({}) == []
