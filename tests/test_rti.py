@@ -38,6 +38,10 @@ TOL = {
     # and RTI against the converged SQP on the oracle (measured 1e-14 m: on the exact model one full step along
     # the shifted plan is the converged plan), m.
     "oracle_rmse_m": 1e-6,
+    # RTI's RMSE over the iterating SQP's on figure8-fast, member 0 of each shipped model: within 5 % for the
+    # models that track (measured 0.9991-1.0001); over all six, their geometric mean within 5 % of 1 (Fourier's and
+    # Proposed's differences fall on either side: 1.015 and 0.975 on member 0, +8.6 % and -6.8 % over five).
+    "shipped_ratio": 0.05,
     # A disturbance known at the feedback against the same known at the preparation, inputs in N and N m: nearly
     # the same QP (the second's plan starts from a next state predicted with the offset; measured 9.1e-7 with
     # DAQP), against a difference of 1e-3 or more without the disturbance.
@@ -473,3 +477,25 @@ def test_fly_takes_the_scheme_and_refuses_it_for_another_controller(tmp_path, ca
                  "--json", str(bad)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--scheme applies to the sqp controller" in err[0] and not bad.exists()
+
+
+@pytest.mark.slow
+def test_on_the_shipped_models_rti_tracks_as_the_iterating_sqp_where_their_linearizations_hold():
+    """figure8-fast in ideal timing, member 0 of each shipped model, by the iterating SQP and by RTI (both on DAQP).
+    The models that track (20-37 mm) within 5 %; Fourier and Proposed (108-120 mm, far from where their
+    linearizations hold, where any one-QP controller lands elsewhere, on either side: docs/realtime.md) are not held
+    to it one by one, but the seven ratios' geometric mean is: RTI does not fly the shipped models worse."""
+    from scenarios.closed_loop.runner import RunSpec, fly as fly_run
+
+    ratios = {}
+    for name in ("baseline", "baseline_aggressive", "fourier", "modular", "proposed", "proposed_aggressive"):
+        rmse = {}
+        for scheme, extra in (("sqp", {}), ("rti", {"scheme": "rti"})):
+            r, _ = fly_run(RunSpec("figure8-fast", "sqp", str(ROOT / "models" / f"{name}.onnx"), member=0),
+                           sqp={"qp": "daqp", **extra})
+            assert r["error"] is None and not r["crashed"], (name, scheme)
+            rmse[scheme] = r["rmse_position_m"]
+        ratios[name] = rmse["rti"] / rmse["sqp"]
+    tracking = {n: q for n, q in ratios.items() if n not in ("fourier", "proposed")}
+    assert all(abs(q - 1.0) <= TOL["shipped_ratio"] for q in tracking.values()), ratios
+    assert abs(np.exp(np.mean(np.log(list(ratios.values())))) - 1.0) <= TOL["shipped_ratio"], ratios
