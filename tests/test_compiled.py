@@ -156,3 +156,8 @@ def test_a_c_source_is_compiled_once_per_processor_and_refused_with_a_warning_wi
     monkeypatch.setenv("CC", "no-such-compiler-pinnmpc")
     with pytest.warns(RuntimeWarning, match="numpy path"):
         assert sc.c_library("t_thrice", code.replace("2.0", "3.0")) is None
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                   # once per process: not tried, nor said, again
+        assert sc.c_library("t_thrice", code.replace("2.0", "3.0")) is None

@@ -118,6 +118,20 @@ def test_the_point_loop_is_casadis_map_bit_for_bit():
         assert np.max(np.abs(a - b)) <= TOL["points_vs_map"]
 
 
+def test_the_analytic_model_pickles_and_copies_with_its_point_loop():
+    """Sent to a worker process or deep-copied (a controller's copy of its model), the model makes its point loop
+    again from its compiled library: the same numbers, its own work arrays."""
+    import copy
+    import pickle
+
+    x, u = feasible_samples(5, seed=6)
+    m = AnalyticModel()
+    for other in (pickle.loads(pickle.dumps(m)), copy.deepcopy(m)):
+        assert other._points[1] is not m._points[1] and other._points[1] is not None
+        for a, b in zip((other.step(x, u), *other.linearize(x, u)), (m.step(x, u), *m.linearize(x, u))):
+            assert np.array_equal(a, b)
+
+
 def test_analytic_jacobians_match_finite_differences():
     x, u = feasible_samples(10, seed=1)
     xn, A, B = AnalyticModel().linearize(x, u)

@@ -192,3 +192,22 @@ def test_the_estimator_takes_most_of_the_gusty_wind_out_of_the_figure8():
     assert not r["crashed"]
     print(f"figure8-fast+wind with the estimator: {1e3 * r['rmse_position_m']:.2f} mm")
     assert r["rmse_position_m"] < TOL["figure8_wind"], r["rmse_position_m"]
+
+
+def test_a_horizon_asked_again_is_the_same_and_a_copy():
+    """The real-time iteration asks for each horizon twice (preparation and feedback), at times that may differ in
+    the last bit ((k - 1) dt + dt against k dt): the second answer equals a fresh computation's, and is the caller's
+    own (writing into one does not change the next)."""
+    model = _oracle()
+    ctrl = make_controller("lqr", model, Figure8(0.75, 3.0, 1.0))
+    ctrl.prepare(1.0)
+    k = 37
+    t_prep = (k - 1) * DT + DT + DT * np.arange(31)
+    t_call = k * DT + DT * np.arange(31)
+    X1, U1 = ctrl.ff.horizon(t_prep)
+    X1[:] = 0.0
+    X2, U2 = ctrl.ff.horizon(t_call)
+    fresh = make_controller("lqr", model, Figure8(0.75, 3.0, 1.0))
+    fresh.prepare(1.0)
+    X3, U3 = fresh.ff.horizon(t_call)
+    assert np.array_equal(X2, X3) and np.array_equal(U2, U3) and np.any(X2 != 0.0)

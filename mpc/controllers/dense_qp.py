@@ -214,10 +214,10 @@ def _forward(qp: LTVQP, free: bool, offsets: bool = True, inputs: bool = True) -
     free response ``[Phi | v | Psi]`` of :class:`PreparedQP` in the other ``f`` (``Psi`` only with ``offsets``;
     ``f = 0`` without ``free``).
 
-    One product per stage. Without ``free``, ``T_{k+1} = A_k T_k`` in the columns of the inputs before stage
-    ``k`` (the others are zero), then ``B_k`` in input ``k``'s. With it, the constant terms ride along as rows:
-    ``T_k`` is ``[G_k | Phi_k | v_k | Psi_k]`` over the constant rows ``[0 | 0 | 1 | 0]`` and ``[0 | 0 | 0 | I]``
-    (``r = 2 nx + 1``), so that ``[A_k | c_k | I] T_k`` is the next stage's first nx rows."""
+    Per stage: ``A_k`` times the columns of the inputs before stage ``k`` (the others are zero), ``B_k`` into
+    input ``k``'s; and with ``free`` one more product, in which the constant terms ride along as rows: the free
+    columns hold ``[Phi_k | v_k | Psi_k]`` over the constant rows ``[0 | 1 | 0]`` and ``[0 | 0 | I]`` (``r = 2 nx
+    + 1``; ``nx + 1`` without ``Psi``), so that ``[A_k | c_k | I]`` times them is the next stage's."""
     N, nx, nu = qp.B.shape
     n = N * nu
     if not free:

@@ -21,9 +21,9 @@ The cache folder is ``$PINNMPC_CACHE`` or ``~/.cache/pinn-mpc``. The
 compiler is ``$CC`` or ``cc``.
 
 Each library also holds a small loop, ``<name>_points``, that evaluates the
-function at many points in one C call. :func:`pointwise` calls it through
+function at many points in one C call. :class:`Pointwise` calls it through
 ``ctypes`` on numpy arrays: CasADi's own call converts its arguments and
-results to and from its matrices, which cost about 20 us per call and, for a
+results to and from its matrices, which cost about 20 µs per call and, for a
 30-stage Jacobian (a 12 x 360 result), more than the compiled arithmetic of a
 one-step integrator. Both run the same compiled function, so their numbers are
 the same bit for bit.
@@ -153,12 +153,13 @@ def c_library(name: str, code: str, use: str = "kernel") -> Path | None:
     machines never hands one of them another's instructions), and for any processor of its kind when the compiler
     does not take that flag.
     """
-    tries = [(*_flags(use), "-march=native"), _flags(use)]
-    for flags in tries:
+    keys = []
+    for flags in [(*_flags(use), "-march=native"), _flags(use)]:
         extra = _cpu_signature() if "-march=native" in flags else ""
         key = hashlib.sha256(code.encode() + " ".join(flags).encode() + extra.encode()).hexdigest()[:20]
         if key in _loaded:
             return _loaded[key]
+        keys.append(key)
         lib = cache_dir() / f"{name}-{key}.so"
         try:
             if not lib.is_file():
@@ -169,7 +170,7 @@ def c_library(name: str, code: str, use: str = "kernel") -> Path | None:
             error = e
     warnings.warn(f"could not compile {name} ({error}); using its numpy path (same results to rounding, slower)",
                   RuntimeWarning, stacklevel=2)
-    _loaded[key] = None
+    _loaded.update(dict.fromkeys(keys))          # not tried again in this process
     return None
 
 
@@ -215,7 +216,7 @@ class Pointwise:
     fn : casadi.Function
         The function (its sparsity patterns; every input dense).
     lib : path
-        Its compiled library (:func:`pointwise`).
+        Its compiled library (:func:`compiled_library`).
 
     Calling it with one array per input gives one array per output: an input of shape ``(n, numel)`` has a value
     per point, one of shape ``(numel,)`` the same value at every point; each output is
@@ -224,6 +225,7 @@ class Pointwise:
     """
 
     def __init__(self, fn: ca.Function, lib: Path):
+        self._made_of = (fn, Path(lib))
         self.name = fn.name()
         dll = ctypes.CDLL(str(lib))
         self._call = getattr(dll, f"{self.name}_points")
@@ -255,6 +257,10 @@ class Pointwise:
         # the addresses that do not change from call to call, read once
         self._fixed = (self._in_step.ctypes.data, self._out_step.ctypes.data, self._iw.ctypes.data,
                        self._w.ctypes.data)
+
+    def __reduce__(self):
+        # made again from its function and library (a copy, or in another process): its ctypes pointers cannot travel
+        return Pointwise, self._made_of
 
     def __call__(self, *args) -> list[np.ndarray]:
         if len(args) != self.n_in:
