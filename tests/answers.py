@@ -30,9 +30,9 @@ import numpy as np
 from sim.files import write_text
 
 STORED = Path(__file__).with_name("answers.json")
-TIMING_KEYS = frozenset({"solve_ms", "latency_ms", "preflight_ms", "deadline_misses", "seconds", "wall_time_s",
-                         "estimator_ms"})
-TIMING_ARRAYS = frozenset({"solve_s", "latency_s", "load_s", "estimator_s"})
+TIMING_KEYS = frozenset({"solve_ms", "latency_ms", "preflight_ms", "deadline_misses", "own_work_misses", "seconds",
+                         "wall_time_s", "estimator_ms"})
+TIMING_ARRAYS = frozenset({"solve_s", "latency_s", "load_s", "load_cpu_s", "estimator_s"})
 PROVENANCE_KEYS = frozenset({"cache_key", "inputs_sha256"})
 #: Tables the job computes (or reuses when their key matches); the runs are found under runs/ and traces/.
 TABLES = ("results.json", "evaluation.json", "fisher.json")

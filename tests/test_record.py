@@ -16,7 +16,8 @@ FLOWN_KEYS = ("run_id", "scenario", "controller", "model", "model_file", "model_
               "horizon", "timing", "plant", "vehicle", "estimator", "qp", "level", "inputs_sha256",
               "gust_peak_error_m", "recovery_time_s",
               "settled_error_m", "rmse_yaw_rad", "rmse_position_m", "max_position_error_m", "crashed",
-              "crash_time_s", "crash_reason", "solve_ms", "latency_ms", "deadline_misses", "solver_failures",
+              "crash_time_s", "crash_reason", "solve_ms", "latency_ms", "deadline_misses", "own_work_misses",
+              "solver_failures",
               "fallbacks", "steps", "shifted_plan", "deadline_fallbacks", "failure_causes", "preflight", "preflight_ms",
               "error", "wall_time_s", "scenario_spec", "plant_spec", "vehicle_spec")
 NOT_FLOWN_KEYS = ("run_id", "scenario", "controller", "model", "plant", "vehicle", "qp", "level", "rmse_position_m",

@@ -488,6 +488,9 @@ def test_runs_on_other_plants_have_their_own_section_and_stay_out_of_the_others(
            "latency_ms": {"median": 0.934, "p95": 1.0, "p99": 1.172, "max": 1.8}}
     assert "| SQP (real-time iteration) | alpha | 40 | 4.00 | 12.00 | 2 / 200 | 0.93 / 1.17 |" in \
         plants_section(mine, [rti])
+    # ... and, where the controller thread's CPU time was measured, how many of its long periods were its own work
+    assert "| SQP (real-time iteration) | alpha | 40 | 4.00 | 12.00 | 2 / 200 (0) | 0.93 / 1.17 |" in \
+        plants_section(mine, [{**rti, "own_work_misses": 0}])
     alone = plants_section(mine, [])
     assert alone.startswith("All 2 runs here flew on our simulator with the rolling-spider.") and NO_RUNS in alone
     # A folder flown on another plant: its own runs are those, ours the others.

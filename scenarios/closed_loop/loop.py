@@ -306,6 +306,8 @@ class Trace:
     solver_failed: np.ndarray  # (K,) bool: a fallback produced the input
     lqr_fallback: np.ndarray  # (K,) bool: the LQR fallback produced it
     rotor_speed: np.ndarray | None = None     # (K + 1, 4) the plant's rotor speeds at each period boundary, RU
+    load_cpu_s: np.ndarray | None = None      # (K,) load_s's span on the controller thread's CPU clock, s: its own
+    #                                           work, not the time the machine gave the core away (NaN where not called)
     steps: int = 0            # periods flown
     # With an estimator (else None): its output where the controller was called (NaN elsewhere).
     x_estimate: np.ndarray | None = None      # (K, nx) the model's state as estimated
@@ -324,7 +326,8 @@ class Trace:
     def empty(cls, K: int) -> "Trace":
         return cls(x=np.full((K + 1, NX), np.nan), x_measured=np.full((K, NX), np.nan),
                    u=np.full((K, NU), np.nan), u_command=np.full((K, NU), np.nan), solve_s=np.zeros(K),
-                   latency_s=np.full(K, np.nan), load_s=np.full(K, np.nan), called=np.zeros(K, dtype=bool),
+                   latency_s=np.full(K, np.nan), load_s=np.full(K, np.nan), load_cpu_s=np.full(K, np.nan),
+                   called=np.zeros(K, dtype=bool),
                    iterations=np.zeros(K, dtype=np.int64), status=np.full(K, "", dtype="<U40"),
                    solver_failed=np.zeros(K, dtype=bool), lqr_fallback=np.zeros(K, dtype=bool),
                    rotor_speed=np.full((K + 1, 4), np.nan))
@@ -349,7 +352,8 @@ def nees(x_true: np.ndarray, x_est: np.ndarray, P: np.ndarray) -> float:
 
 
 def fly_loop(plant: Plant, sensor: Sensor, controller: Controller, clock: Clock, x_ref: np.ndarray, steps: int,
-             progress=None, estimator: StateEstimator | None = None, wall=time.perf_counter) -> Trace:
+             progress=None, estimator: StateEstimator | None = None, wall=time.perf_counter,
+             cpu=time.thread_time) -> Trace:
     """Fly ``steps`` control periods from the plant's current state; the :class:`Trace`.
 
     ``x_ref`` (steps + 1, 12): the reference at each period boundary (the
@@ -358,7 +362,9 @@ def fly_loop(plant: Plant, sensor: Sensor, controller: Controller, clock: Clock,
     (``sensor`` is then unused). The loop ends early at a crash, and when the
     estimator loses the state (:class:`mpc.errors.EstimatorError`: the run is
     recorded as crashed at that period, its reason ``"estimator failed: ..."``).
-    ``wall``: the wall clock the calls are timed on, s (``time.perf_counter``; a test passes a fake one).
+    ``wall``: the wall clock the calls are timed on, s (``time.perf_counter``; a test passes a fake one); ``cpu``:
+    the controller thread's CPU clock on which the same span is timed (``time.thread_time``): where a period's
+    load is long and its CPU time short, the machine held the controller up.
     """
     from mpc.controllers.controller import collector_paused
     from mpc.errors import EstimatorError
@@ -380,7 +386,7 @@ def fly_loop(plant: Plant, sensor: Sensor, controller: Controller, clock: Clock,
             # In real time the garbage collector waits until the call has returned: a collection triggered
             # by the plant's allocations is not the controller's time.
             with collector_paused(clock.realtime):
-                c0 = wall()
+                c0, p0 = wall(), cpu()
                 if clock.realtime:      # a controller that can keep a deadline (the MPCs on OSQP) keeps this one
                     controller.set_deadline(c0 + DT - DEADLINE_MARGIN_S)
                 if estimator is not None:
@@ -398,6 +404,7 @@ def fly_loop(plant: Plant, sensor: Sensor, controller: Controller, clock: Clock,
                 # by the next measurement: charged to the period's load, not to the input's latency.
                 controller.prepare_next(c0 + DT - DEADLINE_MARGIN_S if clock.realtime else None)
                 tr.load_s[k] = wall() - c0
+                tr.load_cpu_s[k] = cpu() - p0
             if estimator is not None:
                 tr.estimator_s[k] = c1 - c0
                 tr.x_measured[k] = xm[:NX]

@@ -36,9 +36,19 @@ RECOVERY_BAND_M = 0.005
 CRASH_TILT_RAD = np.deg2rad(80.0)
 
 #: Fields that measure this machine's wall time; everything else in a result is reproducible exactly.
-TIMING_FIELDS = ("solve_ms", "latency_ms", "deadline_misses", "deadline_fallbacks", "wall_time_s", "preflight_ms")
-#: Trace arrays that measure wall time.
-TRACE_TIMING_FIELDS = ("solve_s", "latency_s", "load_s")
+TIMING_FIELDS = ("solve_ms", "latency_ms", "deadline_misses", "own_work_misses", "deadline_fallbacks",
+                 "wall_time_s", "preflight_ms")
+#: Trace arrays that measure wall time (or CPU time).
+TRACE_TIMING_FIELDS = ("solve_s", "latency_s", "load_s", "load_cpu_s")
+
+
+def own_work_misses(load_cpu_s: np.ndarray, called: np.ndarray, dt: float = DT) -> int:
+    """Periods whose controller did more than a period's work by its own thread's CPU time (``load_cpu_s`` (K,), s,
+    where ``called`` (K,)): the deadline misses it caused itself. A period over the deadline by wall time but not by
+    CPU time is one in which the machine gave the core to something else (another process, the kernel, the
+    hypervisor)."""
+    cpu = np.asarray(load_cpu_s, dtype=float)[np.asarray(called, dtype=bool)]
+    return int(np.sum(cpu > dt))
 
 
 

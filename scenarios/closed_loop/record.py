@@ -62,9 +62,10 @@ class RunRecord(Mapping):
     ``recovery_time_s`` (a gust impulse's scenario only), ``skipped_periods`` (real-time timing only),
     ``settled_error_m``, ``rmse_yaw_rad``, ``rmse_position_m``, ``max_position_error_m`` (m, rad), ``crashed``,
     ``crash_time_s``, ``crash_reason``, ``solve_ms`` (median, p95, max: each period's load, the controller's
-    preparation of the next period included), ``deadline_misses``, ``solver_failures``, ``fallbacks`` (LQR fallbacks
-    flown) and ``steps`` (control periods flown); ``latency_ms`` (median, p95, p99, max: from the measurement to the
-    input out, a state estimator's time included).
+    preparation of the next period included), ``deadline_misses``, ``own_work_misses`` (periods whose controller
+    thread's CPU time alone passed the period: the misses it caused itself), ``solver_failures``, ``fallbacks``
+    (LQR fallbacks flown) and ``steps`` (control periods flown); ``latency_ms`` (median, p95, p99, max: from the
+    measurement to the input out, a state estimator's time included).
 
     The flight: ``shifted_plan`` (failed solves that flew the shifted plan), ``deadline_fallbacks`` (real time:
     periods whose plan missed its deadline), ``failure_causes`` (solver status: count), ``preflight`` and
@@ -107,6 +108,7 @@ class RunRecord(Mapping):
     solve_ms: Any = _absent()
     latency_ms: Any = _absent()
     deadline_misses: Any = _absent()
+    own_work_misses: Any = _absent()
     solver_failures: Any = _absent()
     fallbacks: Any = _absent()
     steps: Any = _absent()

@@ -39,7 +39,7 @@ from sim.plants.named import PLANTS
 
 from ..errors import ScenarioError
 from .library import get_scenario
-from .metrics import closed_loop_metrics
+from .metrics import closed_loop_metrics, own_work_misses
 from .record import NOT_FLOWN, RunRecord, input_hashes, not_flown
 
 #: Longest MPC horizon a run accepts, steps (5 s): five times the 1 s over which the models' open-loop error is
@@ -383,6 +383,7 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
         horizon=spec.horizon, timing=spec.timing, plant=spec.plant, vehicle=vehicle.name, estimator=spec.estimator,
         qp=flown_qp(spec, sqp), **scheme, level=spec.level, inputs_sha256=inputs, **metrics,
         latency_ms=period_stats(tr.latency_s[:k_end]) if error is None else None,
+        own_work_misses=own_work_misses(tr.load_cpu_s[:k_end], tr.called[:k_end]) if error is None else None,
         shifted_plan=int(np.sum(failed & ~lqr_fb)), deadline_fallbacks=late, failure_causes=causes,
         preflight=None if pre is None else {"iterations": int(pre.iterations), "status": pre.status},
         preflight_ms=None if pre is None else 1e3 * pre.solve_time_s, error=error, wall_time_s=wall,
@@ -390,6 +391,7 @@ def fly(spec: RunSpec, progress: bool = False, scenario=None, model=None, ekf_co
     trace = {"t": t_all[:k_end + 1], "x": tr.x[:k_end + 1], "x_ref": X_ref[:k_end + 1],
              "x_measured": tr.x_measured[:k_end], "u": tr.u[:k_end], "u_command": tr.u_command[:k_end],
              "solve_s": tr.solve_s[:k_end], "latency_s": tr.latency_s[:k_end], "load_s": tr.load_s[:k_end],
+             "load_cpu_s": tr.load_cpu_s[:k_end],
              "called": tr.called[:k_end],
              "iterations": tr.iterations[:k_end], "status": tr.status[:k_end], "solver_failed": failed,
              "lqr_fallback": lqr_fb, "rotor_speed": tr.rotor_speed[:k_end + 1]}
