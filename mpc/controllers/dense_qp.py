@@ -198,7 +198,7 @@ def _condense_c(kernel, qp: LTVQP, f: int):
     N, nx, nu = qp.B.shape
     n = N * nu
     a = [np.ascontiguousarray(v, dtype=np.float64) for v in (qp.A, qp.B, qp.c, qp.Q, qp.P, qp.R)]
-    diagonal = all(np.array_equal(w, np.diag(np.diag(w))) for w in a[3:5])
+    diagonal = _diagonal_weights(qp)
     G, WG = np.empty((N + 1, nx, n)), np.empty((N + 1, nx, n))
     H, Z = np.empty((n, n)), np.empty((2, nx, n))
     M = np.empty((N + 1, nx, max(f, 1)))
@@ -217,34 +217,35 @@ def _forward(qp: LTVQP, free: bool, offsets: bool = True, inputs: bool = True) -
     Per stage: ``A_k`` times the columns of the inputs before stage ``k`` (the others are zero), ``B_k`` into
     input ``k``'s; and with ``free`` one more product, in which the constant terms ride along as rows: the free
     columns hold ``[Phi_k | v_k | Psi_k]`` over the constant rows ``[0 | 1 | 0]`` and ``[0 | 0 | I]`` (``r = 2 nx
-    + 1``; ``nx + 1`` without ``Psi``), so that ``[A_k | c_k | I]`` times them is the next stage's."""
+    + 1``; ``nx + 1`` without ``Psi``; ``nx`` without ``free``), so that ``[A_k | c_k | I]`` times them is the
+    next stage's."""
     N, nx, nu = qp.B.shape
     n = N * nu
-    if not free:
-        T = np.zeros((N + 1, nx, n))
-        for k in range(N):
-            m = k * nu
-            np.matmul(qp.A[k], T[k, :, :m], out=T[k + 1, :, :m])     # only the inputs before stage k move x_k
-            T[k + 1, :, m:m + nu] = qp.B[k]
-        return T
     e = nx if offsets else 0
     g = n if inputs else 0
-    rows = nx + 1 + e
-    T = np.zeros((N + 1, rows, g + rows))
-    T[0, :nx, g:g + nx] = np.eye(nx)                        # Phi_0 = I, v_0 = 0, Psi_0 = 0
-    T[:, nx, g + nx] = 1.0                                  # the constant rows
-    T[:, nx + 1:, g + nx + 1:] = np.eye(e)
-    step = np.zeros((N, nx, rows))                          # [A_k | c_k | I]
-    step[:, :, :nx] = qp.A
-    step[:, :, nx] = qp.c
-    step[:, :, nx + 1:] = np.eye(nx)[:, :e]
+    rows = nx + 1 + e if free else nx
+    T = np.zeros((N + 1, rows, g + (rows if free else 0)))
+    if free:
+        T[0, :nx, g:g + nx] = np.eye(nx)                    # Phi_0 = I, v_0 = 0, Psi_0 = 0
+        T[:, nx, g + nx] = 1.0                              # the constant rows
+        T[:, nx + 1:, g + nx + 1:] = np.eye(e)
+        step = np.zeros((N, nx, rows))                      # [A_k | c_k | I]
+        step[:, :, :nx] = qp.A
+        step[:, :, nx] = qp.c
+        step[:, :, nx + 1:] = np.eye(nx)[:, :e]
     for k in range(N):
         m = k * nu
         if inputs:
             np.matmul(qp.A[k], T[k, :nx, :m], out=T[k + 1, :nx, :m])    # only the inputs before stage k move x_k
             T[k + 1, :nx, m:m + nu] = qp.B[k]
-        np.matmul(step[k], T[k, :, g:], out=T[k + 1, :nx, g:])
+        if free:
+            np.matmul(step[k], T[k, :, g:], out=T[k + 1, :nx, g:])
     return T
+
+
+def _diagonal_weights(qp: LTVQP) -> bool:
+    """The state weights ``Q`` and ``P`` are diagonal (both backends then scale rows instead of multiplying)."""
+    return all(np.array_equal(w, np.diag(np.diag(w))) for w in (qp.Q, qp.P))
 
 
 def _condensed(qp: LTVQP, T: np.ndarray) -> Condensed:
@@ -252,11 +253,10 @@ def _condensed(qp: LTVQP, T: np.ndarray) -> Condensed:
     N, nx, nu = qp.B.shape
     n = N * nu
     G = T[:, :nx, :n]
-    q, p = np.diag(qp.Q), np.diag(qp.P)
     WG = np.empty((N + 1, nx, n))
-    if np.array_equal(qp.Q, np.diag(q)) and np.array_equal(qp.P, np.diag(p)):
-        np.multiply(G[:N], q[:, None], out=WG[:N])    # diagonal weights (the usual case): each row scaled
-        np.multiply(G[N], p[:, None], out=WG[N])
+    if _diagonal_weights(qp):
+        np.multiply(G[:N], np.diag(qp.Q)[:, None], out=WG[:N])    # the usual case: each row scaled
+        np.multiply(G[N], np.diag(qp.P)[:, None], out=WG[N])
     else:
         np.matmul(qp.Q, G[:N], out=WG[:N])
         np.matmul(qp.P, G[N], out=WG[N])
